@@ -1,0 +1,103 @@
+"""Planner rollouts in the task suite, spread over worker processes (one ManiSkill env per family each)."""
+
+import multiprocessing as mp
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_roboscape.demos.episode import Episode
+from lerobot_roboscape.demos.planner import SuboptimalConfig, plan_episode
+from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
+
+SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    family: str
+    scene_id: str
+    seed: int
+    optimal: bool
+    image_size: int
+
+
+def observation_state(obs: dict) -> np.ndarray:
+    """Joint positions (9) + TCP pose (7: xyz, quaternion wxyz) of env 0."""
+    qpos = obs["agent"]["qpos"][0].cpu().numpy()
+    tcp = obs["extra"]["tcp_pose"][0].cpu().numpy()
+    return np.concatenate([qpos, tcp]).astype(np.float32)
+
+
+def observation_images(obs: dict) -> dict[str, np.ndarray]:
+    return {CAMERA_NAMES[uid]: data["rgb"][0].cpu().numpy() for uid, data in obs["sensor_data"].items()}
+
+
+def run_planned_episode(env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None) -> Episode:
+    """Reset `env` (a task env of `job.family`) into `job.scene_id` and follow a planned trajectory to its end."""
+    obs, _ = env.reset(seed=job.seed, options={"scene_id": job.scene_id})
+    task_env: RoboscapeTabletopEnv = env.unwrapped
+    rng = np.random.default_rng(job.seed)
+    follower = plan_episode(task_env, job.optimal, rng, suboptimal)
+    frames: dict[str, list] = {"state": [], "action": [], "reward": [], "success": [], "images": []}
+    settle = SETTLE_STEPS
+    while True:
+        tcp = task_env.agent.tcp_pose
+        action = follower.act(tcp.p[0].cpu().numpy(), tcp.q[0].cpu().numpy())
+        frames["images"].append(observation_images(obs))
+        frames["state"].append(observation_state(obs))
+        obs, reward, terminated, truncated, info = env.step(action)
+        frames["action"].append(action)
+        frames["reward"].append(float(reward[0]))
+        frames["success"].append(bool(info["success"][0]))
+        if follower.done:
+            settle -= 1
+        if settle <= 0 or bool(truncated[0]):
+            break
+    n = len(frames["action"])
+    done = np.zeros(n, dtype=bool)
+    done[-1] = True
+    cameras = frames["images"][0].keys()
+    episode = Episode(
+        images={cam: np.stack([f[cam] for f in frames["images"]]) for cam in cameras},
+        state=np.stack(frames["state"]),
+        action=np.stack(frames["action"]),
+        reward=np.asarray(frames["reward"], dtype=np.float32),
+        success=np.asarray(frames["success"], dtype=bool),
+        done=done,
+        task=task_env.instruction,
+        info={
+            "task_family": job.family,
+            "scene": job.scene_id,
+            "split": task_env.scene_spec.split,
+            "optimal": job.optimal,
+            "seed": job.seed,
+            "skipped_waypoints": follower.skipped,
+        },
+    )
+    episode.info["success"] = episode.succeeded
+    return episode
+
+
+# Worker processes keep one env per family and switch scenes by reset options (a scene rebuild, no new env).
+_worker_envs: dict = {}
+
+
+def _worker_run(job: EpisodeJob) -> Episode:
+    from lerobot_roboscape.tasks.make import make_task_env
+
+    key = (job.family, job.image_size)
+    if key not in _worker_envs:
+        _worker_envs[key] = make_task_env(job.family, job.scene_id, image_size=job.image_size)
+    return run_planned_episode(_worker_envs[key], job)
+
+
+def run_jobs(jobs: list[EpisodeJob], workers: int = 2) -> Iterator[Episode]:
+    """Episodes of `jobs`, in order, computed by `workers` processes (0 = in this process)."""
+    if workers <= 0:
+        for job in jobs:
+            yield _worker_run(job)
+        return
+    # SAPIEN's renderer does not survive fork; spawn clean interpreters.
+    with mp.get_context("spawn").Pool(workers, maxtasksperchild=None) as pool:
+        yield from pool.imap(_worker_run, jobs, chunksize=1)
