@@ -1,0 +1,116 @@
+"""Writes episodes as a LeRobotDataset v3, atomically: built in a temporary directory beside the target and
+moved into place only when complete, so a failure leaves no partial dataset behind."""
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
+from tqdm import tqdm
+
+from lerobot_roboscape.demos.episode import Episode
+
+SUCCESS = "next.success"
+# Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
+EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"
+
+
+def dataset_features(episode: Episode, state_names: list[str] | None = None,
+                     action_names: list[str] | None = None) -> dict:
+    """LeRobot feature spec matching `episode`'s cameras and widths."""
+    features = {}
+    for camera, frames in episode.images.items():
+        features[f"{OBS_IMAGES}.{camera}"] = {
+            "dtype": "video", "shape": tuple(frames.shape[1:]), "names": ["height", "width", "channels"],
+        }
+    features[OBS_STATE] = {"dtype": "float32", "shape": (episode.state.shape[1],), "names": state_names}
+    features[ACTION] = {"dtype": "float32", "shape": (episode.action.shape[1],), "names": action_names}
+    features[REWARD] = {"dtype": "float32", "shape": (1,), "names": None}
+    features[DONE] = {"dtype": "bool", "shape": (1,), "names": None}
+    features[SUCCESS] = {"dtype": "bool", "shape": (1,), "names": None}
+    return features
+
+
+def _check_target(root: Path, overwrite: bool) -> None:
+    if root.exists():
+        if not overwrite:
+            raise FileExistsError(f"Output directory {root} already exists; choose another or pass --overwrite")
+        if not (root / "meta" / "info.json").exists():
+            raise FileExistsError(f"Refusing to overwrite {root}: it exists and is not a LeRobot dataset")
+
+
+def write_dataset(
+    episodes: Iterable[Episode],
+    repo_id: str,
+    root: str | Path,
+    fps: int,
+    *,
+    state_names: list[str] | None = None,
+    action_names: list[str] | None = None,
+    robot_type: str | None = None,
+    overwrite: bool = False,
+    total: int | None = None,
+    keep: callable = lambda episode: True,
+) -> LeRobotDataset:
+    """Write `episodes` (any iterable, consumed once) to `root` and return the dataset opened for reading.
+
+    Episodes for which `keep(episode)` is False are dropped. Raises ValueError if none is kept.
+    """
+    root = Path(root).resolve()
+    _check_target(root, overwrite)
+    root.parent.mkdir(parents=True, exist_ok=True)
+    staging_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
+    staging = staging_parent / root.name
+    try:
+        dataset, records = None, []
+        for episode in tqdm(episodes, total=total, desc=f"writing {repo_id}", unit="episode"):
+            if not keep(episode):
+                continue
+            if dataset is None:
+                dataset = LeRobotDataset.create(
+                    repo_id, fps=fps, root=staging, robot_type=robot_type, use_videos=True,
+                    features=dataset_features(episode, state_names, action_names),
+                )
+            _add_episode(dataset, episode)
+            records.append({"episode_index": len(records), "length": len(episode), "task": episode.task,
+                            **episode.info})
+        if dataset is None:
+            raise ValueError(f"No episode to write to {root} (none produced, or none kept)")
+        dataset.finalize()
+        shutil.rmtree(staging / "images", ignore_errors=True)  # frames already encoded into videos/
+        with open(staging / EPISODES_SIDECAR, "w") as f:
+            for record in records:
+                f.write(json.dumps(record) + "\n")
+        if root.exists():
+            shutil.rmtree(root)
+        os.replace(staging, root)
+    finally:
+        shutil.rmtree(staging_parent, ignore_errors=True)
+    return LeRobotDataset(repo_id, root=root)
+
+
+def _add_episode(dataset: LeRobotDataset, episode: Episode) -> None:
+    for t in range(len(episode)):
+        frame = {f"{OBS_IMAGES}.{camera}": frames[t] for camera, frames in episode.images.items()}
+        frame[OBS_STATE] = episode.state[t].astype(np.float32)
+        frame[ACTION] = episode.action[t].astype(np.float32)
+        frame[REWARD] = np.array([episode.reward[t]], dtype=np.float32)
+        frame[DONE] = np.array([episode.done[t]], dtype=bool)
+        frame[SUCCESS] = np.array([episode.success[t]], dtype=bool)
+        frame["task"] = episode.task
+        dataset.add_frame(frame)
+    dataset.save_episode()
+
+
+def read_episode_info(root: str | Path) -> list[dict]:
+    """The per-episode facts written beside a dataset (empty if the dataset has none)."""
+    path = Path(root) / EPISODES_SIDECAR
+    if not path.exists():
+        return []
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
