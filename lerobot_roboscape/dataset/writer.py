@@ -8,6 +8,7 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
+import datasets
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
@@ -18,6 +19,12 @@ from lerobot_roboscape.demos.episode import Episode
 SUCCESS = "next.success"
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
 EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"
+
+
+def _quiet_encoders() -> None:
+    # One progress bar per stage is ours; hide the per-episode bars of `datasets` and SVT-AV1's warnings.
+    datasets.disable_progress_bars()
+    os.environ.setdefault("SVT_LOG", "1")
 
 
 def dataset_features(episode: Episode, state_names: list[str] | None = None,
@@ -63,6 +70,7 @@ def write_dataset(
     """
     root = Path(root).resolve()
     _check_target(root, overwrite)
+    _quiet_encoders()
     root.parent.mkdir(parents=True, exist_ok=True)
     staging_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
     staging = staging_parent / root.name

@@ -14,7 +14,7 @@ from lerobot_roboscape.demos.episode import Episode
 RENDER_HINT = (
     "It has no camera images. Render them by replaying it first, e.g.\n"
     "  python -m mani_skill.trajectory.replay_trajectory --traj-path {h5} --obs-mode rgb --save-traj "
-    "--use-env-states\nthen convert the new file it writes (same folder, '.rgb.' in its name)."
+    "--use-env-states --allow-failure\nthen convert the new file it writes (same folder, '.rgb.' in its name)."
 )
 
 

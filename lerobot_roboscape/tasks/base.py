@@ -192,5 +192,14 @@ class RoboscapeTabletopEnv(BaseEnv):
     def reach_reward(self, target_xyz: torch.Tensor) -> torch.Tensor:
         return 1 - torch.tanh(5 * torch.linalg.norm(target_xyz - self.agent.tcp_pose.p, axis=1))
 
+    def carry_reward(self, target_xyz: torch.Tensor, info: dict, placed_key: str) -> torch.Tensor:
+        """Staged reward for carrying the object to `target_xyz`: reach, grasp, approach, placed; max at success."""
+        is_grasped = info["is_grasped"].float()
+        to_target = torch.linalg.norm(target_xyz - self.obj.pose.p, axis=1)
+        reward = self.reach_reward(self.obj.pose.p) + is_grasped + (1 - torch.tanh(5 * to_target)) * is_grasped
+        reward = reward + 2 * info[placed_key].float()
+        reward[info["success"]] = self.max_dense_reward
+        return reward
+
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         return self.compute_dense_reward(obs=obs, action=action, info=info) / self.max_dense_reward

@@ -54,13 +54,6 @@ class MoveToAimEnv(RoboscapeTabletopEnv):
         }
 
     def compute_dense_reward(self, obs, action: torch.Tensor, info: dict):
-        reward = self.reach_reward(self.obj.pose.p)
-        is_grasped = info["is_grasped"].float()
-        reward = reward + is_grasped
         above_carpet = self.carpet.pose.p.clone()
         above_carpet[:, 2] = self.scene_spec.object.half_height + 0.03
-        to_carpet = torch.linalg.norm(above_carpet - self.obj.pose.p, axis=1)
-        reward = reward + (1 - torch.tanh(5 * to_carpet)) * is_grasped
-        reward = reward + 2 * info["is_obj_on_carpet"].float()
-        reward[info["success"]] = self.max_dense_reward
-        return reward
+        return self.carry_reward(above_carpet, info, "is_obj_on_carpet")

@@ -46,13 +46,6 @@ class PickPlaceEnv(RoboscapeTabletopEnv):
         }
 
     def compute_dense_reward(self, obs, action: torch.Tensor, info: dict):
-        reward = self.reach_reward(self.obj.pose.p)
-        is_grasped = info["is_grasped"].float()
-        reward = reward + is_grasped
         above_container = self.container.pose.p.clone()
         above_container[:, 2] += self.scene_spec.object.half_height + 0.05
-        to_container = torch.linalg.norm(above_container - self.obj.pose.p, axis=1)
-        reward = reward + (1 - torch.tanh(5 * to_container)) * is_grasped
-        reward = reward + 2 * info["is_obj_in_container"].float()
-        reward[info["success"]] = self.max_dense_reward
-        return reward
+        return self.carry_reward(above_container, info, "is_obj_in_container")

@@ -77,3 +77,19 @@ def test_existing_output_is_kept(recorded, tmp_path):
     (tmp_path / "out").mkdir()
     with pytest.raises(FileExistsError, match="out"):
         convert(ConvertConfig(h5=str(recorded), root=str(tmp_path / "out")))
+
+
+def test_file_rendered_by_replay_trajectory_converts(tmp_path):
+    """The route the state-only error suggests: ManiSkill's replay_trajectory renders RGB, then we convert."""
+    import subprocess
+    import sys
+
+    h5 = record_maniskill_file(tmp_path, obs_mode="state", episodes=1, steps=4)
+    subprocess.run([sys.executable, "-m", "mani_skill.trajectory.replay_trajectory", "--traj-path", str(h5),
+                    "--obs-mode", "rgb", "--save-traj", "--use-env-states", "--allow-failure"],
+                   check=True, capture_output=True, timeout=300)
+    rendered = next(tmp_path.glob("traj.rgb.*.h5"))
+    ds = convert(ConvertConfig(h5=str(rendered), root=str(tmp_path / "out"), task="pick up the cube"))
+    (actions, success), = _source(h5)
+    assert ds.meta.total_frames == len(actions)
+    assert np.allclose(np.array(ds.hf_dataset["action"]), actions, atol=1e-6)
