@@ -52,7 +52,7 @@ def bench_maniskill_runner(tmp: Path, episodes: int, workers: int) -> dict | str
     try:
         subprocess.run(["uv", "venv", "-q", "--python", sys.executable, str(venv)], check=True)
         subprocess.run(["uv", "pip", "install", "-q", "--python", str(venv / "bin" / "python"), "mani-skill==3.0.1",
-                        "numpy<2", "torch==2.11.0", "setuptools<81"], check=True)
+                        "numpy<2", "torch==2.11.0", "setuptools<81", "opencv-python-headless"], check=True)
     except (subprocess.CalledProcessError, FileNotFoundError) as e:
         return f"skipped: could not build the NumPy<2 environment ({e})"
     record_dir = tmp / "ms_runner"
