@@ -12,7 +12,7 @@ import draccus
 
 from lerobot_roboscape.dataset import write_dataset
 from lerobot_roboscape.demos.maniskill_files import open_trajectory_file, read_episodes
-from lerobot_roboscape.tasks import get_scene
+from lerobot_roboscape.tasks import ENV_IDS, get_scene
 from lerobot_roboscape.tasks.base import CAMERA_NAMES
 
 
@@ -38,8 +38,6 @@ class ConvertConfig:
 
 
 def default_task(env_id: str, env_kwargs: dict) -> str:
-    from lerobot_roboscape.tasks import ENV_IDS
-
     family = {v: k for k, v in ENV_IDS.items()}.get(env_id)
     if family and "scene_id" in env_kwargs:
         return get_scene(env_kwargs["scene_id"]).instruction(family)

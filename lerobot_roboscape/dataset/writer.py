@@ -5,7 +5,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import datasets
@@ -62,7 +62,7 @@ def write_dataset(
     robot_type: str | None = None,
     overwrite: bool = False,
     total: int | None = None,
-    keep: callable = lambda episode: True,
+    keep: Callable[[Episode], bool] = lambda episode: True,
 ) -> LeRobotDataset:
     """Write `episodes` (any iterable, consumed once) to `root` and return the dataset opened for reading.
 

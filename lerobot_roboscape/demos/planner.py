@@ -106,6 +106,8 @@ def make_suboptimal(plan: list[Waypoint], rng: np.random.Generator, cfg: Subopti
     previous = plan[0].position
     for waypoint in plan:
         moving = np.linalg.norm(waypoint.position - previous) > 0.03
+        # Near the table a sideways detour would sweep the object away: vary only the moves up high.
+        moving = moving and min(previous[2], waypoint.position[2]) >= 0.05
         if moving and rng.random() < cfg.detour_prob:
             midpoint = (previous + waypoint.position) / 2 + rng.normal(0, cfg.detour_noise, 3)
             midpoint[2] = max(midpoint[2] + 0.05, 0.06)  # detours go up, away from the table
@@ -121,7 +123,7 @@ def make_suboptimal(plan: list[Waypoint], rng: np.random.Generator, cfg: Subopti
         if waypoint.hold and rng.random() < cfg.perturb_prob:
             # A near miss just above the grasp/release point, then the real one.
             near = waypoint.position + rng.normal(0, cfg.perturb_noise, 3) * [1, 1, 0.5]
-            near[2] = max(near[2], waypoint.position[2]) + 0.01
+            near[2] = max(near[2], waypoint.position[2]) + 0.03  # above the object: a near miss, not a knock
             carried = out[-1].gripper if out else waypoint.gripper
             out.append(Waypoint(near, carried, rng.normal(0, 0.08, 3), tolerance=0.008, essential=False))
         out.append(waypoint)

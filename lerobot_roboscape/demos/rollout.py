@@ -11,6 +11,8 @@ from lerobot_roboscape.demos.planner import SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
 
 SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest
+# Suboptimal plans with detours at low speed outlast the tasks' RL time limits; the plan ends the episode.
+COLLECT_MAX_STEPS = 320
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,8 @@ def _worker_run(job: EpisodeJob) -> Episode:
 
     key = (job.family, job.image_size)
     if key not in _worker_envs:
-        _worker_envs[key] = make_task_env(job.family, job.scene_id, image_size=job.image_size)
+        _worker_envs[key] = make_task_env(job.family, job.scene_id, image_size=job.image_size,
+                                          max_episode_steps=COLLECT_MAX_STEPS)
     return run_planned_episode(_worker_envs[key], job)
 
 
@@ -99,5 +102,5 @@ def run_jobs(jobs: list[EpisodeJob], workers: int = 2) -> Iterator[Episode]:
             yield _worker_run(job)
         return
     # SAPIEN's renderer does not survive fork; spawn clean interpreters.
-    with mp.get_context("spawn").Pool(workers, maxtasksperchild=None) as pool:
+    with mp.get_context("spawn").Pool(workers) as pool:
         yield from pool.imap(_worker_run, jobs, chunksize=1)
