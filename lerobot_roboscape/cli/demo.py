@@ -13,6 +13,7 @@ import draccus
 
 from lerobot_roboscape.cli.collect import CollectConfig, collect
 from lerobot_roboscape.cli.convert import ConvertConfig, convert
+from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 
 
@@ -41,8 +42,6 @@ def _stage(name: str):
 
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
-    from lerobot_roboscape.demos.record import record_maniskill_trajectories
-
     out = Path(cfg.output_dir).resolve()
     artifacts: dict[str, Path] = {}
 

@@ -44,10 +44,10 @@ def open_trajectory_file(h5_path: str | Path, json_path: str | Path | None = Non
         env_info, episodes = meta["env_info"], meta["episodes"]
     except (json.JSONDecodeError, KeyError, TypeError) as e:
         raise ValueError(f"{json_path}: not a ManiSkill trajectory .json ({type(e).__name__}: {e})") from e
-    env_kwargs = env_info.get("env_kwargs", {})
-    control_mode = env_kwargs.get("control_mode") or (episodes[0].get("control_mode") if episodes else None)
     if not episodes:
         raise ValueError(f"{json_path}: lists no episodes")
+    env_kwargs = env_info.get("env_kwargs", {})
+    control_mode = env_kwargs.get("control_mode") or episodes[0].get("control_mode")
     try:
         h5 = h5py.File(h5_path, "r")
     except OSError as e:
