@@ -1,0 +1,25 @@
+"""`roboscape-train-wm`: train the action or the text world model (Accelerate: CPU, one GPU or `accelerate launch`).
+
+    roboscape-train-wm --dataset.repo_id=local/roboscape --dataset.root=outputs/datasets/roboscape \
+        --tokenizer=outputs/tokenizer/pretrained_model --wm.control=action --output_dir=outputs/wm_action
+    roboscape-train-wm ... --wm.control=text --output_dir=outputs/wm_text
+    roboscape-train-wm ... --train.resume=true      # continue a killed run from its last checkpoint
+"""
+
+import logging
+
+import draccus
+
+from lerobot_roboscape.training import FINAL
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+
+
+def main(argv: list[str] | None = None):
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cfg = draccus.parse(TrainWorldModelConfig, args=argv)
+    train_world_model(cfg)
+    print(f"World model ({cfg.wm.control}) saved to {(cfg.output_dir / FINAL).resolve()}")
+
+
+if __name__ == "__main__":
+    main()

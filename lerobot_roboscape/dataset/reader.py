@@ -1,0 +1,119 @@
+"""Reads the collected LeRobot datasets back for model training: whole episodes in order, or random frames."""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.video_utils import decode_video_frames
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES
+
+from lerobot_roboscape.dataset.writer import SUCCESS, read_episode_info
+
+
+class DatasetError(ValueError):
+    pass
+
+
+def open_dataset(repo_id: str, root: str | Path | None = None, episodes: list[int] | None = None) -> LeRobotDataset:
+    """A LeRobotDataset with at least one camera and one episode, or a `DatasetError` naming what is missing."""
+    if root is not None and not (Path(root) / "meta" / "info.json").is_file():
+        raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json is missing); collect one with roboscape-collect")
+    dataset = LeRobotDataset(repo_id, root=root, episodes=episodes)
+    where = root or repo_id
+    if dataset.meta.total_episodes == 0 or dataset.num_frames == 0:
+        raise DatasetError(f"dataset {where} has no episodes")
+    if not dataset.meta.camera_keys:
+        raise DatasetError(f"dataset {where} has no camera features ({OBS_IMAGES}.<camera>)")
+    if ACTION not in dataset.features:
+        raise DatasetError(f"dataset {where} has no '{ACTION}' feature")
+    return dataset
+
+
+def camera_names(dataset: LeRobotDataset) -> list[str]:
+    return [key.removeprefix(f"{OBS_IMAGES}.") for key in dataset.meta.camera_keys]
+
+
+def image_size(dataset: LeRobotDataset) -> int:
+    """Side of the square camera images; a `DatasetError` when views are not square or differ."""
+    shapes = {tuple(dataset.features[key]["shape"]) for key in dataset.meta.camera_keys}
+    sides = {s[0] for s in shapes} | {s[1] for s in shapes}
+    if len(sides) != 1:
+        raise DatasetError(f"dataset {dataset.root} cameras must be square and of one size, got shapes {sorted(shapes)}")
+    return sides.pop()
+
+
+@dataclass
+class EpisodeData:
+    index: int
+    task: str
+    images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
+    action: np.ndarray  # (T, action_dim) float32
+    done_label: np.ndarray  # (T,) float32: 1 where the task is accomplished in frame t
+    info: dict  # the roboscape per-episode facts (family, scene, split, optimal, ...) when recorded
+
+
+def episode_indices(dataset: LeRobotDataset) -> list[int]:
+    return list(dataset.episodes) if dataset.episodes is not None else list(range(dataset.meta.total_episodes))
+
+
+def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
+    """All frames of one episode, decoded in one pass per camera (far faster than frame-by-frame access)."""
+    meta = dataset.meta.episodes[episode_index]
+    start, stop = meta["dataset_from_index"], meta["dataset_to_index"]
+    rows = dataset.hf_dataset.select(range(*_local_range(dataset, start, stop)))
+    timestamps = [float(t) for t in rows["timestamp"]]
+    images = {}
+    for key in dataset.meta.camera_keys:
+        path = dataset.root / dataset.meta.get_video_file_path(episode_index, key)
+        offset = meta[f"videos/{key}/from_timestamp"]
+        frames = decode_video_frames(path, [offset + t for t in timestamps], dataset.tolerance_s, return_uint8=True)
+        images[key.removeprefix(f"{OBS_IMAGES}.")] = frames.permute(0, 2, 3, 1).numpy()
+    # `next.success` at t is the outcome of action t, i.e. the state of frame t + 1.
+    flags = SUCCESS if SUCCESS in rows.column_names else DONE
+    outcome = np.asarray(rows[flags], dtype=np.float32).reshape(-1)
+    done_label = np.concatenate([[0.0], outcome[:-1]]).astype(np.float32)
+    info = _sidecar(dataset).get(episode_index, {})
+    return EpisodeData(
+        index=episode_index,
+        task=meta["tasks"][0],
+        images=images,
+        action=np.asarray(rows[ACTION], dtype=np.float32),
+        done_label=done_label,
+        info=info,
+    )
+
+
+def _local_range(dataset: LeRobotDataset, start: int, stop: int) -> tuple[int, int]:
+    # With an episode selection, hf_dataset holds only the selected rows; find this episode's rows among them.
+    if dataset.episodes is None:
+        return start, stop
+    index = np.asarray(dataset.hf_dataset["index"])
+    first = int(np.searchsorted(index, start))
+    return first, first + (stop - start)
+
+
+def _sidecar(dataset: LeRobotDataset) -> dict[int, dict]:
+    if not hasattr(dataset, "_roboscape_info"):
+        try:
+            rows = read_episode_info(dataset.root)
+        except FileNotFoundError:
+            rows = []
+        dataset._roboscape_info = {row["episode_index"]: row for row in rows}
+    return dataset._roboscape_info
+
+
+class CameraFrames(torch.utils.data.Dataset):
+    """Random access to single frames of every camera, (n_cameras, 3, H, W) float in [0, 1], for the tokenizer."""
+
+    def __init__(self, dataset: LeRobotDataset):
+        self.dataset = dataset
+        self.keys = dataset.meta.camera_keys
+
+    def __len__(self) -> int:
+        return self.dataset.num_frames
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        item = self.dataset[i]
+        return torch.stack([item[key] for key in self.keys])

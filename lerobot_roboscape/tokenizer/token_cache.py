@@ -1,0 +1,169 @@
+"""Pre-tokenised datasets for world-model training.
+
+A cache is a directory of memory-mapped arrays plus a manifest naming the dataset and tokenizer it came from:
+
+    manifest.json   fingerprints of dataset and tokenizer, grid and vocabulary sizes
+    tokens.npy      (N, n_cameras, h, w) uint16 codes of every frame of every episode
+    actions.npy     (N, action_dim) float32
+    done.npy        (N,) float32 done labels (1 where the task is accomplished in that frame)
+    episodes.json   per episode: start row, length, task and the roboscape facts (family, scene, split, optimal)
+
+Its directory name is derived from both fingerprints, so a changed dataset or retrained tokenizer gets a new cache
+instead of a stale one; opening a cache with fingerprints that do not match raises `TokenCacheMismatchError`.
+"""
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from tqdm import tqdm
+
+from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+
+FORMAT_VERSION = 1
+ARRAYS = ("tokens", "actions", "done")
+
+
+class TokenCacheMismatchError(ValueError):
+    pass
+
+
+def tokenizer_fingerprint(tokenizer: VisualTokenizer) -> str:
+    digest = hashlib.sha256(json.dumps(tokenizer.config.__dict__, sort_keys=True, default=list).encode())
+    for name, tensor in sorted(tokenizer.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def dataset_fingerprint(root: str | Path) -> str:
+    """Hash of the dataset's metadata and tables, plus the names and sizes of its videos."""
+    root = Path(root)
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root).as_posix()
+        digest.update(rel.encode())
+        if path.suffix in (".json", ".jsonl", ".parquet"):
+            digest.update(path.read_bytes())
+        else:
+            digest.update(str(path.stat().st_size).encode())
+    return digest.hexdigest()
+
+
+@dataclass
+class TokenCache:
+    root: Path
+    manifest: dict
+    tokens: np.ndarray  # (N, n_cameras, h, w) uint16, memory-mapped
+    actions: np.ndarray  # (N, action_dim) float32
+    done: np.ndarray  # (N,) float32
+    episodes: list[dict]
+
+    @property
+    def vocab_size(self) -> int:
+        return self.manifest["vocab_size"]
+
+    @property
+    def cameras(self) -> list[str]:
+        return self.manifest["cameras"]
+
+    @property
+    def tokens_per_side(self) -> int:
+        return self.manifest["tokens_per_side"]
+
+    @property
+    def action_dim(self) -> int:
+        return self.actions.shape[1]
+
+
+def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_fp: str | None = None) -> TokenCache:
+    """Open a cache read-only; fingerprints given must match the manifest's."""
+    path = Path(path)
+    manifest_path = path / "manifest.json"
+    if not manifest_path.is_file():
+        raise TokenCacheMismatchError(f"{path} is not a token cache (no manifest.json); build one with roboscape-train-wm")
+    manifest = json.loads(manifest_path.read_text())
+    for name, expected in (("dataset", dataset_fp), ("tokenizer", tokenizer_fp)):
+        if expected is not None and manifest[f"{name}_fingerprint"] != expected:
+            raise TokenCacheMismatchError(
+                f"token cache {path} was built from a different {name} "
+                f"({manifest[f'{name}_fingerprint'][:12]}, expected {expected[:12]}); delete it or omit --token_cache "
+                "to build a matching one"
+            )
+    arrays = {name: np.load(path / f"{name}.npy", mmap_mode="r") for name in ARRAYS}
+    episodes = json.loads((path / "episodes.json").read_text())
+    n = manifest["num_frames"]
+    for name, array in arrays.items():
+        if len(array) != n:
+            raise TokenCacheMismatchError(f"{path / f'{name}.npy'} has {len(array)} rows, manifest says {n}")
+    return TokenCache(path, manifest, arrays["tokens"], arrays["actions"], arrays["done"], episodes)
+
+
+def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path: str | Path,
+                      batch_size: int = 256, device: str | torch.device = "cpu") -> TokenCache:
+    """Tokenize every frame of every episode of `dataset` into a cache at `path` (written atomically)."""
+    path = Path(path)
+    size = image_size(dataset)
+    if size != tokenizer.config.image_size:
+        raise TokenCacheMismatchError(
+            f"dataset {dataset.root} has {size}x{size} images but the tokenizer expects {tokenizer.config.image_size}"
+        )
+    cameras, episodes = camera_names(dataset), episode_indices(dataset)
+    side, n = tokenizer.config.tokens_per_side, dataset.num_frames
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))
+        actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, dataset.meta.features["action"]["shape"][0]))
+        done = np.lib.format.open_memmap(tmp / "done.npy", "w+", np.float32, (n,))
+        tokenizer = tokenizer.to(device).eval()
+        rows, row = [], 0
+        for index in tqdm(episodes, desc="tokenizing", unit="episode", leave=False):
+            episode = read_episode(dataset, index)
+            length = len(episode.action)
+            for c, camera in enumerate(cameras):
+                frames = torch.from_numpy(episode.images[camera]).permute(0, 3, 1, 2)
+                for s in range(0, length, batch_size):
+                    codes = tokenizer.encode(frames[s : s + batch_size].to(device))
+                    tokens[row + s : row + s + len(codes), c] = codes.cpu().numpy().astype(np.uint16)
+            actions[row : row + length] = episode.action
+            done[row : row + length] = episode.done_label
+            rows.append({**episode.info, "episode_index": index, "start": row, "length": length, "task": episode.task})
+            row += length
+        for array in (tokens, actions, done):
+            array.flush()
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "dataset_root": str(dataset.root),
+            "dataset_fingerprint": dataset_fingerprint(dataset.root),
+            "tokenizer_fingerprint": tokenizer_fingerprint(tokenizer),
+            "cameras": cameras,
+            "tokens_per_side": side,
+            "vocab_size": tokenizer.config.codebook_size,
+            "num_frames": n,
+        }
+        (tmp / "episodes.json").write_text(json.dumps(rows))
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return open_token_cache(path)
+
+
+def load_or_build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, cache_dir: str | Path,
+                              device: str | torch.device = "cpu") -> TokenCache:
+    """The cache of (`dataset`, `tokenizer`) under `cache_dir`, built on first use and reused afterwards."""
+    dataset_fp, tokenizer_fp = dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer)
+    path = Path(cache_dir) / f"{dataset_fp[:16]}-{tokenizer_fp[:16]}"
+    if (path / "manifest.json").is_file():
+        return open_token_cache(path, dataset_fp, tokenizer_fp)
+    return build_token_cache(dataset, tokenizer, path, device=device)

@@ -1,0 +1,203 @@
+"""The supervised training loop shared by the tokenizer and the world models, on Accelerate.
+
+The same code runs on one CPU, one GPU, or under `accelerate launch` on several. Checkpoints hold the whole
+Accelerate state (model, optimiser, scheduler, RNG) plus the step; `resume=True` continues from the last one with
+the same step counter. Batches are a pure function of (step, process), so a resumed run sees the batches an
+uninterrupted run would have seen.
+"""
+
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from accelerate import Accelerator
+from accelerate.utils import set_seed
+from torch import nn
+from tqdm import tqdm
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINTS = "checkpoints"
+LAST = "last"
+FINAL = "pretrained_model"
+
+
+@dataclass
+class TrainingConfig:
+    """Args:
+    steps: optimiser steps in total.
+    batch_size: samples per step and process.
+    lr: peak learning rate (AdamW), reached after warmup_steps and decayed by a cosine to lr / 10.
+    weight_decay: AdamW weight decay.
+    warmup_steps: linear warm-up steps.
+    grad_clip: gradient-norm clipping.
+    log_freq: steps between log lines (TensorBoard under output_dir/logs, and the progress bar).
+    save_freq: steps between checkpoints.
+    keep_checkpoints: checkpoints kept on disk (older ones are deleted).
+    seed: seed of the initialisation and of the batch sampling.
+    mixed_precision: "auto" (bf16 on a GPU that supports it, else full precision), "bf16", "fp16" or "no".
+    resume: continue from the last checkpoint in output_dir.
+    """
+
+    steps: int = 1000
+    batch_size: int = 16
+    lr: float = 3e-4
+    weight_decay: float = 0.01
+    warmup_steps: int = 50
+    grad_clip: float = 1.0
+    log_freq: int = 25
+    save_freq: int = 250
+    keep_checkpoints: int = 2
+    seed: int = 0
+    mixed_precision: str = "auto"
+    resume: bool = False
+
+    def __post_init__(self):
+        if self.mixed_precision not in ("auto", "bf16", "fp16", "no"):
+            raise ValueError(f"mixed_precision must be auto, bf16, fp16 or no, got {self.mixed_precision!r}")
+        if self.steps < 1 or self.batch_size < 1 or self.save_freq < 1:
+            raise ValueError(f"steps, batch_size and save_freq must be >= 1, got {self.steps}, {self.batch_size}, "
+                             f"{self.save_freq}")
+
+
+def resolve_mixed_precision(value: str) -> str:
+    if value != "auto":
+        return value
+    return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
+
+
+def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
+    accelerator = Accelerator(mixed_precision=resolve_mixed_precision(config.mixed_precision),
+                              log_with="tensorboard", project_dir=output_dir)
+    set_seed(config.seed)
+    return accelerator
+
+
+def last_checkpoint(output_dir: Path) -> Path | None:
+    pointer = output_dir / CHECKPOINTS / LAST
+    if not pointer.is_file():
+        return None
+    path = output_dir / CHECKPOINTS / pointer.read_text().strip()
+    return path if path.is_dir() else None
+
+
+def _save_checkpoint(accelerator: Accelerator, model: nn.Module, step: int, output_dir: Path, keep: int) -> None:
+    root = output_dir / CHECKPOINTS
+    name = f"{step:08d}"
+    if accelerator.is_main_process:
+        tmp = _make_tmp_dir(root, name)
+    else:
+        tmp = None
+    tmp = Path(accelerate_broadcast_path(accelerator, tmp))
+    accelerator.save_state(tmp)
+    if accelerator.is_main_process:
+        accelerator.unwrap_model(model).save_pretrained(tmp / FINAL)
+        (tmp / "training_step.json").write_text(json.dumps({"step": step}))
+        shutil.rmtree(root / name, ignore_errors=True)
+        os.replace(tmp, root / name)
+        pointer = root / f".{LAST}.tmp"
+        pointer.write_text(name)
+        os.replace(pointer, root / LAST)
+        for old in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))[:-keep]:
+            shutil.rmtree(old)
+    accelerator.wait_for_everyone()
+
+
+def accelerate_broadcast_path(accelerator: Accelerator, path: Path | None) -> str:
+    from accelerate.utils import broadcast_object_list
+
+    holder = [str(path) if path is not None else None]
+    if accelerator.num_processes > 1:
+        broadcast_object_list(holder)
+    return holder[0]
+
+
+def _make_tmp_dir(parent: Path, name: str) -> Path:
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=parent))
+    tmp.chmod(0o755)  # mkdtemp makes it private; the final directory should not be
+    return tmp
+
+
+def cosine_with_warmup(config: TrainingConfig) -> Callable[[int], float]:
+    def factor(step: int) -> float:
+        if step < config.warmup_steps:
+            return (step + 1) / config.warmup_steps
+        progress = (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps)
+        return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+    return factor
+
+
+def fit(
+    model: nn.Module,
+    loss_fn: Callable[[nn.Module, dict], tuple[torch.Tensor, dict]],
+    batches: Callable[[int, int], dict],
+    config: TrainingConfig,
+    output_dir: str | Path,
+    run_config: dict,
+    desc: str = "training",
+) -> nn.Module:
+    """Train `model` for config.steps steps on `batches(step, process_index)`; returns the unwrapped model, also
+    saved (save_pretrained) to output_dir/pretrained_model with the run's config."""
+    output_dir = Path(output_dir)
+    resume_from = last_checkpoint(output_dir) if config.resume else None
+    if not config.resume and (output_dir / CHECKPOINTS).exists():
+        raise FileExistsError(f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
+                              "or choose a new --output_dir")
+    output_dir.mkdir(parents=True, exist_ok=True)
+    accelerator = make_accelerator(config, output_dir)
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay, betas=(0.9, 0.95))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(config))
+    model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
+    accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
+    start = 0
+    if resume_from is not None:
+        accelerator.load_state(resume_from)
+        start = json.loads((resume_from / "training_step.json").read_text())["step"]
+        logger.info("resumed from %s at step %d", resume_from, start)
+    if accelerator.is_main_process:
+        (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
+
+    model.train()
+    progress = tqdm(range(start, config.steps), desc=desc, initial=start, total=config.steps,
+                    disable=not accelerator.is_main_process, dynamic_ncols=True)
+    for step in progress:
+        batch = {k: v.to(accelerator.device) if torch.is_tensor(v) else v
+                 for k, v in batches(step, accelerator.process_index).items()}
+        with accelerator.autocast():
+            loss, logs = loss_fn(model, batch)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss is {loss.item()} at step {step}; lower --train.lr or check the data")
+        accelerator.backward(loss)
+        logs["grad_norm"] = float(accelerator.clip_grad_norm_(params, config.grad_clip))
+        optimizer.step()
+        scheduler.step()
+        optimizer.zero_grad(set_to_none=True)
+        if (step + 1) % config.log_freq == 0 or step == start:
+            logs["lr"] = scheduler.get_last_lr()[0]
+            accelerator.log(logs, step=step + 1)
+            progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in ("loss", "token_acc", "l1")})
+        if (step + 1) % config.save_freq == 0 or step + 1 == config.steps:
+            _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints)
+    accelerator.end_training()
+    unwrapped = accelerator.unwrap_model(model)
+    if accelerator.is_main_process:
+        save_atomically(unwrapped, output_dir / FINAL)
+    return unwrapped
+
+
+def save_atomically(model, path: Path) -> None:
+    """`model.save_pretrained(path)`, replacing `path` only once the new files are complete."""
+    tmp = _make_tmp_dir(path.parent, path.name)
+    model.save_pretrained(tmp)
+    shutil.rmtree(path, ignore_errors=True)
+    os.replace(tmp, path)

@@ -1,0 +1,103 @@
+from dataclasses import dataclass
+
+import draccus
+
+CONTROLS = ("action", "text")
+
+
+@dataclass
+class WorldModelConfig(draccus.ChoiceRegistry):
+    """A Genie-style spatial-temporal transformer predicting the next frame's tokens and a done signal.
+
+    A frame is the token grids of all camera views side by side: n_cameras * tokens_per_side ** 2 tokens, each view
+    tokenized on its own (the paper's code stacked the two views into one image; separate grids keep the tokenizer
+    camera-agnostic and the views' borders clean). Choose a preset with `--wm.type=tiny|paper`, then override.
+
+    Args:
+        control: "action" (7-D actions through an MLP encoder) or "text" (the instruction through a T5 encoder).
+        n_cameras: camera views per frame.
+        tokens_per_side: side of one view's token grid (the tokenizer's).
+        vocab_size: tokenizer codebook size.
+        action_dim: width of the actions (action model).
+        text_encoder: T5 checkpoint (Hub id or local directory) for the text model; None builds a small random
+            T5 with a byte-level tokenizer (tests and the tiny preset: instructions are told apart, not understood).
+        text_max_length: instructions are truncated to this many T5 tokens.
+        n_layer: spatial-temporal blocks.
+        n_head: attention heads.
+        d_model: width of the transformer.
+        mlp_ratio: MLP hidden width as a multiple of d_model.
+        dropout: dropout in attention and MLPs.
+        window: frames the model sees at once (training clip length and generation context).
+        prompt_frames: real frames given before prediction starts in evaluation.
+        maskgit_steps: parallel decoding steps per generated frame.
+        clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
+            context as it sees at generation time.
+        done_hidden: hidden width of the done head.
+        done_weight: weight of the done RMSE in the loss.
+    """
+
+    # Control.
+    control: str = "action"
+    action_dim: int = 7
+    text_encoder: str | None = None
+    text_max_length: int = 64
+    # Frames.
+    n_cameras: int = 2
+    tokens_per_side: int = 8
+    vocab_size: int = 256
+    # Transformer.
+    n_layer: int = 2
+    n_head: int = 4
+    d_model: int = 128
+    mlp_ratio: int = 4
+    dropout: float = 0.0
+    # Generation.
+    window: int = 8
+    prompt_frames: int = 2
+    maskgit_steps: int = 2
+    # Training.
+    clean_frame_prob: float = 0.25
+    done_hidden: int = 128
+    done_weight: float = 1.0
+
+    def __post_init__(self):
+        if self.control not in CONTROLS:
+            raise ValueError(f"control must be one of {CONTROLS}, got {self.control!r}")
+        if self.d_model % self.n_head or (self.d_model // self.n_head) % 2:
+            raise ValueError(f"d_model={self.d_model} must split into n_head={self.n_head} heads of even width")
+        if not 1 <= self.prompt_frames < self.window:
+            raise ValueError(f"prompt_frames={self.prompt_frames} must be in [1, window={self.window})")
+        if self.maskgit_steps < 1:
+            raise ValueError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
+
+    @property
+    def tokens_per_frame(self) -> int:
+        return self.n_cameras * self.tokens_per_side**2
+
+    @property
+    def mask_token_id(self) -> int:
+        return self.vocab_size
+
+
+@WorldModelConfig.register_subclass("tiny")
+@dataclass
+class TinyWorldModelConfig(WorldModelConfig):
+    """2 layers, d_model 128, window 8: trains on 2 CPU cores in minutes."""
+
+
+@WorldModelConfig.register_subclass("paper")
+@dataclass
+class PaperWorldModelConfig(WorldModelConfig):
+    """The paper's model: 32 layers, 8 heads, d_model 512, 16x16 tokens per view, window 16 with 8 prompt frames,
+    2 MaskGIT steps per frame. Use with the paper tokenizer preset (4096 codes) and a T5 checkpoint."""
+
+    tokens_per_side: int = 16
+    vocab_size: int = 4096
+    n_layer: int = 32
+    n_head: int = 8
+    d_model: int = 512
+    dropout: float = 0.1
+    window: int = 16
+    prompt_frames: int = 8
+    done_hidden: int = 512
+    text_encoder: str | None = "google-t5/t5-base"

@@ -1,0 +1,235 @@
+"""STWorldModel: next-frame token prediction (MaskGIT-style) and a done head, conditioned on actions or text.
+
+Frame t is conditioned on the control that led to it: for the action model, the action taken in frame t - 1; for
+the text model, the instruction. Tokens are (B, T, S) integer grids flattened per frame (views side by side).
+"""
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from huggingface_hub import PyTorchModelHubMixin, snapshot_download
+from torch import nn
+
+from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.st_transformer import KV, STBlock
+
+TEXT_ENCODER_DIR = "text_encoder"
+
+
+@dataclass
+class RolloutState:
+    """What a running generation remembers: the last `window - 1` frames as tokens, their controls, and (with the
+    cache) every layer's keys and values of those frames, so a new frame is computed against them without
+    recomputing them."""
+
+    tokens: torch.Tensor  # (B, T, S) long
+    control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
+    past: list[KV] | None  # per layer; None when generating without the cache
+    done: torch.Tensor  # (B,) done probability of the latest frame
+    frames_seen: int = 0
+
+
+class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-roboscape",
+                   tags=["lerobot", "world-model", "robotics"]):
+    def __init__(self, config: WorldModelConfig, text_encoder_dir: str | None = None):
+        super().__init__()
+        self.config = config
+        C, S = config.d_model, config.tokens_per_frame
+        self.token_emb = nn.Embedding(config.vocab_size + 1, C)  # + the mask token
+        self.pos_emb = nn.Parameter(torch.zeros(S, C))
+        if config.control == "action":
+            self.control_encoder = ActionEncoder(config)
+        else:
+            self.control_encoder = TextEncoder(config, saved_dir=text_encoder_dir)
+        self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
+        self.ln_f = nn.LayerNorm(C)
+        self.head = nn.Linear(C, config.vocab_size)
+        self.done_head = nn.Sequential(nn.Linear(C, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, 1))
+        for name, module in self.named_modules():
+            if not name.startswith("control_encoder.t5"):
+                self._init_weights(module)
+        nn.init.normal_(self.pos_emb, std=0.02)
+
+    @staticmethod
+    def _init_weights(module):
+        if isinstance(module, (nn.Linear, nn.Embedding)):
+            nn.init.normal_(module.weight, std=0.02)
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            nn.init.zeros_(module.bias)
+
+    # ---- control -------------------------------------------------------------------------------------------
+
+    def encode_control(self, actions=None, no_action=None, instructions=None) -> Control:
+        """Action model: actions (B, T, action_dim), no_action (B, T) bool. Text model: instructions, B strings."""
+        if self.config.control == "action":
+            if actions is None:
+                raise ValueError("the action world model needs actions")
+            return self.control_encoder(actions, no_action)
+        if instructions is None:
+            raise ValueError("the text world model needs instructions")
+        return self.control_encoder(instructions)
+
+    # ---- the network ---------------------------------------------------------------------------------------
+
+    def compute_logits(self, tokens_BTS, control: Control, past: list[KV] | None = None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the new frames' keys/values per layer."""
+        B, T, S = tokens_BTS.shape
+        if S != self.config.tokens_per_frame:
+            raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
+        x = self.token_emb(tokens_BTS) + self.pos_emb  # (B, T, S, C)
+        kvs = []
+        for i, block in enumerate(self.blocks):
+            x, kv = block(x, control.tokens, control.mask, None if past is None else past[i])
+            kvs.append(kv)
+        x = self.ln_f(x)
+        done_logits = self.done_head(x.mean(dim=2)).squeeze(-1)  # the done head reads the whole current frame
+        return self.head(x), done_logits, kvs
+
+    def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
+        """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, A) + no_action (B, T) or task (B
+        strings). Frames after the first are masked at a MaskGIT ratio each, or left clean with clean_frame_prob."""
+        tokens, done = batch["tokens"], batch["done"]
+        B, T, S = tokens.shape
+        control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
+        ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
+        ratio[:, 0] = 0.0
+        ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
+        mask = torch.rand(B, T, S, device=tokens.device) < ratio
+        inputs = tokens.masked_fill(mask, self.config.mask_token_id)
+
+        logits, done_logits, _ = self.compute_logits(inputs, control)
+        token_loss = F.cross_entropy(logits[mask].float(), tokens[mask]) if mask.any() else logits.sum() * 0
+        done_rmse = torch.sqrt(F.mse_loss(torch.sigmoid(done_logits.float()), done) + 1e-8)
+        loss = token_loss + self.config.done_weight * done_rmse
+        accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
+        return loss, {"loss": loss.item(), "token_ce": token_loss.item(), "token_acc": accuracy.item(),
+                      "done_rmse": done_rmse.item()}
+
+    def forward(self, batch: dict) -> tuple[torch.Tensor, dict]:
+        return self.compute_loss(batch)
+
+    # ---- generation ----------------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def start_rollout(self, prompt_BPS, control: Control, use_cache: bool = True) -> RolloutState:
+        """Read the prompt frames (real tokens) with their controls; returns the state to generate from."""
+        _, done_logits, kvs = self.compute_logits(prompt_BPS, control)
+        state = RolloutState(prompt_BPS, control, kvs if use_cache else None, torch.sigmoid(done_logits[:, -1]),
+                             frames_seen=prompt_BPS.shape[1])
+        self._slide(state)
+        return state
+
+    @torch.no_grad()
+    def predict_next_frame(self, state: RolloutState, control: Control, temperature: float = 0.0,
+                           generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Generate the next frame under `control` ((B, 1, L, C)) in `maskgit_steps` parallel decoding steps, then
+        read it once more to cache its keys/values and its done signal. Returns tokens (B, S) and done (B,)."""
+        B, S = state.tokens.shape[0], self.config.tokens_per_frame
+        frame = torch.full((B, 1, S), self.config.mask_token_id, dtype=torch.long, device=state.tokens.device)
+        known = torch.zeros(B, S, dtype=torch.bool, device=frame.device)
+        steps = self.config.maskgit_steps
+        for step in range(1, steps + 1):
+            logits = self._logits_of_new_frame(state, frame, control)[0][:, -1].float()  # (B, S, V)
+            if temperature > 0:
+                gumbel = -torch.log(-torch.log(torch.rand(logits.shape, generator=generator, device=logits.device)))
+                sample = (logits / temperature + gumbel).argmax(-1)
+            else:
+                sample = logits.argmax(-1)
+            confidence = logits.softmax(-1).gather(-1, sample[..., None]).squeeze(-1).masked_fill(known, math.inf)
+            n_known = S if step == steps else int(S * (1 - math.cos(math.pi / 2 * step / steps)))
+            keep = torch.zeros_like(known).scatter(1, confidence.topk(max(n_known, 1), dim=1).indices, True)
+            frame[:, 0] = torch.where(keep & ~known, sample, frame[:, 0])
+            known |= keep
+        _, done_logits, kvs = self._logits_of_new_frame(state, frame, control)
+        self._append(state, frame, control, kvs, torch.sigmoid(done_logits[:, -1].float()))
+        return frame[:, 0], state.done
+
+    def _logits_of_new_frame(self, state: RolloutState, frame_B1S, control: Control):
+        if state.past is not None:
+            return self.compute_logits(frame_B1S, control, state.past)
+        # Without the cache: recompute the whole window (past frames + the new one), as the paper's code did.
+        tokens = torch.cat([state.tokens, frame_B1S], 1)
+        return self.compute_logits(tokens, self._concat_controls(state.control, control))
+
+    def _concat_controls(self, past: Control, new: Control) -> Control:
+        if self.config.control == "text":
+            return past  # one instruction for every frame
+        return Control(torch.cat([past.tokens, new.tokens], 1), None)
+
+    def _append(self, state: RolloutState, frame_B1S, control: Control, kvs: list[KV], done) -> None:
+        state.tokens = torch.cat([state.tokens, frame_B1S], 1)
+        state.control = self._concat_controls(state.control, control)
+        if state.past is not None:
+            state.past = [(torch.cat([pk, k], 2), torch.cat([pv, v], 2)) for (pk, pv), (k, v) in zip(state.past, kvs)]
+        state.done = done
+        state.frames_seen += 1
+        self._slide(state)
+
+    def _slide(self, state: RolloutState) -> None:
+        """Keep the last window - 1 frames: with the new one, a generated frame sees `window` frames."""
+        keep = self.config.window - 1
+        state.tokens = state.tokens[:, -keep:]
+        if self.config.control == "action":
+            state.control = Control(state.control.tokens[:, -keep:], None)
+        if state.past is not None:
+            state.past = [(k[:, :, -keep:], v[:, :, -keep:]) for k, v in state.past]
+
+    @torch.no_grad()
+    def generate(self, prompt_BPS, n_frames: int, actions=None, no_action=None, instructions=None,
+                 use_cache: bool = True, temperature: float = 0.0, generator=None):
+        """Open-loop generation of `n_frames` frames after the prompt.
+
+        Action model: `actions` (B, P + n_frames - 1, A) are the actions of the prompt frames and of each generated
+        frame but the last (the control of frame t is action t - 1); `no_action` flags frames without one.
+        Returns tokens (B, n_frames, S) and done probabilities (B, n_frames).
+        """
+        P = prompt_BPS.shape[1]
+        if self.config.control == "action":
+            if actions is None or actions.shape[1] != P + n_frames - 1:
+                got = None if actions is None else tuple(actions.shape)
+                raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
+            # Controls of frames 0..P+n-1: no action before frame 0, then action t - 1.
+            first = torch.zeros_like(actions[:, :1])
+            shifted = torch.cat([first, actions], 1)
+            flags = torch.zeros(shifted.shape[:2], dtype=torch.bool, device=shifted.device)
+            flags[:, 0] = True
+            if no_action is not None:
+                flags[:, 1:] |= no_action
+            control = self.encode_control(shifted, flags)
+            per_frame = lambda t: Control(control.tokens[:, t : t + 1], None)  # noqa: E731
+        else:
+            control = self.encode_control(instructions=instructions)
+            per_frame = lambda t: control  # noqa: E731
+        state = self.start_rollout(prompt_BPS, Control(control.tokens[:, :P], control.mask), use_cache)
+        frames, dones = [], []
+        for t in range(P, P + n_frames):
+            frame, done = self.predict_next_frame(state, per_frame(t), temperature, generator)
+            frames.append(frame)
+            dones.append(done)
+        return torch.stack(frames, 1), torch.stack(dones, 1)
+
+    # ---- saving --------------------------------------------------------------------------------------------
+
+    def _save_pretrained(self, save_directory: Path) -> None:
+        super()._save_pretrained(save_directory)
+        if self.config.control == "text":
+            self.control_encoder.save_tokenizer_and_config(Path(save_directory) / TEXT_ENCODER_DIR)
+
+    @classmethod
+    def _from_pretrained(cls, *, model_id: str, revision=None, cache_dir=None, force_download=False,
+                         local_files_only=False, token=None, **kwargs):
+        # A text model rebuilds its T5 from the saved config and tokenizer (weights come with the world model's).
+        if Path(model_id).is_dir():
+            root = Path(model_id)
+        else:
+            root = Path(snapshot_download(model_id, revision=revision, cache_dir=cache_dir, token=token,
+                                          local_files_only=local_files_only, allow_patterns=[f"{TEXT_ENCODER_DIR}/*"]))
+        if (root / TEXT_ENCODER_DIR).is_dir():
+            kwargs["text_encoder_dir"] = str(root / TEXT_ENCODER_DIR)
+        return super()._from_pretrained(model_id=model_id, revision=revision, cache_dir=cache_dir,
+                                        force_download=force_download, local_files_only=local_files_only,
+                                        token=token, **kwargs)
