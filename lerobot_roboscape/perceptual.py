@@ -6,6 +6,7 @@ hub cache or a file the user names. A random trunk (not a perceptual metric) is 
 """
 
 import logging
+import warnings
 from pathlib import Path
 
 import lpips
@@ -46,7 +47,9 @@ def load_lpips(net: str = "alex", trunk_path: str | Path | None = None, allow_ra
     """
     if net not in TRUNK_FILES:
         raise ValueError(f"LPIPS net must be one of {sorted(TRUNK_FILES)}, got {net!r}")
-    metric = lpips.LPIPS(net=net, pretrained=True, pnet_rand=True, verbose=False)
+    with warnings.catch_warnings():  # lpips still calls torchvision with its deprecated `pretrained=` argument
+        warnings.simplefilter("ignore", UserWarning)
+        metric = lpips.LPIPS(net=net, pretrained=True, pnet_rand=True, verbose=False)
     path = Path(trunk_path) if trunk_path is not None else default_trunk_path(net)
     if path.is_file():
         state = _read_trunk_state_dict(path)
@@ -65,5 +68,6 @@ def load_lpips(net: str = "alex", trunk_path: str | Path | None = None, allow_ra
             f"LPIPS needs torchvision's {net} weights at {path}. Copy {TRUNK_FILES[net]} there (or pass its path), "
             "or allow a random trunk explicitly (allow_random_lpips=true), which is not a perceptual metric."
         )
+    metric.random_trunk = not path.is_file()  # reports say when their LPIPS is not perceptual
     metric.eval().requires_grad_(False)
     return metric

@@ -35,3 +35,39 @@ def record_maniskill_file(out_dir, obs_mode="rgb", episodes=2, steps=6, env_id="
                 break
     env.close()
     return out_dir / "traj.h5"
+
+
+# Tokenizer for the tests' 32 px views: 4x4 codes of 6 bits per view, so a frame of two views has 32 tokens.
+TEST_TOKENIZER = dict(image_size=IMAGE_SIZE, base_channels=8, channel_multipliers=(1, 2, 2, 2), codebook_bits=6)
+
+
+@pytest.fixture(scope="session")
+def trained_tokenizer(demo_dataset, tmp_path_factory):
+    """Directory of a tokenizer trained for a few steps on `demo_dataset` (through the real training loop)."""
+    from lerobot.configs.default import DatasetConfig
+
+    from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
+    from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
+    from lerobot_roboscape.training import FINAL, TrainingConfig
+
+    _, root = demo_dataset
+    out = tmp_path_factory.mktemp("tokenizer")
+    cfg = TrainTokenizerConfig(
+        dataset=DatasetConfig(repo_id="test/demos", root=str(root)),
+        tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER),
+        train=TrainingConfig(steps=8, batch_size=8, save_freq=8, log_freq=4),
+        output_dir=out, num_workers=0, allow_random_lpips=True,
+    )  # fmt: skip
+    train_tokenizer(cfg)
+    return out / FINAL
+
+
+@pytest.fixture(scope="session")
+def token_cache(demo_dataset, trained_tokenizer, tmp_path_factory):
+    from lerobot.configs.default import DatasetConfig
+
+    from lerobot_roboscape.world_model.train import prepare_token_cache
+
+    _, root = demo_dataset
+    return prepare_token_cache(DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer),
+                               tmp_path_factory.mktemp("token_cache"))

@@ -132,7 +132,8 @@ class VisualTokenizer(nn.Module, PyTorchModelHubMixin, library_name="lerobot-rob
         """(B, h, w) codes -> (B, codebook_bits, h, w) quantised latents."""
         if indices.min() < 0 or indices.max() >= self.config.codebook_size:
             raise ValueError(f"token ids must be in [0, {self.config.codebook_size}), got [{indices.min()}, {indices.max()}]")
-        return rearrange(self.quantizer.indices_to_codes(indices.long()), "b h w d -> b d h w")
+        codes = self.quantizer.indices_to_codes(indices.flatten(1).long())  # (B, h * w, bits)
+        return rearrange(codes, "b (h w) d -> b d h w", h=indices.shape[1])
 
     @torch.no_grad()
     def decode(self, indices: torch.Tensor) -> torch.Tensor:

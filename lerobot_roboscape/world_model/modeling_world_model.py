@@ -144,9 +144,14 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
             keep = torch.zeros_like(known).scatter(1, confidence.topk(max(n_known, 1), dim=1).indices, True)
             frame[:, 0] = torch.where(keep & ~known, sample, frame[:, 0])
             known |= keep
-        _, done_logits, kvs = self._logits_of_new_frame(state, frame, control)
-        self._append(state, frame, control, kvs, torch.sigmoid(done_logits[:, -1].float()))
-        return frame[:, 0], state.done
+        return frame[:, 0], self.observe_frame(state, frame, control)
+
+    @torch.no_grad()
+    def observe_frame(self, state: RolloutState, frame_B1S, control: Control) -> torch.Tensor:
+        """Append a known frame (generated, or real for teacher forcing) to the rollout; returns its done (B,)."""
+        _, done_logits, kvs = self._logits_of_new_frame(state, frame_B1S, control)
+        self._append(state, frame_B1S, control, kvs, torch.sigmoid(done_logits[:, -1].float()))
+        return state.done
 
     def _logits_of_new_frame(self, state: RolloutState, frame_B1S, control: Control):
         if state.past is not None:
@@ -188,29 +193,33 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
         Returns tokens (B, n_frames, S) and done probabilities (B, n_frames).
         """
         P = prompt_BPS.shape[1]
-        if self.config.control == "action":
-            if actions is None or actions.shape[1] != P + n_frames - 1:
-                got = None if actions is None else tuple(actions.shape)
-                raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
-            # Controls of frames 0..P+n-1: no action before frame 0, then action t - 1.
-            first = torch.zeros_like(actions[:, :1])
-            shifted = torch.cat([first, actions], 1)
-            flags = torch.zeros(shifted.shape[:2], dtype=torch.bool, device=shifted.device)
-            flags[:, 0] = True
-            if no_action is not None:
-                flags[:, 1:] |= no_action
-            control = self.encode_control(shifted, flags)
-            per_frame = lambda t: Control(control.tokens[:, t : t + 1], None)  # noqa: E731
-        else:
-            control = self.encode_control(instructions=instructions)
-            per_frame = lambda t: control  # noqa: E731
-        state = self.start_rollout(prompt_BPS, Control(control.tokens[:, :P], control.mask), use_cache)
+        if self.config.control == "action" and (actions is None or actions.shape[1] != P + n_frames - 1):
+            got = None if actions is None else tuple(actions.shape)
+            raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
+        control = self.episode_control(actions, no_action, instructions)
+        state = self.start_rollout(prompt_BPS, self.frame_control(control, slice(0, P)), use_cache)
         frames, dones = [], []
         for t in range(P, P + n_frames):
-            frame, done = self.predict_next_frame(state, per_frame(t), temperature, generator)
+            frame, done = self.predict_next_frame(state, self.frame_control(control, slice(t, t + 1)), temperature,
+                                                  generator)
             frames.append(frame)
             dones.append(done)
         return torch.stack(frames, 1), torch.stack(dones, 1)
+
+    def episode_control(self, actions=None, no_action=None, instructions=None) -> Control:
+        """Controls of an episode's frames from its actions (B, T - 1, A), action t leading to frame t + 1 (frame
+        0 has none), or from its instructions (one control shared by all frames)."""
+        if self.config.control == "text":
+            return self.encode_control(instructions=instructions)
+        shifted = torch.cat([torch.zeros_like(actions[:, :1]), actions], 1)
+        flags = torch.zeros(shifted.shape[:2], dtype=torch.bool, device=shifted.device)
+        flags[:, 0] = True
+        if no_action is not None:
+            flags[:, 1:] |= no_action
+        return self.encode_control(shifted, flags)
+
+    def frame_control(self, control: Control, frames: slice) -> Control:
+        return control if self.config.control == "text" else Control(control.tokens[:, frames], None)
 
     # ---- saving --------------------------------------------------------------------------------------------
 

@@ -1,0 +1,222 @@
+"""Fidelity report of the action world model: open-loop predictions against held-out episodes given the same actions.
+
+For each episode the model reads `prompt_frames` real frames, then generates `horizon` frames from the recorded
+actions alone. Per horizon step it reports PSNR, SSIM and LPIPS of the decoded prediction against the real frame,
+next to the tokenizer's own reconstruction of the real frame (the best the world model could do). The done head
+is scored against the recorded success labels, both teacher-forced (reading the real frames) and open-loop.
+"""
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
+import torch
+from lerobot.configs.default import DatasetConfig
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
+from torchmetrics.functional.classification import binary_auroc
+
+from lerobot_roboscape.dataset.reader import EpisodeData, episode_indices, open_dataset, read_episode
+from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+logger = logging.getLogger(__name__)
+METRICS = ("psnr", "ssim", "lpips")
+
+
+@dataclass
+class FidelityConfig:
+    """Args:
+    dataset: held-out episodes (--dataset.episodes; default: all episodes of the dataset).
+    tokenizer: the tokenizer the world model was trained with (local directory or Hub repo id).
+    world_model: the action world model (local directory or Hub repo id).
+    output_dir: where fidelity.json, fidelity.md, fidelity.png and side_by_side.mp4 go.
+    prompt_frames: real frames read before generating (default: the model's prompt_frames).
+    horizon: generated frames compared per episode.
+    max_episodes: episodes evaluated, at most.
+    video_episodes: episodes shown in the side-by-side video.
+    done_threshold: done probability counted as "done" for accuracy.
+    lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
+    allow_random_lpips: report LPIPS from a random trunk when no weights are found (marked in the report).
+    device: "auto", "cpu" or "cuda".
+    """
+
+    dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
+    tokenizer: str = "outputs/tokenizer/pretrained_model"
+    world_model: str = "outputs/world_model/pretrained_model"
+    output_dir: Path = Path("outputs/fidelity")
+    prompt_frames: int | None = None
+    horizon: int = 16
+    max_episodes: int = 8
+    video_episodes: int = 2
+    done_threshold: float = 0.5
+    lpips_weights: Path | None = None
+    allow_random_lpips: bool = False
+    device: str = "auto"
+
+
+def _frame_tokens(tokenizer: VisualTokenizer, episode: EpisodeData, device) -> torch.Tensor:
+    """(T, S) tokens of an episode, views side by side in the dataset's camera order."""
+    grids = [tokenizer.encode(torch.from_numpy(frames).permute(0, 3, 1, 2).to(device))
+             for frames in episode.images.values()]
+    return torch.stack(grids, 1).flatten(1)
+
+
+def _decode(tokenizer: VisualTokenizer, tokens_TS: torch.Tensor, n_cameras: int) -> torch.Tensor:
+    """(T, S) tokens -> (T, n_cameras, 3, H, W) images in [0, 1]."""
+    side = tokenizer.config.tokens_per_side
+    grids = tokens_TS.reshape(-1, side, side)  # (T * n_cameras, h, w)
+    return tokenizer.decode(grids).unflatten(0, (-1, n_cameras))
+
+
+def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
+    """Per frame, averaged over views: pred/real (T, n_cameras, 3, H, W) in [0, 1]."""
+    p, r = pred.flatten(0, 1), real.flatten(0, 1)
+    n = pred.shape[1]
+    values = {
+        "psnr": peak_signal_noise_ratio(p, r, data_range=1.0, reduction="none", dim=(1, 2, 3)),
+        "ssim": structural_similarity_index_measure(p, r, data_range=1.0, reduction="none"),
+        "lpips": lpips_metric(p * 2 - 1, r * 2 - 1).flatten(),
+    }
+    return {k: v.reshape(-1, n).mean(1).cpu().numpy() for k, v in values.items()}
+
+
+def _teacher_forced_done(model: STWorldModel, tokens_TS, actions) -> np.ndarray:
+    """Done probability of every real frame, each read after the previous ones (within the model's window)."""
+    control = model.episode_control(actions[None, :-1])
+    state = model.start_rollout(tokens_TS[None, :1], model.frame_control(control, slice(0, 1)))
+    done = [state.done]
+    for t in range(1, len(tokens_TS)):
+        done.append(model.observe_frame(state, tokens_TS[None, t : t + 1], model.frame_control(control, slice(t, t + 1))))
+    return torch.cat(done).cpu().numpy()
+
+
+def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
+    positives = label > 0.5
+    scores = {"accuracy": float(((prob >= threshold) == positives).mean()), "frames": int(len(label)),
+              "positive_frames": int(positives.sum())}
+    if 0 < positives.sum() < len(label):
+        scores["roc_auc"] = float(binary_auroc(torch.from_numpy(prob), torch.from_numpy(positives.astype(np.int64))))
+    else:
+        scores["roc_auc"] = None  # undefined with one class only
+    return scores
+
+
+def _side_by_side(real, pred, prompt: int) -> np.ndarray:
+    """(T, n_cameras, 3, H, W) real and predicted -> (T, n_cameras * H, 2 * W, 3) uint8: real left, predicted right.
+    Prompt frames show the real frame on both sides."""
+    both = torch.cat([real, torch.cat([real[:prompt], pred], 0)], dim=-1)  # (T, n, 3, H, 2W)
+    video = both.permute(0, 1, 3, 4, 2).flatten(1, 2)  # (T, n * H, 2W, 3)
+    return (video.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+
+
+def evaluate_fidelity(cfg: FidelityConfig) -> dict:
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
+    tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
+    model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
+    if model.config.control != "action":
+        raise ValueError(f"{cfg.world_model} is a {model.config.control} world model; the fidelity report needs the "
+                         "action world model")
+    lpips_metric = load_lpips(tokenizer.config.lpips_net, cfg.lpips_weights, cfg.allow_random_lpips).to(device)
+    prompt = cfg.prompt_frames or model.config.prompt_frames
+    n_cameras = model.config.n_cameras
+
+    per_step = {f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction")
+                for m in METRICS}
+    tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos = [], [], [], [], [], []
+    for index in episode_indices(dataset)[: cfg.max_episodes]:
+        episode = read_episode(dataset, index)
+        tokens = _frame_tokens(tokenizer, episode, device)
+        actions = torch.from_numpy(episode.action).to(device)
+        horizon = min(cfg.horizon, len(tokens) - prompt)
+        if horizon < 1:
+            logger.warning("episode %d has %d frames, not more than the %d prompt frames: skipped", index,
+                           len(tokens), prompt)
+            continue
+        pred_tokens, pred_done = model.generate(tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1])
+        real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
+        real = real.to(device).float() / 255  # (T, n, 3, H, W)
+        target = real[prompt : prompt + horizon]
+        pred = _decode(tokenizer, pred_tokens[0], n_cameras)
+        recon = _decode(tokenizer, tokens[prompt : prompt + horizon], n_cameras)
+        for kind, images in (("prediction", pred), ("reconstruction", recon)):
+            for metric, values in _image_metrics(images, target, lpips_metric).items():
+                for step, value in enumerate(values):
+                    per_step[f"{kind}_{metric}"][step].append(float(value))
+        tf = _teacher_forced_done(model, tokens, actions)
+        tf_prob.append(tf)
+        tf_label.append(episode.done_label)
+        ol_prob.append(pred_done[0].cpu().numpy())
+        ol_label.append(episode.done_label[prompt : prompt + horizon])
+        recorded = bool(episode.done_label.max() > 0.5)
+        episodes_out.append({"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon,
+                             "recorded_success": recorded, "predicted_success": bool(tf.max() >= cfg.done_threshold)})
+        if len(videos) < cfg.video_episodes:
+            videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
+    if not episodes_out:
+        raise ValueError(f"no episode of {dataset.root} is longer than the {prompt} prompt frames")
+
+    report = {
+        "config": json.loads(json.dumps(asdict(cfg), default=str)),
+        "prompt_frames": prompt,
+        "lpips_trunk": "random (not perceptual)" if lpips_metric.random_trunk else "pretrained",
+        "per_step": {k: [float(np.mean(v)) if v else None for v in steps] for k, steps in per_step.items()},
+        "mean": {k: float(np.mean(sum(steps, []))) for k, steps in per_step.items()},
+        "done_teacher_forced": _done_scores(np.concatenate(tf_prob), np.concatenate(tf_label), cfg.done_threshold),
+        "done_open_loop": _done_scores(np.concatenate(ol_prob), np.concatenate(ol_label), cfg.done_threshold),
+        "episode_success_accuracy": float(np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])),
+        "episodes": episodes_out,
+    }
+    write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
+    return report
+
+
+def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: int) -> None:
+    output_dir.mkdir(parents=True, exist_ok=True)
+    (output_dir / "fidelity.json").write_text(json.dumps(report, indent=2))
+    (output_dir / "fidelity.md").write_text(markdown_table(report))
+    plot(report, output_dir / "fidelity.png")
+    if videos:
+        iio.imwrite(output_dir / "side_by_side.mp4", np.concatenate(videos), plugin="pyav", codec="libx264", fps=fps)
+
+
+def markdown_table(report: dict) -> str:
+    steps = len(report["per_step"]["prediction_psnr"])
+    lines = [
+        f"# World-model fidelity ({len(report['episodes'])} episodes, {report['prompt_frames']} prompt frames)", "",
+        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame.", "",
+        "| step | PSNR pred | PSNR recon | SSIM pred | SSIM recon | LPIPS pred | LPIPS recon |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]  # fmt: skip
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    for i in range(steps):
+        cells = [fmt(report["per_step"][f"{kind}_{m}"][i]) for m in METRICS for kind in ("prediction", "reconstruction")]
+        lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
+    for name in ("done_teacher_forced", "done_open_loop"):
+        d = report[name]
+        lines.append(f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
+                     f"({d['positive_frames']}/{d['frames']} done frames)")
+    lines.append(f"\nepisode success predicted correctly: {report['episode_success_accuracy']:.3f}")
+    return "\n".join(lines) + "\n"
+
+
+def plot(report: dict, path: Path) -> None:
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
+    for ax, metric in zip(axes, METRICS):
+        for kind, style in (("prediction", "-o"), ("reconstruction", "--")):
+            values = [np.nan if v is None else v for v in report["per_step"][f"{kind}_{metric}"]]
+            ax.plot(range(1, len(values) + 1), values, style, label=kind, markersize=3)
+        ax.set_title(metric.upper())
+        ax.set_xlabel("horizon step")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

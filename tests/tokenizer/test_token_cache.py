@@ -1,0 +1,64 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_roboscape.dataset.reader import DatasetError, open_dataset
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.token_cache import (
+    TokenCacheMismatchError,
+    dataset_fingerprint,
+    load_or_build_token_cache,
+    open_token_cache,
+    tokenizer_fingerprint,
+)
+
+
+def test_cache_holds_every_frame_with_labels(demo_dataset, trained_tokenizer, token_cache):
+    dataset, root = demo_dataset
+    assert token_cache.tokens.shape == (dataset.num_frames, 2, 4, 4)
+    assert isinstance(token_cache.tokens, np.memmap)
+    assert token_cache.cameras == ["third_view", "wrist"] and token_cache.vocab_size == 64
+    tokenizer = VisualTokenizer.from_pretrained(trained_tokenizer).eval()
+    row = token_cache.episodes[1]
+    frame = dataset[row["start"] + 3]["observation.images.wrist"]
+    assert torch.equal(tokenizer.encode(frame[None])[0], torch.from_numpy(token_cache.tokens[row["start"] + 3, 1].astype(np.int64)))
+    np.testing.assert_array_equal(token_cache.actions[row["start"] : row["start"] + row["length"]],
+                                  np.stack([dataset[row["start"] + t]["action"].numpy() for t in range(row["length"])]))
+    for row in token_cache.episodes:
+        done = token_cache.done[row["start"] : row["start"] + row["length"]]
+        assert done[0] == 0 and (done.max() == 1) == row["success"]
+
+
+def test_cache_is_reused_and_rebuilt_when_an_input_changes(demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    dataset, root = demo_dataset
+    tokenizer = VisualTokenizer.from_pretrained(trained_tokenizer)
+    again = load_or_build_token_cache(dataset, tokenizer, token_cache.root.parent)
+    assert again.root == token_cache.root
+    with torch.no_grad():
+        tokenizer.decoder.layers[0].weight.add_(1.0)
+    other = load_or_build_token_cache(dataset, tokenizer, token_cache.root.parent)
+    assert other.root != token_cache.root
+    with pytest.raises(TokenCacheMismatchError, match="different tokenizer"):
+        open_token_cache(token_cache.root, dataset_fingerprint(root), tokenizer_fingerprint(tokenizer))
+
+
+def test_mismatched_or_broken_cache_is_named(token_cache, demo_dataset, tmp_path):
+    with pytest.raises(TokenCacheMismatchError, match="different dataset"):
+        open_token_cache(token_cache.root, dataset_fp="0" * 64)
+    with pytest.raises(TokenCacheMismatchError, match="not a token cache"):
+        open_token_cache(tmp_path)
+    broken = tmp_path / "broken"
+    shutil.copytree(token_cache.root, broken)
+    manifest = json.loads((broken / "manifest.json").read_text())
+    manifest["num_frames"] += 1
+    (broken / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(TokenCacheMismatchError, match="tokens.npy has"):
+        open_token_cache(broken)
+
+
+def test_missing_dataset_is_named(tmp_path):
+    with pytest.raises(DatasetError, match="no LeRobot dataset at"):
+        open_dataset("test/none", tmp_path / "nothing")

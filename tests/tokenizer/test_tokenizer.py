@@ -1,0 +1,83 @@
+import pytest
+import torch
+import torchvision
+from safetensors.torch import save_file
+
+from lerobot_roboscape.perceptual import LPIPSTrunkMissingError, load_lpips
+from lerobot_roboscape.tokenizer.configuration_tokenizer import PaperTokenizerConfig, TinyTokenizerConfig
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from tests.conftest import TEST_TOKENIZER
+
+
+def make_tokenizer(**overrides):
+    torch.manual_seed(0)
+    return VisualTokenizer(TinyTokenizerConfig(**{**TEST_TOKENIZER, **overrides})).eval()
+
+
+def test_presets_give_the_documented_grids():
+    assert TinyTokenizerConfig().tokens_per_side == 8 and TinyTokenizerConfig().codebook_size == 256
+    assert PaperTokenizerConfig().tokens_per_side == 16 and PaperTokenizerConfig().codebook_size == 4096
+
+
+def test_encode_decode_round_trip_through_indices():
+    tok = make_tokenizer()
+    images = torch.rand(3, 3, 32, 32)
+    out = tok(images)
+    indices = tok.encode(images)
+    assert indices.shape == (3, 4, 4) and indices.dtype == torch.long
+    assert 0 <= indices.min() and indices.max() < 64
+    assert torch.equal(indices, out.indices)
+    # The codes recovered from the indices are exactly the quantised latents, so decoding them reproduces forward().
+    assert torch.allclose(tok.decode(indices), out.reconstruction.clamp(0, 1), atol=1e-5)
+
+
+def test_uint8_input_equals_float_input():
+    tok = make_tokenizer()
+    images = torch.randint(0, 256, (2, 3, 32, 32), dtype=torch.uint8)
+    assert torch.equal(tok.encode(images), tok.encode(images.float() / 255))
+
+
+def test_save_load_round_trip(tmp_path):
+    tok = make_tokenizer()
+    tok.save_pretrained(tmp_path)
+    loaded = VisualTokenizer.from_pretrained(tmp_path).eval()
+    assert loaded.config.channel_multipliers == (1, 2, 2, 2)
+    images = torch.rand(2, 3, 32, 32)
+    assert torch.equal(loaded.encode(images), tok.encode(images))
+
+
+def test_overfits_a_batch():
+    tok = make_tokenizer().train()
+    images = torch.rand(4, 3, 1, 1).expand(4, 3, 32, 32).contiguous()  # flat colours: learnable in a few steps
+    opt = torch.optim.Adam(tok.parameters(), 3e-3)
+    first = None
+    for _ in range(120):
+        loss, logs = tok.compute_loss(images)
+        first = first or logs["l1"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert logs["l1"] < first / 4
+
+
+def test_bad_inputs_are_named():
+    tok = make_tokenizer()
+    with pytest.raises(ValueError, match=r"\(B, 3, 32, 32\).*\(2, 3, 64, 64\)"):
+        tok.encode(torch.rand(2, 3, 64, 64))
+    with pytest.raises(ValueError, match="token ids must be in"):
+        tok.decode(torch.full((1, 4, 4), 64))
+    with pytest.raises(ValueError, match="divisible"):
+        TinyTokenizerConfig(image_size=36)
+
+
+def test_lpips_trunk_loads_from_a_file_and_is_refused_when_missing(tmp_path):
+    trunk = torchvision.models.alexnet()
+    path = tmp_path / "alexnet.safetensors"
+    save_file(trunk.state_dict(), path)
+    metric = load_lpips("alex", trunk_path=path)
+    assert not metric.random_trunk
+    assert torch.equal(metric.net.slice1[0].weight, trunk.features[0].weight)
+    assert torch.equal(metric.net.slice5[10].weight, trunk.features[10].weight)
+    with pytest.raises(LPIPSTrunkMissingError, match="not found"):
+        load_lpips("alex", trunk_path=tmp_path / "missing.pth")
+    assert load_lpips("alex", trunk_path=None, allow_random_trunk=True) is not None
