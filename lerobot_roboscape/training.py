@@ -60,6 +60,8 @@ class TrainingConfig:
     resume: bool = False
 
     def __post_init__(self):
+        if str(self.mixed_precision).lower() in ("false", "none"):  # the CLI's YAML reads "no" as false
+            self.mixed_precision = "no"
         if self.mixed_precision not in ("auto", "bf16", "fp16", "no"):
             raise ValueError(f"mixed_precision must be auto, bf16, fp16 or no, got {self.mixed_precision!r}")
         if self.steps < 1 or self.batch_size < 1 or self.save_freq < 1:

@@ -47,6 +47,10 @@ class TokenizerConfig(draccus.ChoiceRegistry):
         if not 1 <= self.codebook_bits <= 16:
             raise ValueError(f"codebook_bits must be in [1, 16] (tokens are stored as uint16), got {self.codebook_bits}")
 
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return "tiny"  # `--tokenizer.base_channels=32` alone then edits the tiny preset
+
     @property
     def downsample(self) -> int:
         return 2 ** (len(self.channel_multipliers) - 1)

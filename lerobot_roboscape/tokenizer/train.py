@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import CameraFrames, DatasetError, image_size, open_dataset
@@ -12,6 +13,12 @@ from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig, TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import TrainingConfig, fit
+
+
+@dataclass
+class TokenizerTrainingConfig(TrainingConfig):
+    steps: int = 600
+    lr: float = 1e-3
 
 
 @dataclass
@@ -28,7 +35,7 @@ class TrainTokenizerConfig:
 
     dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
     tokenizer: TokenizerConfig = field(default_factory=TinyTokenizerConfig)
-    train: TrainingConfig = field(default_factory=lambda: TrainingConfig(steps=600, batch_size=16, lr=1e-3))
+    train: TokenizerTrainingConfig = field(default_factory=TokenizerTrainingConfig)
     output_dir: Path = Path("outputs/tokenizer")
     num_workers: int = 2
     lpips_weights: Path | None = None
@@ -73,5 +80,6 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
         return model.compute_loss(batch["images"], lpips_metric)
 
     batches = RandomFrameBatches(CameraFrames(dataset), cfg.train.batch_size, cfg.train.seed, cfg.num_workers)
+    set_seed(cfg.train.seed)
     model = VisualTokenizer(cfg.tokenizer)
     return fit(model, loss_fn, batches, cfg.train, cfg.output_dir, asdict(cfg), desc="tokenizer")

@@ -70,6 +70,10 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         if self.maskgit_steps < 1:
             raise ValueError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
 
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return "tiny"  # `--wm.d_model=64` alone then edits the tiny preset
+
     @property
     def tokens_per_frame(self) -> int:
         return self.n_cameras * self.tokens_per_side**2

@@ -5,6 +5,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
+from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
@@ -22,6 +23,13 @@ from lerobot_roboscape.world_model.configuration_world_model import TinyWorldMod
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class WorldModelTrainingConfig(TrainingConfig):
+    steps: int = 800
+    batch_size: int = 8
+    lr: float = 1e-3
 
 
 @dataclass
@@ -43,7 +51,7 @@ class TrainWorldModelConfig:
     dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
     tokenizer: str = "outputs/tokenizer/pretrained_model"
     wm: WorldModelConfig = field(default_factory=TinyWorldModelConfig)
-    train: TrainingConfig = field(default_factory=lambda: TrainingConfig(steps=800, batch_size=8, lr=1e-3))
+    train: WorldModelTrainingConfig = field(default_factory=WorldModelTrainingConfig)
     output_dir: Path = Path("outputs/world_model")
     cache_dir: Path = Path("outputs/token_cache")
     token_cache: Path | None = None
@@ -83,6 +91,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     )  # fmt: skip
     logger.info("training the %s world model on %d episodes (%d frames) of %s", cfg.wm.control, len(episodes),
                 sum(row["length"] for row in episodes), cache.root)
+    set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     model = STWorldModel(fit_config_to_cache(cfg.wm, cache))
     batches = ClipSampler(cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed)
     run_config = {**asdict(cfg), "token_cache": str(cache.root)}

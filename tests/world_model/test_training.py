@@ -1,0 +1,142 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import draccus
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from lerobot_roboscape.training import CHECKPOINTS, FINAL, last_checkpoint
+from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
+from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+
+STEPS = 60
+
+
+def train_args(demo_dataset, trained_tokenizer, token_cache, output_dir, control="action", steps=STEPS):
+    _, root = demo_dataset
+    return [
+        "--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
+        f"--token_cache={token_cache.root}", f"--output_dir={output_dir}", f"--wm.control={control}",
+        "--wm.d_model=64", "--wm.n_head=2", "--wm.n_layer=2", "--wm.window=4", "--wm.prompt_frames=1",
+        f"--train.steps={steps}", "--train.batch_size=4", "--train.save_freq=20", "--train.log_freq=5",
+        "--train.warmup_steps=5", "--train.mixed_precision=no",
+    ]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def action_wm(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory):
+    out = tmp_path_factory.mktemp("wm_action")
+    train_world_model(draccus.parse(TrainWorldModelConfig,
+                                    args=train_args(demo_dataset, trained_tokenizer, token_cache, out)))
+    return out
+
+
+def test_clips_follow_the_action_convention(token_cache):
+    episodes = select_episodes(token_cache)
+    batch = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=0)(step=5)
+    assert batch["tokens"].shape == (8, 4, 32) and batch["actions"].shape == (8, 4, 7)
+    again = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=0)(step=5)
+    assert torch.equal(batch["tokens"], again["tokens"])  # a pure function of the step: resumable
+    row = episodes[0]
+    clip = ClipSampler(token_cache, episodes, 4, 1).clip(row, rng=_FixedStart(0))
+    assert clip["no_action"].tolist() == [True, False, False, False]
+    assert (clip["actions"][1] == token_cache.actions[row["start"]]).all()  # frame 1 carries action 0
+
+
+class _FixedStart:
+    def __init__(self, start):
+        self.start = start
+
+    def integers(self, low, high):
+        return self.start
+
+
+def test_episode_filters(token_cache):
+    every = select_episodes(token_cache)
+    assert len(every) == 4
+    kept = select_episodes(token_cache, only_optimal=True, only_successful=True)
+    assert all(row["optimal"] and row["success"] for row in kept) and len(kept) < 4
+    with pytest.raises(ValueError, match=r"episodes \[99\] are not in the token cache"):
+        select_episodes(token_cache, episodes=[99])
+
+
+def test_killed_run_resumes_to_the_same_model(action_wm, demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path)
+    command = [sys.executable, "-m", "lerobot_roboscape.cli.train_wm", *args]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while last_checkpoint(tmp_path) is None and process.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    interrupted_at = json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())["step"]
+    assert interrupted_at < STEPS and not (tmp_path / FINAL).exists()
+
+    with pytest.raises(FileExistsError, match="--resume=true"):
+        train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+    resumed = subprocess.run([*command, "--train.resume=true"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"{interrupted_at}/{STEPS}" in resumed.stderr  # the progress bar starts at the checkpoint's step
+    final = json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())["step"]
+    assert final == STEPS
+
+    uninterrupted = load_file(action_wm / FINAL / "model.safetensors")
+    after_resume = load_file(tmp_path / FINAL / "model.safetensors")
+    assert uninterrupted.keys() == after_resume.keys()
+    for name in uninterrupted:
+        torch.testing.assert_close(after_resume[name], uninterrupted[name], rtol=0, atol=0, msg=name)
+
+
+def test_trained_model_learns_and_loads(action_wm):
+    model = STWorldModel.from_pretrained(action_wm / FINAL)
+    assert model.config.vocab_size == 64 and model.config.tokens_per_frame == 32  # taken from the token cache
+    logs = list((action_wm / "logs").rglob("events.out.tfevents*"))
+    assert logs, "TensorBoard logs are written"
+
+
+def test_text_world_model_trains_on_successful_optimal_episodes(demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    model = train_world_model(draccus.parse(
+        TrainWorldModelConfig, args=train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, "text", 4)))
+    loaded = STWorldModel.from_pretrained(tmp_path / FINAL)
+    assert loaded.config.control == "text" and (tmp_path / FINAL / "text_encoder").is_dir()
+    task = "push the red cube forward"
+    prompt = torch.from_numpy(token_cache.tokens[:1].astype("int64")).reshape(1, 1, -1)
+    a = model.eval().generate(prompt, 2, instructions=[task])
+    b = loaded.eval().generate(prompt, 2, instructions=[task])
+    assert torch.equal(a[0], b[0])
+
+
+def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
+    _, root = demo_dataset
+    cfg = draccus.parse(FidelityConfig, args=[
+        "--dataset.repo_id=test/demos", f"--dataset.root={root}", "--dataset.episodes=[1,3]",
+        f"--tokenizer={trained_tokenizer}", f"--world_model={action_wm / FINAL}", f"--output_dir={tmp_path}",
+        "--horizon=6", "--allow_random_lpips=true",
+    ])  # fmt: skip
+    report = evaluate_fidelity(cfg)
+    for name in ("fidelity.json", "fidelity.md", "fidelity.png", "side_by_side.mp4"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert [e["episode_index"] for e in report["episodes"]] == [1, 3]
+    for key, values in report["per_step"].items():
+        assert len(values) == 6 and all(v is not None and v == v for v in values), key
+    assert 0 <= report["done_teacher_forced"]["accuracy"] <= 1
+    assert report["lpips_trunk"].startswith("random")
+    # The reconstruction baseline is the tokenizer's own round trip; PSNR is in a sane range for both.
+    assert 5 < report["mean"]["reconstruction_psnr"] < 60 and 5 < report["mean"]["prediction_psnr"] < 60
+
+
+def test_fidelity_needs_the_action_model(demo_dataset, trained_tokenizer, tmp_path):
+    _, root = demo_dataset
+    text = STWorldModel(draccus.parse(TrainWorldModelConfig, args=["--wm.control=text", "--wm.n_layer=1"]).wm)
+    text.save_pretrained(tmp_path / "text")
+    cfg = FidelityConfig(tokenizer=str(trained_tokenizer), world_model=str(tmp_path / "text"), output_dir=tmp_path)
+    cfg.dataset.root = str(root)
+    with pytest.raises(ValueError, match="is a text world model"):
+        evaluate_fidelity(cfg)
