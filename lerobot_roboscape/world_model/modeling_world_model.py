@@ -15,7 +15,7 @@ from torch import nn
 
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
-from lerobot_roboscape.world_model.st_transformer import KV, STBlock
+from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 
 TEXT_ENCODER_DIR = "text_encoder"
 
@@ -28,7 +28,7 @@ class RolloutState:
 
     tokens: torch.Tensor  # (B, T, S) long
     control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
-    past: list[KV] | None  # per layer; None when generating without the cache
+    cache: KVCache | None  # None when generating by recomputing the window
     done: torch.Tensor  # (B,) done probability of the latest frame
     frames_seen: int = 0
 
@@ -75,15 +75,16 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
 
     # ---- the network ---------------------------------------------------------------------------------------
 
-    def compute_logits(self, tokens_BTS, control: Control, past: list[KV] | None = None):
-        """Logits (B, T, S, V) of every token, done logits (B, T), and the new frames' keys/values per layer."""
+    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the frames' keys/values per layer (with a
+        cache, T = 1 and the new frame's keys/values are written into it instead)."""
         B, T, S = tokens_BTS.shape
         if S != self.config.tokens_per_frame:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
         x = self.token_emb(tokens_BTS) + self.pos_emb  # (B, T, S, C)
         kvs = []
         for i, block in enumerate(self.blocks):
-            x, kv = block(x, control.tokens, control.mask, None if past is None else past[i])
+            x, kv = block(x, control.tokens, control.mask, cache, i)
             kvs.append(kv)
         x = self.ln_f(x)
         done_logits = self.done_head(x.mean(dim=2)).squeeze(-1)  # the done head reads the whole current frame
@@ -118,7 +119,8 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
     def start_rollout(self, prompt_BPS, control: Control, use_cache: bool = True) -> RolloutState:
         """Read the prompt frames (real tokens) with their controls; returns the state to generate from."""
         _, done_logits, kvs = self.compute_logits(prompt_BPS, control)
-        state = RolloutState(prompt_BPS, control, kvs if use_cache else None, torch.sigmoid(done_logits[:, -1]),
+        cache = KVCache.from_frames(kvs, self.config.window) if use_cache else None
+        state = RolloutState(prompt_BPS, control, cache, torch.sigmoid(done_logits[:, -1].float()),
                              frames_seen=prompt_BPS.shape[1])
         self._slide(state)
         return state
@@ -149,13 +151,13 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
     @torch.no_grad()
     def observe_frame(self, state: RolloutState, frame_B1S, control: Control) -> torch.Tensor:
         """Append a known frame (generated, or real for teacher forcing) to the rollout; returns its done (B,)."""
-        _, done_logits, kvs = self._logits_of_new_frame(state, frame_B1S, control)
-        self._append(state, frame_B1S, control, kvs, torch.sigmoid(done_logits[:, -1].float()))
+        _, done_logits, _ = self._logits_of_new_frame(state, frame_B1S, control)
+        self._append(state, frame_B1S, control, torch.sigmoid(done_logits[:, -1].float()))
         return state.done
 
     def _logits_of_new_frame(self, state: RolloutState, frame_B1S, control: Control):
-        if state.past is not None:
-            return self.compute_logits(frame_B1S, control, state.past)
+        if state.cache is not None:
+            return self.compute_logits(frame_B1S, control, state.cache)
         # Without the cache: recompute the whole window (past frames + the new one), as the paper's code did.
         tokens = torch.cat([state.tokens, frame_B1S], 1)
         return self.compute_logits(tokens, self._concat_controls(state.control, control))
@@ -165,11 +167,11 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
             return past  # one instruction for every frame
         return Control(torch.cat([past.tokens, new.tokens], 1), None)
 
-    def _append(self, state: RolloutState, frame_B1S, control: Control, kvs: list[KV], done) -> None:
+    def _append(self, state: RolloutState, frame_B1S, control: Control, done) -> None:
         state.tokens = torch.cat([state.tokens, frame_B1S], 1)
         state.control = self._concat_controls(state.control, control)
-        if state.past is not None:
-            state.past = [(torch.cat([pk, k], 2), torch.cat([pv, v], 2)) for (pk, pv), (k, v) in zip(state.past, kvs)]
+        if state.cache is not None:
+            state.cache.frames += 1  # the frame's keys/values are already in its slot
         state.done = done
         state.frames_seen += 1
         self._slide(state)
@@ -180,8 +182,6 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
         state.tokens = state.tokens[:, -keep:]
         if self.config.control == "action":
             state.control = Control(state.control.tokens[:, -keep:], None)
-        if state.past is not None:
-            state.past = [(k[:, :, -keep:], v[:, :, -keep:]) for k, v in state.past]
 
     @torch.no_grad()
     def generate(self, prompt_BPS, n_frames: int, actions=None, no_action=None, instructions=None,

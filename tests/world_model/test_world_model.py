@@ -92,7 +92,8 @@ def test_long_rollout_stays_finite_with_a_bounded_cache():
     control = model.episode_control(actions)
     for t in range(1, 12):
         model.predict_next_frame(state, model.frame_control(control, slice(t, t + 1)))
-        assert state.past[0][0].shape[2] == min(t + 1, 3) and state.tokens.shape[1] == min(t + 1, 3)
+        assert state.cache.k[0].shape[2] == 4 and state.cache.frames == t + 1  # a fixed ring of `window` frames
+        assert state.tokens.shape[1] == min(t + 1, 3)
 
 
 def test_overfits_one_clip():
