@@ -1,20 +1,32 @@
 """`roboscape-demo`: the whole pipeline built so far, on CPU, in minutes, on an embedded default.
 
-Stages: collect planner demonstrations in the task suite -> record ManiSkill trajectory files and convert them.
-Each stage prints where its results are.
+Stages: collect planner demonstrations in the task suite -> record a ManiSkill trajectory file and convert it
+(a held-out episode: another seed) -> train the image tokenizer -> train the action and the text world models ->
+write the world model's fidelity report on the held-out episode. Each stage prints where its results are.
 """
 
 import logging
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import draccus
+from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.cli.collect import CollectConfig, collect
 from lerobot_roboscape.cli.convert import ConvertConfig, convert
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
+from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training import FINAL
+from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
+from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
+
+STAGES = 6
+HELDOUT_SEED = 1000  # the recorded episode gets an initial state that the collected episodes do not have
 
 
 @dataclass
@@ -26,6 +38,9 @@ class DemoConfig:
     episodes_per_scene: planner episodes per (family, scene).
     image_size: camera resolution.
     workers: ManiSkill worker processes.
+    tokenizer_steps: training steps of the tiny tokenizer.
+    wm_steps: training steps of the tiny action world model.
+    text_wm_steps: training steps of the tiny text world model.
     """
 
     output_dir: str = "outputs/demo"
@@ -34,6 +49,9 @@ class DemoConfig:
     episodes_per_scene: int = 1
     image_size: int = 64
     workers: int = 2
+    tokenizer_steps: int = 300
+    wm_steps: int = 300
+    text_wm_steps: int = 150
 
 
 def _stage(name: str):
@@ -43,9 +61,11 @@ def _stage(name: str):
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     out = Path(cfg.output_dir).resolve()
+    for stale in ("tokenizer", "world_model_action", "world_model_text"):  # a new demo run trains from scratch
+        shutil.rmtree(out / stale, ignore_errors=True)
     artifacts: dict[str, Path] = {}
 
-    start = _stage("1/2 collect planner demonstrations (ManiSkill, both cameras)")
+    start = _stage(f"1/{STAGES} collect planner demonstrations (ManiSkill, both cameras)")
     demos = out / "datasets" / "roboscape_demos"
     ds = collect(CollectConfig(repo_id="local/roboscape_demos", root=str(demos), families=cfg.families,
                                max_scenes=cfg.scenes, episodes_per_scene=cfg.episodes_per_scene,
@@ -53,16 +73,51 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     print(f"{ds.meta.total_episodes} episodes, {ds.meta.total_frames} frames in {time.time() - start:.0f}s")
     artifacts["demonstrations (LeRobotDataset)"] = demos
 
-    start = _stage("2/2 record a ManiSkill trajectory file and convert it")
+    start = _stage(f"2/{STAGES} record a held-out ManiSkill trajectory file and convert it")
     scene = select_scenes("ind")[0]
     h5 = record_maniskill_trajectories(out / "maniskill_trajectories", cfg.families[0], scene.id, episodes=1,
-                                       image_size=cfg.image_size)
+                                       image_size=cfg.image_size, seed=HELDOUT_SEED)
     converted = out / "datasets" / "maniskill_converted"
     ds = convert(ConvertConfig(h5=str(h5), root=str(converted), repo_id="local/maniskill_converted",
                                overwrite=True))
     print(f"{ds.meta.total_episodes} episodes, {ds.meta.total_frames} frames in {time.time() - start:.0f}s")
     artifacts["ManiSkill trajectory file"] = h5
     artifacts["converted dataset (LeRobotDataset)"] = converted
+
+    demos_cfg = DatasetConfig(repo_id="local/roboscape_demos", root=str(demos))
+    start = _stage(f"3/{STAGES} train the image tokenizer (tiny preset)")
+    tokenizer_dir = out / "tokenizer"
+    train_tokenizer(TrainTokenizerConfig(
+        dataset=demos_cfg, tokenizer=TinyTokenizerConfig(image_size=cfg.image_size),
+        train=TokenizerTrainingConfig(steps=cfg.tokenizer_steps, save_freq=cfg.tokenizer_steps),
+        output_dir=tokenizer_dir, num_workers=cfg.workers, allow_random_lpips=True,
+    ))  # fmt: skip
+    print(f"done in {time.time() - start:.0f}s")
+    artifacts["tokenizer"] = tokenizer_dir / FINAL
+
+    for number, control, steps in ((4, "action", cfg.wm_steps), (5, "text", cfg.text_wm_steps)):
+        start = _stage(f"{number}/{STAGES} train the {control} world model (tiny preset)")
+        wm_dir = out / f"world_model_{control}"
+        train_world_model(TrainWorldModelConfig(
+            dataset=demos_cfg, tokenizer=str(tokenizer_dir / FINAL), wm=TinyWorldModelConfig(control=control),
+            train=WorldModelTrainingConfig(steps=steps, batch_size=4, save_freq=steps),
+            output_dir=wm_dir, cache_dir=out / "token_cache",
+        ))  # fmt: skip
+        print(f"done in {time.time() - start:.0f}s")
+        artifacts[f"{control} world model"] = wm_dir / FINAL
+
+    start = _stage(f"6/{STAGES} fidelity report of the action world model on the held-out episode")
+    report = evaluate_fidelity(FidelityConfig(
+        dataset=DatasetConfig(repo_id="local/maniskill_converted", root=str(converted)),
+        tokenizer=str(tokenizer_dir / FINAL), world_model=str(out / "world_model_action" / FINAL),
+        output_dir=out / "fidelity", allow_random_lpips=True,
+    ))  # fmt: skip
+    mean = report["mean"]
+    print(f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
+          f"SSIM {mean['prediction_ssim']:.2f}, done accuracy {report['done_teacher_forced']['accuracy']:.2f}, "
+          f"in {time.time() - start:.0f}s")
+    artifacts["fidelity report"] = out / "fidelity" / "fidelity.md"
+    artifacts["predicted vs real video"] = out / "fidelity" / "side_by_side.mp4"
 
     print("\n=== results ===")
     for name, path in artifacts.items():

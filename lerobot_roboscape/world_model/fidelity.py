@@ -11,6 +11,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import av
 import imageio.v3 as iio
 import matplotlib
 import numpy as np
@@ -185,6 +186,7 @@ def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: 
     (output_dir / "fidelity.md").write_text(markdown_table(report))
     plot(report, output_dir / "fidelity.png")
     if videos:
+        av.logging.set_level(av.logging.ERROR)  # no encoder statistics on the console
         iio.imwrite(output_dir / "side_by_side.mp4", np.concatenate(videos), plugin="pyav", codec="libx264", fps=fps)
 
 
