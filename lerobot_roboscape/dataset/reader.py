@@ -1,5 +1,6 @@
 """Reads the collected LeRobot datasets back for model training: whole episodes in order, or random frames."""
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,8 +19,14 @@ class DatasetError(ValueError):
 
 def open_dataset(repo_id: str, root: str | Path | None = None, episodes: list[int] | None = None) -> LeRobotDataset:
     """A LeRobotDataset with at least one camera and one episode, or a `DatasetError` naming what is missing."""
-    if root is not None and not (Path(root) / "meta" / "info.json").is_file():
-        raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json is missing); collect one with roboscape-collect")
+    if root is not None:
+        info_path = Path(root) / "meta" / "info.json"
+        if not info_path.is_file():
+            raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json is missing); collect one with "
+                               "roboscape-collect")
+        # Checked before LeRobotDataset, which would otherwise look for the missing files on the Hub.
+        if json.loads(info_path.read_text()).get("total_episodes", 0) == 0:
+            raise DatasetError(f"dataset {root} has no episodes ({info_path} says total_episodes is 0)")
     dataset = LeRobotDataset(repo_id, root=root, episodes=episodes)
     where = root or repo_id
     if dataset.meta.total_episodes == 0 or dataset.num_frames == 0:

@@ -4,6 +4,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset.reader import DatasetError, open_dataset
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -59,6 +60,12 @@ def test_mismatched_or_broken_cache_is_named(token_cache, demo_dataset, tmp_path
         open_token_cache(broken)
 
 
-def test_missing_dataset_is_named(tmp_path):
+def test_missing_or_empty_dataset_is_named(tmp_path):
     with pytest.raises(DatasetError, match="no LeRobot dataset at"):
         open_dataset("test/none", tmp_path / "nothing")
+    features = {"observation.images.wrist": {"dtype": "video", "shape": (32, 32, 3),
+                                             "names": ["height", "width", "channels"]},
+                "action": {"dtype": "float32", "shape": (7,), "names": None}}
+    LeRobotDataset.create("test/empty", fps=20, root=tmp_path / "empty", features=features).finalize()
+    with pytest.raises(DatasetError, match="has no episodes"):
+        open_dataset("test/empty", tmp_path / "empty")
