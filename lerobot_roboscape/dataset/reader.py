@@ -81,7 +81,7 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
     flags = SUCCESS if SUCCESS in rows.column_names else DONE
     outcome = np.asarray(rows[flags], dtype=np.float32).reshape(-1)
     done_label = np.concatenate([[0.0], outcome[:-1]]).astype(np.float32)
-    info = _sidecar(dataset).get(episode_index, {})
+    info = episode_facts(dataset, episode_index)
     return EpisodeData(
         index=episode_index,
         task=meta["tasks"][0],
@@ -90,6 +90,25 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
         done_label=done_label,
         info=info,
     )
+
+
+def read_frames(dataset: LeRobotDataset, episode_index: int, frames: list[int]) -> dict[str, np.ndarray]:
+    """Selected frames of one episode (negative indices count from its end): camera -> (k, H, W, 3) uint8."""
+    meta = dataset.meta.episodes[episode_index]
+    length = meta["length"]
+    timestamps = [(f % length) / dataset.fps for f in frames]
+    images = {}
+    for key in dataset.meta.camera_keys:
+        path = dataset.root / dataset.meta.get_video_file_path(episode_index, key)
+        offset = meta[f"videos/{key}/from_timestamp"]
+        decoded = decode_video_frames(path, [offset + t for t in timestamps], dataset.tolerance_s, return_uint8=True)
+        images[key.removeprefix(f"{OBS_IMAGES}.")] = decoded.permute(0, 2, 3, 1).numpy()
+    return images
+
+
+def episode_facts(dataset: LeRobotDataset, episode_index: int) -> dict:
+    """The roboscape facts of an episode (family, scene, split, optimal, success), {} when not recorded."""
+    return _sidecar(dataset).get(episode_index, {})
 
 
 def _local_range(dataset: LeRobotDataset, start: int, stop: int) -> tuple[int, int]:

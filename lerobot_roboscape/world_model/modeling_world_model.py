@@ -211,7 +211,7 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
         0 has none), or from its instructions (one control shared by all frames)."""
         if self.config.control == "text":
             return self.encode_control(instructions=instructions)
-        shifted = torch.cat([torch.zeros_like(actions[:, :1]), actions], 1)
+        shifted = torch.cat([actions.new_zeros(actions.shape[0], 1, actions.shape[2]), actions], 1)
         flags = torch.zeros(shifted.shape[:2], dtype=torch.bool, device=shifted.device)
         flags[:, 0] = True
         if no_action is not None:

@@ -1,0 +1,3 @@
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+
+__all__ = ["RoboscapeWorldModelEnvConfig"]

@@ -1,0 +1,105 @@
+"""LeRobot env types of RoboScape-R. Importing this module registers them with `EnvConfig`."""
+
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.utils.constants import ACTION, OBS_IMAGES
+
+from lerobot_roboscape.tasks.base import CAMERA_NAMES
+
+CAMERAS = tuple(CAMERA_NAMES.values())
+
+
+def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
+    features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
+    features_map = {ACTION: ACTION}
+    for cam in cameras:
+        features[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=(image_size, image_size, 3))
+        features_map[f"pixels/{cam}"] = f"{OBS_IMAGES}.{cam}"
+    return features, features_map
+
+
+@EnvConfig.register_subclass("roboscape_wm")
+@dataclass
+class RoboscapeWorldModelEnvConfig(EnvConfig):
+    """The world models as an environment (see envs/world_model_env.py).
+
+    Args:
+        dataset_repo_id: LeRobot dataset whose episodes give the initial frames and instructions.
+        dataset_root: its local directory (default: the LeRobot cache / Hub).
+        tokenizer: trained tokenizer, local directory or Hub repo id.
+        action_world_model: action world model, local directory or Hub repo id.
+        text_world_model: text world model that generates the goal frames (goal_source=text_model).
+        families: task families whose episodes are used (empty: all).
+        split: "ind", "ood" or "" (all).
+        scenes: scene ids to use (empty: all).
+        goal_source: "text_model" (the paper) or "dataset_last_frame" (the episode's own last frame).
+        theta: done threshold of the goal and of termination.
+        theta_sps: done threshold of the sparse reward.
+        alpha: weight of the sparse reward.
+        beta: weight of the dense (LPIPS) reward.
+        sparse_reward: value of the sparse reward when done >= theta_sps.
+        episode_length: steps before truncation.
+        max_goal_steps: frames the text model may generate while looking for the goal.
+        temperature: sampling temperature of the world model (0: greedy, deterministic).
+        image_size: camera image side (must match the tokenizer).
+        lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
+        allow_random_lpips: run with a random LPIPS trunk when no weights are found (not a perceptual reward).
+        device: "auto", "cpu" or "cuda".
+        seed: seed of the start sampling when reset() gets none.
+    """
+
+    task: str | None = None
+    fps: int = 20
+    dataset_repo_id: str = "local/roboscape"
+    dataset_root: str | None = None
+    tokenizer: str = "outputs/tokenizer/pretrained_model"
+    action_world_model: str = "outputs/world_model_action/pretrained_model"
+    text_world_model: str | None = "outputs/world_model_text/pretrained_model"
+    families: list[str] = field(default_factory=list)
+    split: str = ""
+    scenes: list[str] = field(default_factory=list)
+    goal_source: str = "text_model"
+    theta: float = 0.9
+    theta_sps: float = 0.9
+    alpha: float = 0.5
+    beta: float = 0.5
+    sparse_reward: float = 10.0
+    episode_length: int = 160
+    max_goal_steps: int = 100
+    temperature: float = 0.0
+    image_size: int = 64
+    lpips_weights: str | None = None
+    allow_random_lpips: bool = False
+    device: str = "auto"
+    seed: int = 0
+    features: dict[str, PolicyFeature] = field(default_factory=dict)
+    features_map: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self):
+        from lerobot_roboscape.envs.world_model_env import GOAL_SOURCES
+
+        if self.goal_source not in GOAL_SOURCES:
+            raise ValueError(f"goal_source must be one of {GOAL_SOURCES}, got {self.goal_source!r}")
+        if self.goal_source == "text_model" and not self.text_world_model:
+            raise ValueError("goal_source=text_model needs text_world_model")
+        if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
+            raise ValueError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
+        self.features, self.features_map = camera_features(self.image_size)
+
+    @property
+    def resolved_device(self) -> str:
+        return ("cuda" if torch.cuda.is_available() else "cpu") if self.device == "auto" else self.device
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {}
+
+    def create_envs(self, n_envs: int, use_async_envs: bool = False) -> dict[str, dict[int, gym.vector.VectorEnv]]:
+        """One batched env of `n_envs` episodes (async workers would each hold a copy of the models)."""
+        from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+
+        return {self.type: {0: RoboscapeWorldModelEnv(self, num_envs=n_envs)}}

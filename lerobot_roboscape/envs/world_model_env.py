@@ -1,0 +1,262 @@
+"""`roboscape_wm`: the world models as a batched reinforcement-learning environment (paper Algorithm 1).
+
+B episodes run side by side on one device, stepped by one batched call of the action world model.
+
+- **reset** draws each episode's initial frame and instruction from the episodes of a LeRobot dataset, across
+  the scenes and task families selected, so one env covers many scenes at once. The goal frame of each start is
+  generated once by the text world model (the first frame whose done >= theta) and cached.
+- **step** predicts the next frame and done from the action; the reward is `WorldModelReward` (sparse done term +
+  LPIPS alignment with the goal). An episode terminates when done >= theta and is truncated at max steps. A finished
+  episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
+"""
+
+import logging
+from dataclasses import dataclass
+from functools import lru_cache
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+
+from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_frames
+from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.reward.world_model_reward import WorldModelReward
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+logger = logging.getLogger(__name__)
+GOAL_SOURCES = ("text_model", "dataset_last_frame")
+
+
+@dataclass
+class EpisodeStart:
+    episode_index: int
+    task: str
+    first_tokens: torch.Tensor  # (S,)
+    last_tokens: torch.Tensor  # (S,)
+    facts: dict
+
+
+@lru_cache(maxsize=8)
+def load_models(tokenizer: str, action_model: str, text_model: str | None, device: str):
+    """Tokenizer and world models, loaded once per process (local directories or Hub repo ids)."""
+    loaded = [VisualTokenizer.from_pretrained(tokenizer), STWorldModel.from_pretrained(action_model)]
+    loaded.append(STWorldModel.from_pretrained(text_model) if text_model else None)
+    return tuple(m.to(device).eval() if m is not None else None for m in loaded)
+
+
+@lru_cache(maxsize=4)
+def load_reward_lpips(net: str, weights: str | None, allow_random: bool, device: str):
+    return load_lpips(net, weights, allow_random).to(device)
+
+
+class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20, "autoreset_mode": AutoresetMode.DISABLED}
+
+    def __init__(self, config, num_envs: int = 1):
+        """config: a `RoboscapeWorldModelEnvConfig` (see envs/configs.py)."""
+        self.config, self.num_envs = config, num_envs
+        self.device = config.resolved_device
+        self.tokenizer, self.action_model, self.text_model = load_models(
+            config.tokenizer, config.action_world_model,
+            config.text_world_model if config.goal_source == "text_model" else None, self.device,
+        )  # fmt: skip
+        if self.action_model.config.control != "action":
+            raise ValueError(f"{config.action_world_model} is a {self.action_model.config.control} world model, "
+                             "not an action world model")
+        self.reward_fn = WorldModelReward(
+            load_reward_lpips(self.tokenizer.config.lpips_net, config.lpips_weights, config.allow_random_lpips,
+                              self.device),
+            alpha=config.alpha, beta=config.beta, theta_sps=config.theta_sps, sparse_value=config.sparse_reward,
+        )  # fmt: skip
+        self.starts, self.cameras = self._load_starts()
+        self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
+
+        size, n = self.tokenizer.config.image_size, len(self.cameras)
+        pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
+        self.single_observation_space = gym.spaces.Dict({"pixels": gym.spaces.Dict(pixels)})
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        action_dim = self.action_model.config.action_dim
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.render_mode = "rgb_array"
+        self._max_episode_steps = config.episode_length
+        self._n_cameras = n
+        self._rng = np.random.default_rng(config.seed)
+        self._state = None
+
+    # ---- starts and goals ----------------------------------------------------------------------------------
+
+    def _load_starts(self) -> tuple[list[EpisodeStart], list[str]]:
+        cfg = self.config
+        dataset = open_dataset(cfg.dataset_repo_id, cfg.dataset_root)
+        cameras = camera_names(dataset)
+        if len(cameras) != self.action_model.config.n_cameras:
+            raise ValueError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
+                             f"{self.action_model.config.n_cameras} views")
+        starts = []
+        for index in episode_indices(dataset):
+            facts = episode_facts(dataset, index)
+            if cfg.families and facts.get("task_family") not in cfg.families:
+                continue
+            if cfg.split and facts.get("split") != cfg.split:
+                continue
+            if cfg.scenes and facts.get("scene") not in cfg.scenes:
+                continue
+            frames = read_frames(dataset, index, [0, -1])
+            tokens = self._encode(frames)  # (2, S)
+            task = dataset.meta.episodes[index]["tasks"][0]
+            starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts))
+        if not starts:
+            raise ValueError(f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} "
+                             f"scenes={cfg.scenes}")
+        return starts, cameras
+
+    def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
+        """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
+        grids = [self.tokenizer.encode(torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device)) for f in frames.values()]
+        return torch.stack(grids, 1).flatten(1)
+
+    def _decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
+        """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""
+        side = self.tokenizer.config.tokens_per_side
+        return self.tokenizer.decode(tokens_BS.reshape(-1, side, side)).unflatten(0, (-1, self._n_cameras))
+
+    @torch.no_grad()
+    def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:
+        """Goal tokens (B, S) of these starts, generated once per start and cached; and whether the text model
+        crossed theta (when it never does, the last generated frame is the goal)."""
+        missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self._goal_cache]
+        if missing and self.config.goal_source == "dataset_last_frame":
+            for s in missing:
+                self._goal_cache[s.episode_index] = (s.last_tokens, True)
+        elif missing:
+            self._generate_goals(missing)
+        goals = [self._goal_cache[s.episode_index] for s in starts]
+        return torch.stack([g for g, _ in goals]), [reached for _, reached in goals]
+
+    def _generate_goals(self, starts: list[EpisodeStart]) -> None:
+        model, theta = self.text_model, self.config.theta
+        prompt = torch.stack([s.first_tokens for s in starts])[:, None]
+        control = model.encode_control(instructions=[s.task for s in starts])
+        state = model.start_rollout(prompt, control)
+        goal = prompt[:, 0].clone()
+        reached = torch.zeros(len(starts), dtype=torch.bool, device=prompt.device)
+        for _ in range(self.config.max_goal_steps):
+            frame, done = model.predict_next_frame(state, control)
+            newly = (done >= theta) & ~reached
+            goal[newly] = frame[newly]
+            goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
+            reached |= newly
+            if reached.all():
+                break
+        for i, s in enumerate(starts):
+            if not reached[i]:
+                logger.warning("text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
+                               "its last generated frame is the goal", theta, self.config.max_goal_steps,
+                               s.episode_index, s.task)
+            self._goal_cache[s.episode_index] = (goal[i], bool(reached[i]))
+
+    # ---- gymnasium API -------------------------------------------------------------------------------------
+
+    def reset(self, *, seed=None, options=None):
+        options = options or {}
+        if options.get("reset_mask") is not None and not np.all(options["reset_mask"]):
+            raise ValueError("roboscape_wm resets all its episodes together; pass no reset_mask (or all True)")
+        if seed is not None:
+            self._rng = np.random.default_rng(seed[0] if isinstance(seed, (list, tuple, np.ndarray)) else seed)
+        if "episode_index" in options:
+            wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))
+            by_index = {s.episode_index: s for s in self.starts}
+            if missing := sorted(set(int(i) for i in wanted) - set(by_index)):
+                raise ValueError(f"episodes {missing} are not among this env's starts")
+            starts = [by_index[int(i)] for i in wanted]
+        else:
+            starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
+        goal_tokens, reached = self.goals_for(starts)
+        first = torch.stack([s.first_tokens for s in starts])
+        control = self.action_model.episode_control(torch.zeros(self.num_envs, 0, self.action_model.config.action_dim,
+                                                                device=self.device))
+        self._state = self.action_model.start_rollout(first[:, None], control)
+        self._starts = starts
+        self._frames = self._decode(first)
+        self._goals = self._decode(goal_tokens)
+        self._step = 0
+        self._terminated = np.zeros(self.num_envs, dtype=bool)
+        self._truncated = np.zeros(self.num_envs, dtype=bool)
+        self._finished = np.zeros(self.num_envs, dtype=bool)
+        info = {"task": [s.task for s in starts], "episode_index": np.array([s.episode_index for s in starts]),
+                "goal_from_text_model": np.array(reached), "goal": self._pixels(self._goals)}
+        return self._observation(), info
+
+    def step(self, actions):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        actions = self._check_actions(actions)
+        clipped = np.count_nonzero(np.abs(actions) > 1.0, axis=1)
+        actions = np.clip(actions, -1.0, 1.0)
+        control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
+        tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature)
+        frames = self._decode(tokens)
+        parts = self.reward_fn(frames, self._goals, done)
+        self._step += 1
+        live = torch.from_numpy(~self._finished).to(self.device)
+        self._frames = torch.where(live[:, None, None, None, None], frames, self._frames)
+
+        done_np = done.cpu().numpy()
+        live_np = ~self._finished
+        newly_terminated = (done_np >= self.config.theta) & live_np
+        newly_truncated = (self._step >= self.config.episode_length) & live_np & ~newly_terminated
+        reward = np.where(live_np, parts.reward.cpu().numpy(), 0.0).astype(np.float32)
+        self._terminated |= newly_terminated
+        self._truncated |= newly_truncated
+        self._finished = self._terminated | self._truncated
+        info = {
+            "is_success": self._terminated.copy(),
+            "done_probability": done_np,
+            "reward_sparse": parts.sparse.cpu().numpy() * live_np,
+            "reward_dense": parts.dense.cpu().numpy() * live_np,
+            "lpips_to_goal": parts.lpips.cpu().numpy(),
+            "clipped_actions": clipped,
+            "goal": self._pixels(self._goals),
+        }
+        # Ended episodes stay frozen and keep reporting how they ended until the next reset.
+        return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
+
+    def _check_actions(self, actions) -> np.ndarray:
+        actions = np.asarray(actions.detach().cpu() if torch.is_tensor(actions) else actions, dtype=np.float32)
+        expected = self.action_space.shape
+        if actions.shape != expected:
+            raise ValueError(f"roboscape_wm expects actions of shape {expected} (num_envs, action_dim), "
+                             f"got {actions.shape}")
+        bad = ~np.isfinite(actions).all(axis=1)
+        if bad.any():
+            raise ValueError(f"actions of envs {np.flatnonzero(bad).tolist()} contain NaN or inf: {actions[bad]}")
+        return actions
+
+    def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
+        uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()
+        return {cam: uint8[:, i] for i, cam in enumerate(self.cameras)}
+
+    def _observation(self) -> dict:
+        return {"pixels": self._pixels(self._frames)}
+
+    def render(self) -> tuple[np.ndarray, ...]:
+        """Per episode: its views stacked vertically, the current frame left and the goal right."""
+        current, goal = self._pixels(self._frames), self._pixels(self._goals)
+        column = lambda views: np.concatenate([views[c] for c in self.cameras], axis=1)  # noqa: E731
+        return tuple(np.concatenate([column(current), column(goal)], axis=2))
+
+    # gymnasium 1.x VectorEnv has no call/get_attr; LeRobot's evaluation uses them.
+    def call(self, name: str, *args, **kwargs) -> tuple:
+        if name == "render":
+            return self.render()
+        if name in ("task", "task_description"):
+            return tuple(s.task for s in self._starts) if self._state is not None else ("",) * self.num_envs
+        value = getattr(self, name)
+        value = value(*args, **kwargs) if callable(value) else value
+        return (value,) * self.num_envs
+
+    def get_attr(self, name: str) -> tuple:
+        return self.call(name)
