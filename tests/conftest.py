@@ -71,3 +71,28 @@ def token_cache(demo_dataset, trained_tokenizer, tmp_path_factory):
     _, root = demo_dataset
     return prepare_token_cache(DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer),
                                tmp_path_factory.mktemp("token_cache"))
+
+
+# A world model small enough to train in seconds on the tests' token cache.
+TEST_WM_ARGS = ["--wm.d_model=64", "--wm.n_head=2", "--wm.n_layer=2", "--wm.window=4", "--wm.prompt_frames=1",
+                "--train.batch_size=4", "--train.log_freq=5", "--train.warmup_steps=5", "--train.mixed_precision=no"]
+
+
+@pytest.fixture(scope="session")
+def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory):
+    """{"action": dir, "text": dir} of tiny world models trained for a few steps on `demo_dataset`."""
+    import draccus
+
+    from lerobot_roboscape.training import FINAL
+    from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+
+    _, root = demo_dataset
+    dirs = {}
+    for control in ("action", "text"):
+        out = tmp_path_factory.mktemp(f"wm_{control}")
+        args = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
+                f"--token_cache={token_cache.root}", f"--output_dir={out}", f"--wm.control={control}",
+                "--train.steps=20", "--train.save_freq=20", *TEST_WM_ARGS]
+        train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+        dirs[control] = out / FINAL
+    return dirs

@@ -13,6 +13,7 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 import logging
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -38,11 +39,29 @@ class EpisodeStart:
     facts: dict
 
 
+def load_pretrained(cls, ref: str, what: str, command: str):
+    """`cls.from_pretrained(ref)` for a local directory or a Hub repo id, with an error naming what is missing."""
+    path = Path(ref).expanduser()
+    looks_local = path.is_absolute() or ref.startswith(".") or ref.count("/") != 1
+    if looks_local and not (path / "config.json").is_file():
+        raise FileNotFoundError(f"no {what} at {ref} (config.json missing); train one with `{command}` or give a "
+                                "Hub repo id")
+    try:
+        return cls.from_pretrained(str(path) if path.is_dir() else ref)
+    except (OSError, ValueError) as error:  # huggingface_hub's not-found and offline errors are OSErrors
+        raise FileNotFoundError(f"could not load the {what} {ref!r} from a local directory or the Hub ({error}); "
+                                f"train one with `{command}`") from error
+
+
 @lru_cache(maxsize=8)
 def load_models(tokenizer: str, action_model: str, text_model: str | None, device: str):
     """Tokenizer and world models, loaded once per process (local directories or Hub repo ids)."""
-    loaded = [VisualTokenizer.from_pretrained(tokenizer), STWorldModel.from_pretrained(action_model)]
-    loaded.append(STWorldModel.from_pretrained(text_model) if text_model else None)
+    loaded = [
+        load_pretrained(VisualTokenizer, tokenizer, "tokenizer", "roboscape-train-tokenizer"),
+        load_pretrained(STWorldModel, action_model, "action world model", "roboscape-train-wm --wm.control=action"),
+        load_pretrained(STWorldModel, text_model, "text world model", "roboscape-train-wm --wm.control=text")
+        if text_model else None,
+    ]  # fmt: skip
     return tuple(m.to(device).eval() if m is not None else None for m in loaded)
 
 
@@ -84,6 +103,7 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
         self._max_episode_steps = config.episode_length
         self._n_cameras = n
         self._rng = np.random.default_rng(config.seed)
+        self._generator = torch.Generator(self.device).manual_seed(config.seed)
         self._state = None
 
     # ---- starts and goals ----------------------------------------------------------------------------------
@@ -165,7 +185,9 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
         if options.get("reset_mask") is not None and not np.all(options["reset_mask"]):
             raise ValueError("roboscape_wm resets all its episodes together; pass no reset_mask (or all True)")
         if seed is not None:
-            self._rng = np.random.default_rng(seed[0] if isinstance(seed, (list, tuple, np.ndarray)) else seed)
+            seed = int(seed[0] if isinstance(seed, (list, tuple, np.ndarray)) else seed)
+            self._rng = np.random.default_rng(seed)
+            self._generator = torch.Generator(self.device).manual_seed(seed)  # world-model sampling
         if "episode_index" in options:
             wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))
             by_index = {s.episode_index: s for s in self.starts}
@@ -197,7 +219,8 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
         clipped = np.count_nonzero(np.abs(actions) > 1.0, axis=1)
         actions = np.clip(actions, -1.0, 1.0)
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
-        tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature)
+        tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature,
+                                                                self._generator)
         frames = self._decode(tokens)
         parts = self.reward_fn(frames, self._goals, done)
         self._step += 1
@@ -260,3 +283,34 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
 
     def get_attr(self, name: str) -> tuple:
         return self.call(name)
+
+
+class RoboscapeWorldModelSingleEnv(gym.Env):
+    """One episode of `RoboscapeWorldModelEnv` behind the plain `gym.Env` API (gymnasium's env checker, tools that
+    want a single env). Batch dimensions are dropped."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(self, config):
+        self.vector_env = RoboscapeWorldModelEnv(config, num_envs=1)
+        self.observation_space = self.vector_env.single_observation_space
+        self.action_space = self.vector_env.single_action_space
+        self.render_mode = "rgb_array"
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        obs, info = self.vector_env.reset(seed=seed, options=options)
+        return _first(obs), _first(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.vector_env.step(np.asarray(action)[None])
+        return _first(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), _first(info)
+
+    def render(self) -> np.ndarray:
+        return self.vector_env.render()[0]
+
+
+def _first(tree):
+    if isinstance(tree, dict):
+        return {k: _first(v) for k, v in tree.items()}
+    return tree[0] if isinstance(tree, (np.ndarray, list, tuple)) else tree

@@ -1,0 +1,118 @@
+import logging
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, RoboscapeWorldModelSingleEnv
+from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.reward.world_model_reward import WorldModelReward
+from tests.conftest import IMAGE_SIZE
+
+
+@pytest.fixture
+def env_config(demo_dataset, trained_tokenizer, world_models):
+    _, root = demo_dataset
+
+    def make(**overrides):
+        kwargs = dict(dataset_repo_id="test/demos", dataset_root=str(root), tokenizer=str(trained_tokenizer),
+                      action_world_model=str(world_models["action"]), text_world_model=str(world_models["text"]),
+                      image_size=IMAGE_SIZE, allow_random_lpips=True, episode_length=6, max_goal_steps=4)
+        return RoboscapeWorldModelEnvConfig(**{**kwargs, **overrides})
+
+    return make
+
+
+def test_gymnasium_env_checker(env_config):
+    check_env(RoboscapeWorldModelSingleEnv(env_config(temperature=1.0)), skip_render_check=False)
+
+
+def test_batched_reset_and_step(env_config):
+    env = RoboscapeWorldModelEnv(env_config(), num_envs=3)
+    obs, info = env.reset(seed=0)
+    assert set(obs["pixels"]) == {"third_view", "wrist"}
+    assert obs["pixels"]["wrist"].shape == (3, IMAGE_SIZE, IMAGE_SIZE, 3) and obs["pixels"]["wrist"].dtype == np.uint8
+    assert obs in env.observation_space
+    assert len(info["task"]) == 3 and info["goal"]["third_view"].shape == (3, IMAGE_SIZE, IMAGE_SIZE, 3)
+    ended = np.zeros(3, dtype=bool)
+    for _ in range(6):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert reward.shape == (3,) and np.isfinite(reward).all()
+        assert ((reward == 0) | ~ended).all()  # an ended episode earns nothing more
+        ended = terminated | truncated
+    assert ended.all()  # truncated at episode_length at the latest
+    assert np.array_equal(info["is_success"], terminated)
+    for key in ("reward_sparse", "reward_dense", "lpips_to_goal", "done_probability", "clipped_actions"):
+        assert info[key].shape == (3,)
+    assert env.render()[0].shape == (2 * IMAGE_SIZE, 2 * IMAGE_SIZE, 3)
+    assert env.call("_max_episode_steps") == (6, 6, 6) and len(env.call("task_description")) == 3
+
+
+def test_determinism_under_a_seed(env_config):
+    env = RoboscapeWorldModelEnv(env_config(temperature=1.0), num_envs=2)
+    actions = np.random.default_rng(0).uniform(-1, 1, (5, 2, 7)).astype(np.float32)
+
+    def rollout(seed):
+        obs, _ = env.reset(seed=seed)
+        frames, rewards = [obs["pixels"]["wrist"]], []
+        for a in actions:
+            obs, reward, *_ = env.step(a)
+            frames.append(obs["pixels"]["wrist"])
+            rewards.append(reward)
+        return np.stack(frames), np.stack(rewards)
+
+    first, again = rollout(7), rollout(7)
+    np.testing.assert_array_equal(first[0], again[0])
+    np.testing.assert_array_equal(first[1], again[1])
+
+
+def test_bad_actions(env_config):
+    env = RoboscapeWorldModelEnv(env_config(), num_envs=2)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 7\).*got \(2, 6\)"):
+        env.step(np.zeros((2, 6), np.float32))
+    bad = np.zeros((2, 7), np.float32)
+    bad[1, 3] = np.nan
+    with pytest.raises(ValueError, match=r"envs \[1\] contain NaN or inf"):
+        env.step(bad)
+    wide = np.zeros((2, 7), np.float32)
+    wide[0, :3] = 5.0
+    *_, info = env.step(wide)
+    assert info["clipped_actions"].tolist() == [3, 0]
+
+
+def test_missing_world_model_is_named(env_config, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no action world model at .*roboscape-train-wm"):
+        RoboscapeWorldModelEnv(env_config(action_world_model=str(tmp_path / "nowhere")))
+
+
+def test_goal_never_reached_is_explicit(env_config, caplog):
+    env = RoboscapeWorldModelEnv(env_config(theta=1.0, max_goal_steps=2), num_envs=2)
+    with caplog.at_level(logging.WARNING):
+        _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
+    assert not info["goal_from_text_model"].any()
+    assert "done stayed below theta=1.00 for 2 frames" in caplog.text
+
+
+def test_goal_from_the_dataset_episode(env_config, token_cache):
+    env = RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame", text_world_model=None), num_envs=1)
+    _, info = env.reset(seed=0, options={"episode_index": 1})
+    row = next(r for r in token_cache.episodes if r["episode_index"] == 1)
+    last = torch.from_numpy(token_cache.tokens[row["start"] + row["length"] - 1].astype(np.int64)).reshape(1, -1)
+    expected = env._pixels(env._decode(last))
+    np.testing.assert_array_equal(info["goal"]["wrist"], expected["wrist"])
+
+
+def test_reward_is_higher_at_the_goal():
+    reward = WorldModelReward(load_lpips(allow_random_trunk=True), alpha=0.5, beta=0.5, theta_sps=0.9)
+    g = torch.Generator().manual_seed(0)
+    goal = torch.rand(4, 2, 3, 32, 32, generator=g)
+    other = torch.rand(4, 2, 3, 32, 32, generator=g)
+    at_goal = reward(goal, goal, torch.zeros(4))
+    elsewhere = reward(other, goal, torch.zeros(4))
+    assert torch.allclose(at_goal.dense, torch.ones(4)) and (at_goal.reward > elsewhere.reward).all()
+    done = reward(other, goal, torch.tensor([0.95, 0.5, 0.9, 0.0]))
+    assert done.sparse.tolist() == [10.0, 0.0, 10.0, 0.0]
+    torch.testing.assert_close(done.reward, 0.5 * done.sparse + 0.5 * done.dense)
