@@ -1,3 +1,3 @@
-from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 
-__all__ = ["RoboscapeWorldModelEnvConfig"]
+__all__ = ["RoboscapeManiSkillEnvConfig", "RoboscapeWorldModelEnvConfig"]

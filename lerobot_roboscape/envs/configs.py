@@ -103,3 +103,47 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 
         return {self.type: {0: RoboscapeWorldModelEnv(self, num_envs=n_envs)}}
+
+
+@EnvConfig.register_subclass("roboscape_maniskill")
+@dataclass
+class RoboscapeManiSkillEnvConfig(EnvConfig):
+    """The task suite in the ManiSkill simulator (see envs/maniskill_env.py), for evaluation and the "RL in
+    ManiSkill" baseline. Observations, actions and task strings are laid out as in `roboscape_wm`.
+
+    Args:
+        families: task families, dealt to the parallel envs in turn (empty: all four).
+        split: "ind", "ood" or "" (all scenes).
+        scenes: scene ids (empty: every scene of the split).
+        episode_length: steps before truncation.
+        image_size: camera image side.
+        cameras: camera names (the dataset's).
+        seed: seed of the scene and initial-state sampling when reset() gets none.
+    """
+
+    task: str | None = None
+    fps: int = 20
+    families: list[str] = field(default_factory=list)
+    split: str = "ind"
+    scenes: list[str] = field(default_factory=list)
+    episode_length: int = 160
+    image_size: int = 64
+    cameras: tuple[str, ...] = CAMERAS
+    seed: int = 0
+    features: dict[str, PolicyFeature] = field(default_factory=dict)
+    features_map: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.split not in ("", "ind", "ood"):
+            raise ValueError(f"split must be 'ind', 'ood' or '', got {self.split!r}")
+        self.cameras = tuple(self.cameras)
+        self.features, self.features_map = camera_features(self.image_size, self.cameras)
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {}
+
+    def create_envs(self, n_envs: int, use_async_envs: bool = False) -> dict[str, dict[int, gym.vector.VectorEnv]]:
+        from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
+
+        return {self.type: {0: RoboscapeManiSkillEnv(self, num_envs=n_envs)}}

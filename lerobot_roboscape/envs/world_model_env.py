@@ -18,9 +18,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_frames
+from lerobot_roboscape.envs.batched import BatchedEnv
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -70,9 +70,7 @@ def load_reward_lpips(net: str, weights: str | None, allow_random: bool, device:
     return load_lpips(net, weights, allow_random).to(device)
 
 
-class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20, "autoreset_mode": AutoresetMode.DISABLED}
-
+class RoboscapeWorldModelEnv(BatchedEnv):
     def __init__(self, config, num_envs: int = 1):
         """config: a `RoboscapeWorldModelEnvConfig` (see envs/configs.py)."""
         self.config, self.num_envs = config, num_envs
@@ -182,10 +180,7 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
 
     def reset(self, *, seed=None, options=None):
         options = options or {}
-        if options.get("reset_mask") is not None and not np.all(options["reset_mask"]):
-            raise ValueError("roboscape_wm resets all its episodes together; pass no reset_mask (or all True)")
-        if seed is not None:
-            seed = int(seed[0] if isinstance(seed, (list, tuple, np.ndarray)) else seed)
+        if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
             self._generator = torch.Generator(self.device).manual_seed(seed)  # world-model sampling
         if "episode_index" in options:
@@ -215,9 +210,7 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
     def step(self, actions):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        actions = self._check_actions(actions)
-        clipped = np.count_nonzero(np.abs(actions) > 1.0, axis=1)
-        actions = np.clip(actions, -1.0, 1.0)
+        actions, clipped = self._check_actions(actions)
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
         tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature,
                                                                 self._generator)
@@ -247,17 +240,6 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
         return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
 
-    def _check_actions(self, actions) -> np.ndarray:
-        actions = np.asarray(actions.detach().cpu() if torch.is_tensor(actions) else actions, dtype=np.float32)
-        expected = self.action_space.shape
-        if actions.shape != expected:
-            raise ValueError(f"roboscape_wm expects actions of shape {expected} (num_envs, action_dim), "
-                             f"got {actions.shape}")
-        bad = ~np.isfinite(actions).all(axis=1)
-        if bad.any():
-            raise ValueError(f"actions of envs {np.flatnonzero(bad).tolist()} contain NaN or inf: {actions[bad]}")
-        return actions
-
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
         uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()
         return {cam: uint8[:, i] for i, cam in enumerate(self.cameras)}
@@ -271,46 +253,5 @@ class RoboscapeWorldModelEnv(gym.vector.VectorEnv):
         column = lambda views: np.concatenate([views[c] for c in self.cameras], axis=1)  # noqa: E731
         return tuple(np.concatenate([column(current), column(goal)], axis=2))
 
-    # gymnasium 1.x VectorEnv has no call/get_attr; LeRobot's evaluation uses them.
-    def call(self, name: str, *args, **kwargs) -> tuple:
-        if name == "render":
-            return self.render()
-        if name in ("task", "task_description"):
-            return tuple(s.task for s in self._starts) if self._state is not None else ("",) * self.num_envs
-        value = getattr(self, name)
-        value = value(*args, **kwargs) if callable(value) else value
-        return (value,) * self.num_envs
-
-    def get_attr(self, name: str) -> tuple:
-        return self.call(name)
-
-
-class RoboscapeWorldModelSingleEnv(gym.Env):
-    """One episode of `RoboscapeWorldModelEnv` behind the plain `gym.Env` API (gymnasium's env checker, tools that
-    want a single env). Batch dimensions are dropped."""
-
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
-
-    def __init__(self, config):
-        self.vector_env = RoboscapeWorldModelEnv(config, num_envs=1)
-        self.observation_space = self.vector_env.single_observation_space
-        self.action_space = self.vector_env.single_action_space
-        self.render_mode = "rgb_array"
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        obs, info = self.vector_env.reset(seed=seed, options=options)
-        return _first(obs), _first(info)
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.vector_env.step(np.asarray(action)[None])
-        return _first(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), _first(info)
-
-    def render(self) -> np.ndarray:
-        return self.vector_env.render()[0]
-
-
-def _first(tree):
-    if isinstance(tree, dict):
-        return {k: _first(v) for k, v in tree.items()}
-    return tree[0] if isinstance(tree, (np.ndarray, list, tuple)) else tree
+    def tasks(self) -> tuple[str, ...]:
+        return tuple(s.task for s in self._starts) if self._state is not None else ("",) * self.num_envs

@@ -6,7 +6,8 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, RoboscapeWorldModelSingleEnv
+from lerobot_roboscape.envs.batched import SingleEnv
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from tests.conftest import IMAGE_SIZE
@@ -26,7 +27,7 @@ def env_config(demo_dataset, trained_tokenizer, world_models):
 
 
 def test_gymnasium_env_checker(env_config):
-    check_env(RoboscapeWorldModelSingleEnv(env_config(temperature=1.0)), skip_render_check=False)
+    check_env(SingleEnv(RoboscapeWorldModelEnv(env_config(temperature=1.0), num_envs=1)), skip_render_check=False)
 
 
 def test_batched_reset_and_step(env_config):

@@ -1,0 +1,80 @@
+"""What the two env types share: a batched gymnasium VectorEnv that LeRobot's evaluation can drive."""
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+
+
+class BatchedEnv(gym.vector.VectorEnv):
+    """B episodes stepped together. Autoreset is off: an ended episode stays frozen until `reset()`, which restarts
+    all of them (LeRobot's evaluation and our PPO reset whole batches)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20, "autoreset_mode": AutoresetMode.DISABLED}
+
+    def tasks(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    def _seed_from(self, seed, options) -> int | None:
+        if (options or {}).get("reset_mask") is not None and not np.all(options["reset_mask"]):
+            raise ValueError(f"{type(self).__name__} resets all its episodes together; pass no reset_mask")
+        if seed is None:
+            return None
+        return int(seed[0] if isinstance(seed, (list, tuple, np.ndarray)) else seed)
+
+    def _check_actions(self, actions) -> tuple[np.ndarray, np.ndarray]:
+        """Actions as float32 (B, action_dim), clipped to [-1, 1], and the count of clipped values per env."""
+        actions = np.asarray(actions.detach().cpu() if torch.is_tensor(actions) else actions, dtype=np.float32)
+        if actions.shape != self.action_space.shape:
+            raise ValueError(f"{type(self).__name__} expects actions of shape {self.action_space.shape} "
+                             f"(num_envs, action_dim), got {actions.shape}")
+        bad = ~np.isfinite(actions).all(axis=1)
+        if bad.any():
+            raise ValueError(f"actions of envs {np.flatnonzero(bad).tolist()} contain NaN or inf: {actions[bad]}")
+        return np.clip(actions, -1.0, 1.0), np.count_nonzero(np.abs(actions) > 1.0, axis=1)
+
+    # gymnasium 1.x VectorEnv has no call/get_attr; LeRobot's evaluation uses them.
+    def call(self, name: str, *args, **kwargs) -> tuple:
+        if name == "render":
+            return self.render()
+        if name in ("task", "task_description"):
+            return self.tasks()
+        value = getattr(self, name)
+        value = value(*args, **kwargs) if callable(value) else value
+        return (value,) * self.num_envs
+
+    def get_attr(self, name: str) -> tuple:
+        return self.call(name)
+
+
+class SingleEnv(gym.Env):
+    """One episode of a `BatchedEnv` (built with num_envs=1) behind the plain `gym.Env` API, for gymnasium's env
+    checker and tools that want a single env. Batch dimensions are dropped."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(self, vector_env: BatchedEnv):
+        if vector_env.num_envs != 1:
+            raise ValueError(f"SingleEnv wraps a batched env of one episode, got num_envs={vector_env.num_envs}")
+        self.vector_env = vector_env
+        self.observation_space = vector_env.single_observation_space
+        self.action_space = vector_env.single_action_space
+        self.render_mode = "rgb_array"
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        obs, info = self.vector_env.reset(seed=seed, options=options)
+        return _first(obs), _first(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.vector_env.step(np.asarray(action)[None])
+        return _first(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), _first(info)
+
+    def render(self) -> np.ndarray:
+        return self.vector_env.render()[0]
+
+
+def _first(tree):
+    if isinstance(tree, dict):
+        return {k: _first(v) for k, v in tree.items()}
+    return tree[0] if isinstance(tree, (np.ndarray, list, tuple)) else tree

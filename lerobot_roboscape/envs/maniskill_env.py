@@ -1,0 +1,91 @@
+"""`roboscape_maniskill`: the task suite in the ManiSkill simulator, laid out like `roboscape_wm`.
+
+Same camera names, image size, 7-D actions and task strings, so one policy runs in both. Each of the B slots holds
+one ManiSkill env of a task family (families are dealt to slots in turn) and is reset into a scene drawn from the
+selected split/scenes. Reward is the task's normalised dense reward (the rule-based reward of the paper's
+baselines); `is_success` comes from the simulator. As in `roboscape_wm`, an ended episode stays frozen until the
+next reset, which restarts all slots.
+"""
+
+import gymnasium as gym
+import numpy as np
+
+from lerobot_roboscape.demos.rollout import observation_images
+from lerobot_roboscape.envs.batched import BatchedEnv
+from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from lerobot_roboscape.tasks.make import make_task_env
+
+
+class RoboscapeManiSkillEnv(BatchedEnv):
+    def __init__(self, config, num_envs: int = 1):
+        """config: a `RoboscapeManiSkillEnvConfig` (see envs/configs.py)."""
+        self.config, self.num_envs = config, num_envs
+        families = list(config.families) or list(TASK_FAMILIES)
+        self.scenes = select_scenes(config.split or "all", list(config.scenes) or None)
+        if not self.scenes:
+            raise ValueError(f"no scene matches split={config.split!r} scenes={config.scenes}")
+        self.slot_families = [families[i % len(families)] for i in range(num_envs)]
+        self.envs = [make_task_env(family, self.scenes[0].id, image_size=config.image_size,
+                                   max_episode_steps=config.episode_length, reward_mode="normalized_dense")
+                     for family in self.slot_families]  # fmt: skip
+        size = config.image_size
+        pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in config.cameras}
+        self.single_observation_space = gym.spaces.Dict({"pixels": gym.spaces.Dict(pixels)})
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.render_mode = "rgb_array"
+        self._max_episode_steps = config.episode_length
+        self._rng = np.random.default_rng(config.seed)
+        self._obs = None
+
+    def reset(self, *, seed=None, options=None):
+        options = options or {}
+        if (seed := self._seed_from(seed, options)) is not None:
+            self._rng = np.random.default_rng(seed)
+        scene_ids = options.get("scene_id")
+        scene_ids = list(np.broadcast_to(scene_ids, (self.num_envs,))) if scene_ids is not None else \
+            [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
+        episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
+        self._obs = []
+        for env, scene_id, s in zip(self.envs, scene_ids, episode_seeds):
+            obs, _ = env.reset(seed=int(s), options={"scene_id": str(scene_id)})
+            self._obs.append(observation_images(obs))
+        self._tasks = [env.unwrapped.instruction for env in self.envs]
+        self._terminated = np.zeros(self.num_envs, dtype=bool)
+        self._truncated = np.zeros(self.num_envs, dtype=bool)
+        self._steps = 0
+        return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids)}
+
+    def step(self, actions):
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        actions, clipped = self._check_actions(actions)
+        reward = np.zeros(self.num_envs, dtype=np.float32)
+        success = np.zeros(self.num_envs, dtype=bool)
+        self._steps += 1
+        for i, env in enumerate(self.envs):
+            if self._terminated[i] or self._truncated[i]:
+                continue
+            obs, r, terminated, truncated, info = env.step(actions[i])
+            self._obs[i] = observation_images(obs)
+            reward[i] = float(r[0])
+            success[i] = bool(info["success"][0])
+            self._terminated[i] = success[i]  # the task is done once it succeeds
+            self._truncated[i] = not success[i] and (bool(truncated[0]) or self._steps >= self.config.episode_length)
+        info = {"is_success": self._terminated.copy(), "clipped_actions": clipped}
+        return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
+
+    def _observation(self) -> dict:
+        return {"pixels": {cam: np.stack([o[cam] for o in self._obs]) for cam in self.config.cameras}}
+
+    def render(self) -> tuple[np.ndarray, ...]:
+        """Per episode: its camera views stacked vertically."""
+        return tuple(np.concatenate([o[cam] for cam in self.config.cameras], axis=0) for o in self._obs)
+
+    def tasks(self) -> tuple[str, ...]:
+        return tuple(self._tasks) if self._obs is not None else ("",) * self.num_envs
+
+    def close_extras(self, **kwargs):
+        for env in self.envs:
+            env.close()

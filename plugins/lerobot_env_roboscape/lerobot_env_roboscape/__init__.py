@@ -1,0 +1,3 @@
+"""Imported by LeRobot at start-up; registering the env configs is all it does."""
+
+import lerobot_roboscape.envs  # noqa: F401
