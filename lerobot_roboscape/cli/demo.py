@@ -2,7 +2,8 @@
 
 Stages: collect planner demonstrations in the task suite -> record a ManiSkill trajectory file and convert it
 (a held-out episode: another seed) -> train the image tokenizer -> train the action and the text world models ->
-write the world model's fidelity report on the held-out episode. Each stage prints where its results are.
+write the world model's fidelity report on the held-out episode -> roll out random actions in the `roboscape_wm`
+environment built from those models. Each stage prints where its results are.
 """
 
 import logging
@@ -11,12 +12,18 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import av
 import draccus
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.cli.collect import CollectConfig, collect
 from lerobot_roboscape.cli.convert import ConvertConfig, convert
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
@@ -25,7 +32,10 @@ from lerobot_roboscape.world_model.configuration_world_model import TinyWorldMod
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
 
-STAGES = 6
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+STAGES = 7
 HELDOUT_SEED = 1000  # the recorded episode gets an initial state that the collected episodes do not have
 
 
@@ -119,10 +129,51 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     artifacts["fidelity report"] = out / "fidelity" / "fidelity.md"
     artifacts["predicted vs real video"] = out / "fidelity" / "side_by_side.mp4"
 
+    start = _stage(f"7/{STAGES} random actions in the roboscape_wm environment (world-model reward)")
+    rollout = random_rollout(out, demos, cfg.image_size)
+    print(f"{rollout['steps']} steps of {rollout['episodes']} episodes, return {rollout['returns']}, "
+          f"in {time.time() - start:.0f}s")
+    artifacts["roboscape_wm rollout video (frame | goal)"] = rollout["video"]
+    artifacts["roboscape_wm reward curve"] = rollout["plot"]
+
     print("\n=== results ===")
     for name, path in artifacts.items():
         print(f"{name:40s} {path}")
     return artifacts
+
+
+def random_rollout(out: Path, demos: Path, image_size: int, episodes: int = 2, steps: int = 40) -> dict:
+    """Random actions in a roboscape_wm env of the demo's models: a video of frame beside goal and the reward."""
+    env = RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(
+        dataset_repo_id="local/roboscape_demos", dataset_root=str(demos), tokenizer=str(out / "tokenizer" / FINAL),
+        action_world_model=str(out / "world_model_action" / FINAL),
+        text_world_model=str(out / "world_model_text" / FINAL), image_size=image_size, episode_length=steps,
+        max_goal_steps=40, allow_random_lpips=True,
+    ), num_envs=episodes)  # fmt: skip
+    env.reset(seed=0)
+    frames, rewards = [np.concatenate(env.render(), axis=1)], []
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        frames.append(np.concatenate(env.render(), axis=1))
+        rewards.append(reward)
+        if (terminated | truncated).all():
+            break
+    rewards = np.stack(rewards)
+    video, plot = out / "wm_rollout.mp4", out / "wm_rollout_reward.png"
+    av.logging.set_level(av.logging.ERROR)
+    iio.imwrite(video, np.stack(frames), plugin="pyav", codec="libx264", fps=env.metadata["render_fps"])
+    fig, ax = plt.subplots(figsize=(6, 3))
+    for i in range(episodes):
+        ax.plot(rewards[:, i], label=env.tasks()[i])
+    ax.set_xlabel("step")
+    ax.set_ylabel("reward")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(plot, dpi=100)
+    plt.close(fig)
+    return {"video": video, "plot": plot, "steps": len(rewards), "episodes": episodes,
+            "returns": [round(float(r), 2) for r in rewards.sum(0)]}
 
 
 def main(argv: list[str] | None = None):

@@ -1,0 +1,82 @@
+"""Env steps/s of `roboscape_wm` (world models) against `roboscape_maniskill` (the simulator) at equal batch and
+image size, and the reward's share of a world-model step.
+
+Uses the tiny models and dataset of a demo run (run `roboscape-demo` first, or pass --demo-dir).
+
+    python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
+"""
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+
+
+class Timed:
+    """Wraps a callable and adds up the seconds spent in it."""
+
+    def __init__(self, fn):
+        self.fn, self.seconds = fn, 0.0
+
+    def __call__(self, *args, **kwargs):
+        start = time.perf_counter()
+        out = self.fn(*args, **kwargs)
+        self.seconds += time.perf_counter() - start
+        return out
+
+
+def steps_per_second(env, steps: int, timer: Timed | None = None) -> tuple[float, float]:
+    """Env steps/s (episodes x steps / s) and the seconds of the measured steps (`timer` counts only those)."""
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))  # warm-up
+    if timer is not None:
+        timer.seconds = 0.0
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+    seconds = time.perf_counter() - start
+    return env.num_envs * steps / seconds, seconds
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--demo-dir", type=Path, default=Path("outputs/demo"))
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16])
+    parser.add_argument("--steps", type=int, default=20)
+    args = parser.parse_args()
+    demo = args.demo_dir
+    if not (demo / "world_model_action" / "pretrained_model").is_dir():
+        raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
+    wm_config = RoboscapeWorldModelEnvConfig(
+        dataset_repo_id="local/roboscape_demos", dataset_root=str(demo / "datasets" / "roboscape_demos"),
+        tokenizer=str(demo / "tokenizer" / "pretrained_model"),
+        action_world_model=str(demo / "world_model_action" / "pretrained_model"),
+        text_world_model=str(demo / "world_model_text" / "pretrained_model"),
+        allow_random_lpips=True, episode_length=10_000, max_goal_steps=20, theta=1.0,  # no episode ends mid-run
+    )  # fmt: skip
+    image_size = wm_config.image_size
+    ms_config = RoboscapeManiSkillEnvConfig(image_size=image_size, episode_length=10_000)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, {image_size} px, 2 cameras, "
+          f"{args.steps} steps per measurement")
+    print(f"{'batch':>6} {'roboscape_wm steps/s':>21} {'reward share':>13} {'roboscape_maniskill steps/s':>28} "
+          f"{'ratio':>7}")
+    for batch in args.batch_sizes:
+        wm = RoboscapeWorldModelEnv(wm_config, num_envs=batch)
+        wm.reward_fn.forward = Timed(wm.reward_fn.forward)
+        wm_rate, wm_seconds = steps_per_second(wm, args.steps, wm.reward_fn.forward)
+        share = wm.reward_fn.forward.seconds / wm_seconds
+        ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
+        ms_rate, _ = steps_per_second(ms, args.steps)
+        ms.close()
+        print(f"{batch:>6} {wm_rate:>21.1f} {share:>12.0%} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
+
+
+if __name__ == "__main__":
+    main()
