@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.video_utils import decode_video_frames
-from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, REWARD
 
 from lerobot_roboscape.dataset.writer import SUCCESS, read_episode_info
 
@@ -58,6 +58,7 @@ class EpisodeData:
     images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
     action: np.ndarray  # (T, action_dim) float32
     done_label: np.ndarray  # (T,) float32: 1 where the task is accomplished in frame t
+    reward_label: np.ndarray  # (T,) float32: the rule-based reward of frame t (0 when the dataset has none)
     info: dict  # the roboscape per-episode facts (family, scene, split, optimal, ...) when recorded
 
 
@@ -81,6 +82,11 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
     flags = SUCCESS if SUCCESS in rows.column_names else DONE
     outcome = np.asarray(rows[flags], dtype=np.float32).reshape(-1)
     done_label = np.concatenate([[0.0], outcome[:-1]]).astype(np.float32)
+    if REWARD in rows.column_names:  # like success, `next.reward` at t scores frame t + 1
+        rewards = np.asarray(rows[REWARD], dtype=np.float32).reshape(-1)
+        reward_label = np.concatenate([rewards[:1], rewards[:-1]]).astype(np.float32)
+    else:
+        reward_label = np.zeros(len(outcome), dtype=np.float32)
     info = episode_facts(dataset, episode_index)
     return EpisodeData(
         index=episode_index,
@@ -88,6 +94,7 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
         images=images,
         action=np.asarray(rows[ACTION], dtype=np.float32),
         done_label=done_label,
+        reward_label=reward_label,
         info=info,
     )
 

@@ -37,6 +37,10 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         split: "ind", "ood" or "" (all).
         scenes: scene ids to use (empty: all).
         goal_source: "text_model" (the paper) or "dataset_last_frame" (the episode's own last frame).
+        reward_type: "world_model" (the paper's reward), or a baseline: "embedding" (a head on the action model's
+            hidden state, as iVideoGPT) or "proxy" (an image-to-reward network, as DiWA), fitted to the rule-based
+            reward by roboscape-train-reward.
+        reward_model: the baseline reward model (local directory or Hub repo id).
         theta: done threshold of the goal and of termination.
         theta_sps: done threshold of the sparse reward.
         alpha: weight of the sparse reward.
@@ -63,6 +67,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     split: str = ""
     scenes: list[str] = field(default_factory=list)
     goal_source: str = "text_model"
+    reward_type: str = "world_model"
+    reward_model: str | None = None
     theta: float = 0.9
     theta_sps: float = 0.9
     alpha: float = 0.5
@@ -84,6 +90,10 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 
         if self.goal_source not in GOAL_SOURCES:
             raise ValueError(f"goal_source must be one of {GOAL_SOURCES}, got {self.goal_source!r}")
+        if self.reward_type not in ("world_model", "embedding", "proxy"):
+            raise ValueError(f"reward_type must be world_model, embedding or proxy, got {self.reward_type!r}")
+        if self.reward_type != "world_model" and not self.reward_model:
+            raise ValueError(f"reward_type={self.reward_type} needs reward_model (train one with roboscape-train-reward)")
         if self.goal_source == "text_model" and not self.text_world_model:
             raise ValueError("goal_source=text_model needs text_world_model")
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:

@@ -22,6 +22,7 @@ import torch
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_frames
 from lerobot_roboscape.envs.batched import BatchedEnv
 from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -66,6 +67,13 @@ def load_models(tokenizer: str, action_model: str, text_model: str | None, devic
 
 
 @lru_cache(maxsize=4)
+def load_reward_model(ref: str | None, device: str) -> RewardModel:
+    if not ref:
+        raise ValueError("reward_type embedding/proxy needs reward_model (train one with roboscape-train-reward)")
+    return load_pretrained(RewardModel, ref, "reward model", "roboscape-train-reward").to(device).eval()
+
+
+@lru_cache(maxsize=4)
 def load_reward_lpips(net: str, weights: str | None, allow_random: bool, device: str):
     return load_lpips(net, weights, allow_random).to(device)
 
@@ -87,6 +95,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                               self.device),
             alpha=config.alpha, beta=config.beta, theta_sps=config.theta_sps, sparse_value=config.sparse_reward,
         )  # fmt: skip
+        self.reward_model = None
+        if config.reward_type != "world_model":
+            self.reward_model = load_reward_model(config.reward_model, self.device)
+            if self.reward_model.config.kind != config.reward_type:
+                raise ValueError(f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
+                                 f"reward_type is {config.reward_type!r}")
         self.starts, self.cameras = self._load_starts()
         self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
 
@@ -216,6 +230,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                                                                 self._generator)
         frames = self._decode(tokens)
         parts = self.reward_fn(frames, self._goals, done)
+        rewards_t = self.compute_reward(parts, frames)
         self._step += 1
         live = torch.from_numpy(~self._finished).to(self.device)
         self._frames = torch.where(live[:, None, None, None, None], frames, self._frames)
@@ -224,7 +239,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         live_np = ~self._finished
         newly_terminated = (done_np >= self.config.theta) & live_np
         newly_truncated = (self._step >= self.config.episode_length) & live_np & ~newly_terminated
-        reward = np.where(live_np, parts.reward.cpu().numpy(), 0.0).astype(np.float32)
+        reward = np.where(live_np, rewards_t.cpu().numpy(), 0.0).astype(np.float32)
         self._terminated |= newly_terminated
         self._truncated |= newly_truncated
         self._finished = self._terminated | self._truncated
@@ -239,6 +254,15 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         }
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
         return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
+
+    @torch.no_grad()
+    def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:
+        """The reward of the configured type for the frames just generated (B,)."""
+        if self.config.reward_type == "embedding":
+            return self.reward_model(self._state.features)
+        if self.config.reward_type == "proxy":
+            return self.reward_model(frames)
+        return parts.reward
 
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
         uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()

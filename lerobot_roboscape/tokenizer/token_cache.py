@@ -6,6 +6,7 @@ A cache is a directory of memory-mapped arrays plus a manifest naming the datase
     tokens.npy      (N, n_cameras, h, w) uint16 codes of every frame of every episode
     actions.npy     (N, action_dim) float32
     done.npy        (N,) float32 done labels (1 where the task is accomplished in that frame)
+    rewards.npy     (N,) float32 rule-based reward of each frame (labels of the baseline reward models)
     episodes.json   per episode: start row, length, task and the roboscape facts (family, scene, split, optimal)
 
 Its directory name is derived from both fingerprints, so a changed dataset or retrained tokenizer gets a new cache
@@ -28,8 +29,8 @@ from tqdm import tqdm
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
-FORMAT_VERSION = 1
-ARRAYS = ("tokens", "actions", "done")
+FORMAT_VERSION = 2
+ARRAYS = ("tokens", "actions", "done", "rewards")
 
 
 class TokenCacheMismatchError(ValueError):
@@ -65,6 +66,7 @@ class TokenCache:
     tokens: np.ndarray  # (N, n_cameras, h, w) uint16, memory-mapped
     actions: np.ndarray  # (N, action_dim) float32
     done: np.ndarray  # (N,) float32
+    rewards: np.ndarray  # (N,) float32
     episodes: list[dict]
 
     @property
@@ -91,6 +93,9 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
     if not manifest_path.is_file():
         raise TokenCacheMismatchError(f"{path} is not a token cache (no manifest.json); build one with roboscape-train-wm")
     manifest = json.loads(manifest_path.read_text())
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise TokenCacheMismatchError(f"token cache {path} has format {manifest.get('format_version')}, this version "
+                                      f"reads {FORMAT_VERSION}; delete it to rebuild it")
     for name, expected in (("dataset", dataset_fp), ("tokenizer", tokenizer_fp)):
         if expected is not None and manifest[f"{name}_fingerprint"] != expected:
             raise TokenCacheMismatchError(
@@ -104,7 +109,7 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
     for name, array in arrays.items():
         if len(array) != n:
             raise TokenCacheMismatchError(f"{path / f'{name}.npy'} has {len(array)} rows, manifest says {n}")
-    return TokenCache(path, manifest, arrays["tokens"], arrays["actions"], arrays["done"], episodes)
+    return TokenCache(path, manifest, arrays["tokens"], arrays["actions"], arrays["done"], arrays["rewards"], episodes)
 
 
 def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path: str | Path,
@@ -124,6 +129,7 @@ def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path:
         tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))
         actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, dataset.meta.features["action"]["shape"][0]))
         done = np.lib.format.open_memmap(tmp / "done.npy", "w+", np.float32, (n,))
+        rewards = np.lib.format.open_memmap(tmp / "rewards.npy", "w+", np.float32, (n,))
         tokenizer = tokenizer.to(device).eval()
         rows, row = [], 0
         for index in tqdm(episodes, desc="tokenizing", unit="episode", leave=False):
@@ -136,9 +142,10 @@ def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path:
                     tokens[row + s : row + s + len(codes), c] = codes.cpu().numpy().astype(np.uint16)
             actions[row : row + length] = episode.action
             done[row : row + length] = episode.done_label
+            rewards[row : row + length] = episode.reward_label
             rows.append({**episode.info, "episode_index": index, "start": row, "length": length, "task": episode.task})
             row += length
-        for array in (tokens, actions, done):
+        for array in (tokens, actions, done, rewards):
             array.flush()
         manifest = {
             "format_version": FORMAT_VERSION,
@@ -163,7 +170,7 @@ def load_or_build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenize
                               device: str | torch.device = "cpu") -> TokenCache:
     """The cache of (`dataset`, `tokenizer`) under `cache_dir`, built on first use and reused afterwards."""
     dataset_fp, tokenizer_fp = dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer)
-    path = Path(cache_dir) / f"{dataset_fp[:16]}-{tokenizer_fp[:16]}"
+    path = Path(cache_dir) / f"v{FORMAT_VERSION}-{dataset_fp[:16]}-{tokenizer_fp[:16]}"
     if (path / "manifest.json").is_file():
         return open_token_cache(path, dataset_fp, tokenizer_fp)
     return build_token_cache(dataset, tokenizer, path, device=device)

@@ -63,5 +63,6 @@ class ClipSampler:
             "actions": actions.astype(np.float32),
             "no_action": prev < 0,
             "done": np.asarray(self.cache.done[start + frames], dtype=np.float32),
+            "reward": np.asarray(self.cache.rewards[start + frames], dtype=np.float32),
             "task": row["task"],
         }

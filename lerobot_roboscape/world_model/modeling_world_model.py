@@ -30,6 +30,7 @@ class RolloutState:
     control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
     cache: KVCache | None  # None when generating by recomputing the window
     done: torch.Tensor  # (B,) done probability of the latest frame
+    features: torch.Tensor  # (B, C) the latest frame's final hidden state, averaged over its tokens
     frames_seen: int = 0
 
 
@@ -75,9 +76,9 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
 
     # ---- the network ---------------------------------------------------------------------------------------
 
-    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
-        """Logits (B, T, S, V) of every token, done logits (B, T), and the frames' keys/values per layer (with a
-        cache, T = 1 and the new frame's keys/values are written into it instead)."""
+    def compute_hidden(self, tokens_BTS, control: Control, cache: KVCache | None = None):
+        """Final hidden states (B, T, S, C) and the frames' keys/values per layer (with a cache, T = 1 and the new
+        frame's keys/values are written into it instead)."""
         B, T, S = tokens_BTS.shape
         if S != self.config.tokens_per_frame:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
@@ -86,9 +87,16 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
         for i, block in enumerate(self.blocks):
             x, kv = block(x, control.tokens, control.mask, cache, i)
             kvs.append(kv)
-        x = self.ln_f(x)
-        done_logits = self.done_head(x.mean(dim=2)).squeeze(-1)  # the done head reads the whole current frame
-        return self.head(x), done_logits, kvs
+        return self.ln_f(x), kvs
+
+    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
+        x, kvs = self.compute_hidden(tokens_BTS, control, cache)
+        return self.head(x), self.done_logits(x), kvs
+
+    def done_logits(self, hidden_BTSC) -> torch.Tensor:
+        """The done head reads the whole current frame: (B, T, S, C) -> (B, T)."""
+        return self.done_head(hidden_BTSC.mean(dim=2)).squeeze(-1)
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
         """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, A) + no_action (B, T) or task (B
@@ -118,10 +126,10 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
     @torch.no_grad()
     def start_rollout(self, prompt_BPS, control: Control, use_cache: bool = True) -> RolloutState:
         """Read the prompt frames (real tokens) with their controls; returns the state to generate from."""
-        _, done_logits, kvs = self.compute_logits(prompt_BPS, control)
+        hidden, kvs = self.compute_hidden(prompt_BPS, control)
         cache = KVCache.from_frames(kvs, self.config.window) if use_cache else None
-        state = RolloutState(prompt_BPS, control, cache, torch.sigmoid(done_logits[:, -1].float()),
-                             frames_seen=prompt_BPS.shape[1])
+        done = torch.sigmoid(self.done_logits(hidden[:, -1:])[:, 0].float())
+        state = RolloutState(prompt_BPS, control, cache, done, hidden[:, -1].mean(dim=1), prompt_BPS.shape[1])
         self._slide(state)
         return state
 
@@ -151,8 +159,13 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
     @torch.no_grad()
     def observe_frame(self, state: RolloutState, frame_B1S, control: Control) -> torch.Tensor:
         """Append a known frame (generated, or real for teacher forcing) to the rollout; returns its done (B,)."""
-        _, done_logits, _ = self._logits_of_new_frame(state, frame_B1S, control)
-        self._append(state, frame_B1S, control, torch.sigmoid(done_logits[:, -1].float()))
+        if state.cache is not None:
+            hidden, _ = self.compute_hidden(frame_B1S, control, state.cache)
+        else:
+            hidden, _ = self.compute_hidden(torch.cat([state.tokens, frame_B1S], 1),
+                                            self._concat_controls(state.control, control))
+        state.features = hidden[:, -1].mean(dim=1)
+        self._append(state, frame_B1S, control, torch.sigmoid(self.done_logits(hidden[:, -1:])[:, 0].float()))
         return state.done
 
     def _logits_of_new_frame(self, state: RolloutState, frame_B1S, control: Control):

@@ -1,0 +1,74 @@
+"""The paper's baseline rewards (section 4.1), fitted to the rule-based reward labels of the dataset.
+
+- Embedding-based (iVideoGPT): an MLP head on the action world model's hidden state of the current frame.
+- Proxy-based (DiWA): a separate network from the current images to the reward.
+Both are trained by `roboscape-train-reward` and used by `roboscape_wm` with `--env.reward_type=embedding|proxy`.
+"""
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from huggingface_hub import PyTorchModelHubMixin
+from torch import nn
+
+REWARD_KINDS = ("embedding", "proxy")
+
+
+@dataclass
+class RewardModelConfig:
+    """Args:
+    kind: "embedding" (head on the world model's hidden state) or "proxy" (image network).
+    d_model: width of the world model's hidden state (embedding; taken from the world model).
+    image_size: camera image side (proxy; taken from the tokenizer).
+    n_cameras: views per frame (proxy).
+    channels: base width of the proxy's conv encoder.
+    hidden: hidden width of the MLP.
+    """
+
+    kind: str = "embedding"
+    d_model: int = 128
+    image_size: int = 64
+    n_cameras: int = 2
+    channels: int = 16
+    hidden: int = 256
+
+    def __post_init__(self):
+        if self.kind not in REWARD_KINDS:
+            raise ValueError(f"kind must be one of {REWARD_KINDS}, got {self.kind!r}")
+
+
+class RewardModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-roboscape",
+                  tags=["lerobot", "reward-model", "robotics"]):
+    """Predicts the rule-based reward of a frame, from world-model features (B, d_model) or images
+    (B, n_cameras, 3, H, W) in [0, 1], depending on `config.kind`."""
+
+    def __init__(self, config: RewardModelConfig):
+        super().__init__()
+        self.config = config
+        if config.kind == "embedding":
+            width = config.d_model
+            # Token-averaged hidden states share a large common part and differ little between frames;
+            # standardising each feature over the data (batch statistics) exposes the differences.
+            self.encoder = nn.BatchNorm1d(config.d_model)
+        else:
+            c = config.channels
+            self.encoder = nn.Sequential(  # shared over views; the views' features are concatenated
+                nn.Conv2d(3, c, 4, 2, 1), nn.SiLU(), nn.Conv2d(c, 2 * c, 4, 2, 1), nn.SiLU(),
+                nn.Conv2d(2 * c, 4 * c, 4, 2, 1), nn.SiLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
+            )  # fmt: skip
+            width = 4 * c * config.n_cameras
+        self.head = nn.Sequential(nn.Linear(width, config.hidden), nn.SiLU(), nn.Linear(config.hidden, 1))
+
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        if self.config.kind == "proxy":
+            B, n = inputs.shape[:2]
+            if n != self.config.n_cameras or inputs.shape[-1] != self.config.image_size:
+                raise ValueError(f"proxy reward expects (B, {self.config.n_cameras}, 3, {self.config.image_size}, "
+                                 f"{self.config.image_size}) images, got {tuple(inputs.shape)}")
+            return self.head(self.encoder(inputs.flatten(0, 1) * 2 - 1).reshape(B, -1)).squeeze(-1)
+        return self.head(self.encoder(inputs)).squeeze(-1)
+
+    def compute_loss(self, inputs: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        loss = F.mse_loss(self(inputs), labels)
+        return loss, {"loss": loss.item()}

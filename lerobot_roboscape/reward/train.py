@@ -1,0 +1,84 @@
+"""Training the baseline reward models on the rule-based reward labels of a pre-tokenised dataset.
+
+The embedding head reads the frozen action world model's hidden states of real clips (teacher forcing); the proxy
+network reads frames decoded by the tokenizer, the images it will see inside `roboscape_wm`.
+"""
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from accelerate.utils import set_seed
+from lerobot.configs.default import DatasetConfig
+
+from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.training import TrainingConfig, fit
+from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.train import prepare_token_cache
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RewardTrainingConfig(TrainingConfig):
+    steps: int = 300
+    batch_size: int = 8
+    lr: float = 1e-3
+
+
+@dataclass
+class TrainRewardConfig:
+    """Args:
+    reward: the reward model (--reward.kind=embedding|proxy, widths).
+    dataset: the LeRobot dataset with `next.reward` labels; --dataset.episodes picks the training episodes.
+    tokenizer: the tokenizer of the world models (local directory or Hub repo id).
+    action_world_model: the action world model whose hidden states the embedding head reads.
+    train: optimisation, logging, checkpoints and resume.
+    output_dir: checkpoints, logs and the final model (output_dir/pretrained_model).
+    cache_dir: where token caches are built and found.
+    token_cache: use this existing cache (it must match the dataset and tokenizer).
+    device: where to tokenize ("auto": cuda when available).
+    """
+
+    reward: RewardModelConfig = field(default_factory=RewardModelConfig)
+    dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
+    tokenizer: str = "outputs/tokenizer/pretrained_model"
+    action_world_model: str = "outputs/world_model_action/pretrained_model"
+    train: RewardTrainingConfig = field(default_factory=RewardTrainingConfig)
+    output_dir: Path = Path("outputs/reward_model")
+    cache_dir: Path = Path("outputs/token_cache")
+    token_cache: Path | None = None
+    device: str = "auto"
+
+
+def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
+    cache = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
+    world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
+    tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).eval().requires_grad_(False)
+    if world_model.config.control != "action":
+        raise ValueError(f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one")
+    cfg.reward.d_model = world_model.config.d_model
+    cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
+    episodes = select_episodes(cache, cfg.dataset.episodes)
+    batches = ClipSampler(cache, episodes, world_model.config.window, cfg.train.batch_size, cfg.train.seed)
+    side = tokenizer.config.tokens_per_side
+
+    def loss_fn(model, batch):
+        world_model.to(batch["tokens"].device)
+        tokenizer.to(batch["tokens"].device)
+        with torch.no_grad():
+            if cfg.reward.kind == "embedding":
+                control = world_model.encode_control(batch["actions"], batch["no_action"])
+                inputs = world_model.compute_hidden(batch["tokens"], control)[0].mean(dim=2).flatten(0, 1)
+            else:
+                grids = batch["tokens"].reshape(-1, side, side)  # every view of every frame
+                inputs = tokenizer.decode(grids).unflatten(0, (-1, cfg.reward.n_cameras))
+        return model.compute_loss(inputs, batch["reward"].flatten())
+
+    set_seed(cfg.train.seed)
+    model = RewardModel(cfg.reward)
+    logger.info("training the %s reward on %d episodes of %s", cfg.reward.kind, len(episodes), cache.root)
+    return fit(model, loss_fn, batches, cfg.train, cfg.output_dir, asdict(cfg), desc=f"{cfg.reward.kind} reward")

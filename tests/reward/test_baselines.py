@@ -1,0 +1,78 @@
+import draccus
+import numpy as np
+import pytest
+import torch
+
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
+from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.training import FINAL
+from tests.conftest import IMAGE_SIZE
+
+
+@pytest.fixture(scope="module")
+def reward_models(demo_dataset, trained_tokenizer, token_cache, world_models, tmp_path_factory):
+    _, root = demo_dataset
+    dirs, losses = {}, {}
+    for kind in ("embedding", "proxy"):
+        out = tmp_path_factory.mktemp(f"reward_{kind}")
+        cfg = draccus.parse(TrainRewardConfig, args=[
+            f"--reward.kind={kind}", "--dataset.repo_id=test/demos", f"--dataset.root={root}",
+            f"--tokenizer={trained_tokenizer}", f"--action_world_model={world_models['action']}",
+            f"--token_cache={token_cache.root}", f"--output_dir={out}", "--train.steps=250", "--train.save_freq=250",
+            "--train.batch_size=4", "--train.warmup_steps=5", "--train.log_freq=1", "--train.lr=3e-3",
+        ])  # fmt: skip
+        train_reward_model(cfg)
+        dirs[kind] = out / FINAL
+        losses[kind] = _logged_losses(out)
+    return dirs, losses
+
+
+def _logged_losses(out):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(next((out / "logs").rglob("events.out.tfevents*"))))
+    events.Reload()
+    return [e.value for e in events.Scalars("loss")]
+
+
+def test_reward_models_fit_the_rule_based_labels(reward_models, token_cache):
+    _, losses = reward_models
+    label_variance = float(np.var(token_cache.rewards))  # the error of always predicting the mean reward
+    for kind, values in losses.items():
+        assert np.mean(values[-25:]) < 0.7 * label_variance, (kind, np.mean(values[-25:]), label_variance)
+
+
+def test_reward_model_round_trip_and_bad_input(tmp_path):
+    model = RewardModel(RewardModelConfig(kind="proxy", image_size=32, n_cameras=2)).eval()
+    model.save_pretrained(tmp_path)
+    loaded = RewardModel.from_pretrained(tmp_path).eval()
+    images = torch.rand(3, 2, 3, 32, 32)
+    assert torch.equal(model(images), loaded(images))
+    with pytest.raises(ValueError, match=r"expects \(B, 2, 3, 32, 32\)"):
+        model(torch.rand(3, 1, 3, 32, 32))
+    with pytest.raises(ValueError, match="kind must be one of"):
+        RewardModelConfig(kind="learned")
+
+
+@pytest.mark.parametrize("kind", ["embedding", "proxy"])
+def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained_tokenizer, world_models):
+    _, root = demo_dataset
+    dirs, _ = reward_models
+    common = dict(dataset_repo_id="test/demos", dataset_root=str(root), tokenizer=str(trained_tokenizer),
+                  action_world_model=str(world_models["action"]), text_world_model=str(world_models["text"]),
+                  image_size=IMAGE_SIZE, allow_random_lpips=True, episode_length=3, max_goal_steps=2, theta=1.0)
+    env = RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(reward_type=kind, reward_model=str(dirs[kind]),
+                                                              **common), num_envs=2)
+    env.reset(seed=0)
+    _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
+    model = RewardModel.from_pretrained(dirs[kind]).eval()
+    with torch.no_grad():
+        expected = model(env._state.features if kind == "embedding" else env._frames)
+    np.testing.assert_allclose(reward, expected.numpy(), rtol=1e-5, atol=1e-6)
+    other = "proxy" if kind == "embedding" else "embedding"
+    with pytest.raises(ValueError, match=f"is a {kind} reward model"):
+        RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(reward_type=other, reward_model=str(dirs[kind]), **common))
+    with pytest.raises(ValueError, match="needs reward_model"):
+        RoboscapeWorldModelEnvConfig(reward_type=kind, **common)
