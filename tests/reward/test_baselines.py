@@ -76,3 +76,28 @@ def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained
         RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(reward_type=other, reward_model=str(dirs[kind]), **common))
     with pytest.raises(ValueError, match="needs reward_model"):
         RoboscapeWorldModelEnvConfig(reward_type=kind, **common)
+
+
+def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_models, token_cache, tmp_path):
+    from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
+
+    _, root = demo_dataset
+    dirs, _ = reward_models
+    cfg = draccus.parse(RewardReportConfig, args=[
+        "--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--env.tokenizer={trained_tokenizer}",
+        f"--env.action_world_model={world_models['action']}", f"--env.text_world_model={world_models['text']}",
+        f"--env.image_size={IMAGE_SIZE}", "--env.allow_random_lpips=true", "--env.max_goal_steps=3",
+        f"--embedding_reward={dirs['embedding']}", f"--proxy_reward={dirs['proxy']}", f"--output_dir={tmp_path}",
+    ])  # fmt: skip
+    report = write_reward_report(cfg)
+    for name in ("reward_report.json", "reward_report.md", "reward_curves.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert set(report["summary"]) == {"world_model", "world_model_dense", "rule_based", "embedding", "proxy"}
+    lengths = {row["episode_index"]: row["length"] for row in token_cache.episodes}
+    for episode in report["episodes"]:
+        for kind, values in episode["rewards"].items():
+            assert len(values) == lengths[episode["episode_index"]] - 1 and np.isfinite(values).all(), kind
+        # The rule-based curve is the dataset's own reward, shifted onto the frame it scores.
+        row = next(r for r in token_cache.episodes if r["episode_index"] == episode["episode_index"])
+        np.testing.assert_allclose(episode["rewards"]["rule_based"],
+                                   token_cache.rewards[row["start"] + 1 : row["start"] + row["length"]])

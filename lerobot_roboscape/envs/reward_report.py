@@ -1,0 +1,141 @@
+"""Reward report (the paper's Fig. 3 and its comparison of rewards): every reward type of `roboscape_wm` along
+recorded trajectories, and how well each one's episode return separates successful from failed episodes.
+
+Frames are the dataset's own, read through the tokenizer (as the env's frames are); the world-model reward uses
+the goal the text model generates for the episode's first frame, and the action model reads the real frames
+(teacher forcing) for the done signal and the embedding features.
+"""
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import torch
+from lerobot.configs.default import DatasetConfig
+from torchmetrics.functional.classification import binary_auroc
+
+from lerobot_roboscape.dataset.reader import open_dataset, read_episode
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, load_reward_model
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RewardReportConfig:
+    """Args:
+    env: the roboscape_wm settings (models, thresholds, weights, LPIPS); its dataset is the one reported on.
+    dataset: held-out episodes, IND and OOD, successful and failed (--dataset.episodes to pick some).
+    embedding_reward: embedding-based reward model to include (optional).
+    proxy_reward: proxy-based reward model to include (optional).
+    output_dir: where reward_report.json, reward_report.md and reward_curves.png go.
+    max_episodes: episodes reported, at most.
+    plot_episodes: successful episodes drawn in the figure.
+    """
+
+    env: RoboscapeWorldModelEnvConfig = field(default_factory=RoboscapeWorldModelEnvConfig)
+    dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
+    embedding_reward: str | None = None
+    proxy_reward: str | None = None
+    output_dir: Path = Path("outputs/reward_report")
+    max_episodes: int = 16
+    plot_episodes: int = 4
+
+
+@torch.no_grad()
+def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[str, np.ndarray]:
+    """Every reward type along one recorded episode, frame by frame (frames 1..T-1, which follow an action)."""
+    frames = {cam: episode.images[cam] for cam in env.cameras}
+    tokens = env._encode(frames)  # (T, S)
+    start = next(s for s in env.starts if s.episode_index == episode.index)
+    goal_tokens, _ = env.goals_for([start])
+    decoded = env._decode(tokens)  # (T, n, 3, H, W)
+    goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
+    model = env.action_model
+    actions = torch.from_numpy(episode.action).to(env.device)
+    control = model.episode_control(actions[None, :-1])
+    state = model.start_rollout(tokens[None, :1], model.frame_control(control, slice(0, 1)))
+    done, features = [], []
+    for t in range(1, len(tokens)):
+        done.append(model.observe_frame(state, tokens[None, t : t + 1], model.frame_control(control, slice(t, t + 1))))
+        features.append(state.features)
+    parts = env.reward_fn(decoded[1:], goal[1:], torch.cat(done))
+    rewards = {"world_model": parts.reward, "world_model_dense": parts.dense, "rule_based":
+               torch.from_numpy(episode.reward_label[1:])}  # fmt: skip
+    if "embedding" in models:
+        rewards["embedding"] = models["embedding"](torch.cat(features))
+    if "proxy" in models:
+        rewards["proxy"] = models["proxy"](decoded[1:])
+    return {k: v.float().cpu().numpy() for k, v in rewards.items()}
+
+
+def write_reward_report(cfg: RewardReportConfig) -> dict:
+    cfg.env.dataset_repo_id, cfg.env.dataset_root = cfg.dataset.repo_id, cfg.dataset.root
+    env = RoboscapeWorldModelEnv(cfg.env, num_envs=1)
+    dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
+    models = {kind: load_reward_model(path, env.device) for kind, path in
+              (("embedding", cfg.embedding_reward), ("proxy", cfg.proxy_reward)) if path}  # fmt: skip
+    selected = [s.episode_index for s in env.starts if cfg.dataset.episodes is None
+                or s.episode_index in cfg.dataset.episodes][: cfg.max_episodes]  # fmt: skip
+    episodes = []
+    for index in selected:
+        episode = read_episode(dataset, index)
+        rewards = episode_rewards(env, episode, models)
+        episodes.append({"episode_index": index, "task": episode.task, "split": episode.info.get("split", ""),
+                         "success": bool(episode.done_label.max() > 0.5), "rewards": rewards})
+    success = np.array([e["success"] for e in episodes])
+    summary = {}
+    for kind in episodes[0]["rewards"]:
+        returns = np.array([e["rewards"][kind].sum() for e in episodes])
+        auc = None
+        if 0 < success.sum() < len(success):
+            auc = float(binary_auroc(torch.from_numpy(returns).float(), torch.from_numpy(success.astype(np.int64))))
+        summary[kind] = {"roc_auc_of_return": auc, "mean_return_success": _mean(returns[success]),
+                         "mean_return_failure": _mean(returns[~success])}
+    report = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "summary": summary,
+              "lpips_trunk": "random (not perceptual)" if env.reward_fn.lpips.random_trunk else "pretrained",
+              "episodes": [{**e, "rewards": {k: v.tolist() for k, v in e["rewards"].items()}} for e in episodes]}
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "reward_report.json").write_text(json.dumps(report, indent=2))
+    (out / "reward_report.md").write_text(_markdown(report, len(episodes), int(success.sum())))
+    _plot([e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],
+          out / "reward_curves.png")
+    return report
+
+
+def _mean(values: np.ndarray) -> float | None:
+    return float(values.mean()) if len(values) else None
+
+
+def _markdown(report: dict, n: int, n_success: int) -> str:
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    lines = [f"# Reward report ({n} episodes, {n_success} successful)", "",
+             f"LPIPS trunk: {report['lpips_trunk']}. ROC-AUC: how well the episode return separates successful from "
+             "failed episodes (- when only one kind is present).", "",
+             "| reward | ROC-AUC of return | mean return, success | mean return, failure |", "|---|---:|---:|---:|"]
+    for kind, s in report["summary"].items():
+        lines.append(f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "
+                     f"{fmt(s['mean_return_failure'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def _plot(episodes: list[dict], path: Path) -> None:
+    fig, axes = plt.subplots(1, len(episodes), figsize=(4 * len(episodes), 3), squeeze=False)
+    for ax, episode in zip(axes[0], episodes):
+        for kind, values in episode["rewards"].items():
+            span = values.max() - values.min()
+            ax.plot((values - values.min()) / span if span > 0 else values * 0, label=kind)  # each scaled to [0, 1]
+        ax.set_title(f"ep {episode['episode_index']} {episode['split']}: {episode['task'][:32]}", fontsize=8)
+        ax.set_xlabel("step")
+    axes[0][0].set_ylabel("reward (scaled to [0, 1])")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
