@@ -96,3 +96,21 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
         train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
         dirs[control] = out / FINAL
     return dirs
+
+
+@pytest.fixture(scope="session")
+def act_checkpoint(demo_dataset, tmp_path_factory):
+    """`lerobot-train` of LeRobot's ACT policy for two steps on `demo_dataset`: its pretrained_model directory."""
+    import subprocess
+    import sys
+
+    _, root = demo_dataset
+    out = tmp_path_factory.mktemp("act") / "train"
+    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_train", "--dataset.repo_id=test/demos",
+           f"--dataset.root={root}", "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
+           "--policy.pretrained_backbone_weights=null", "--policy.dim_model=32", "--policy.n_encoder_layers=1",
+           "--policy.n_decoder_layers=1", "--policy.chunk_size=4", "--policy.n_action_steps=4", "--steps=2",
+           "--batch_size=2", "--num_workers=0", "--save_freq=2", f"--output_dir={out}"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return out / "checkpoints" / "000002" / "pretrained_model"

@@ -6,11 +6,12 @@ import gymnasium as gym
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_IMAGES
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_roboscape.tasks.base import CAMERA_NAMES
 
 CAMERAS = tuple(CAMERA_NAMES.values())
+STATE_DIM = 16  # joint positions (9) + TCP pose (7), as `observation.state` of the collected datasets
 
 
 def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
@@ -128,6 +129,9 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
         episode_length: steps before truncation.
         image_size: camera image side.
         cameras: camera names (the dataset's).
+        include_state: also return the robot's proprioception (`agent_pos` -> observation.state: joint positions and
+            TCP pose, as in the collected datasets), for policies trained with it. roboscape_wm has no such
+            observation, so policies meant for both envs read images only.
         seed: seed of the scene and initial-state sampling when reset() gets none.
     """
 
@@ -139,6 +143,7 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
     episode_length: int = 160
     image_size: int = 64
     cameras: tuple[str, ...] = CAMERAS
+    include_state: bool = False
     seed: int = 0
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(default_factory=dict)
@@ -148,6 +153,9 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
             raise ValueError(f"split must be 'ind', 'ood' or '', got {self.split!r}")
         self.cameras = tuple(self.cameras)
         self.features, self.features_map = camera_features(self.image_size, self.cameras)
+        if self.include_state:
+            self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,))
+            self.features_map["agent_pos"] = OBS_STATE
 
     @property
     def gym_kwargs(self) -> dict:

@@ -10,8 +10,9 @@ next reset, which restarts all slots.
 import gymnasium as gym
 import numpy as np
 
-from lerobot_roboscape.demos.rollout import observation_images
+from lerobot_roboscape.demos.rollout import observation_images, observation_state
 from lerobot_roboscape.envs.batched import BatchedEnv
+from lerobot_roboscape.envs.configs import STATE_DIM
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tasks.make import make_task_env
 
@@ -30,7 +31,10 @@ class RoboscapeManiSkillEnv(BatchedEnv):
                      for family in self.slot_families]  # fmt: skip
         size = config.image_size
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in config.cameras}
-        self.single_observation_space = gym.spaces.Dict({"pixels": gym.spaces.Dict(pixels)})
+        spaces = {"pixels": gym.spaces.Dict(pixels)}
+        if config.include_state:
+            spaces["agent_pos"] = gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)
+        self.single_observation_space = gym.spaces.Dict(spaces)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
@@ -48,9 +52,11 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
         episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
         self._obs = []
+        self._state = np.zeros((self.num_envs, STATE_DIM), np.float32)
         for env, scene_id, s in zip(self.envs, scene_ids, episode_seeds):
             obs, _ = env.reset(seed=int(s), options={"scene_id": str(scene_id)})
             self._obs.append(observation_images(obs))
+            self._state[len(self._obs) - 1] = observation_state(obs)
         self._tasks = [env.unwrapped.instruction for env in self.envs]
         self._terminated = np.zeros(self.num_envs, dtype=bool)
         self._truncated = np.zeros(self.num_envs, dtype=bool)
@@ -69,6 +75,7 @@ class RoboscapeManiSkillEnv(BatchedEnv):
                 continue
             obs, r, terminated, truncated, info = env.step(actions[i])
             self._obs[i] = observation_images(obs)
+            self._state[i] = observation_state(obs)
             reward[i] = float(r[0])
             success[i] = bool(info["success"][0])
             self._terminated[i] = success[i]  # the task is done once it succeeds
@@ -77,7 +84,10 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
 
     def _observation(self) -> dict:
-        return {"pixels": {cam: np.stack([o[cam] for o in self._obs]) for cam in self.config.cameras}}
+        obs = {"pixels": {cam: np.stack([o[cam] for o in self._obs]) for cam in self.config.cameras}}
+        if self.config.include_state:
+            obs["agent_pos"] = self._state.copy()
+        return obs
 
     def render(self) -> tuple[np.ndarray, ...]:
         """Per episode: its camera views stacked vertically."""

@@ -1,6 +1,3 @@
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -65,14 +62,5 @@ def test_bad_flags_are_named():
         CollectConfig(suboptimal_fraction=1.5)
 
 
-def test_lerobot_train_accepts_dataset(demo_dataset, tmp_path):
-    _, root = demo_dataset
-    out = tmp_path / "train"
-    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_train", "--dataset.repo_id=test/demos",
-           f"--dataset.root={root}", "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
-           "--policy.pretrained_backbone_weights=null", "--policy.dim_model=32", "--policy.n_encoder_layers=1",
-           "--policy.n_decoder_layers=1", "--policy.chunk_size=4", "--policy.n_action_steps=4", "--steps=2",
-           "--batch_size=2", "--num_workers=0", "--save_freq=2", f"--output_dir={out}"]
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert (out / "checkpoints" / "000002" / "pretrained_model" / "model.safetensors").exists()
+def test_lerobot_train_accepts_dataset(act_checkpoint):
+    assert (act_checkpoint / "model.safetensors").exists()  # the fixture is a real lerobot-train run
