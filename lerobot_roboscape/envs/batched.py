@@ -8,12 +8,10 @@ from gymnasium.vector import AutoresetMode
 
 class BatchedEnv(gym.vector.VectorEnv):
     """B episodes stepped together. Autoreset is off: an ended episode stays frozen until `reset()`, which restarts
-    all of them (LeRobot's evaluation and our PPO reset whole batches)."""
+    all of them (LeRobot's evaluation and our PPO reset whole batches). Subclasses define `tasks()`, the
+    instruction of each episode."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20, "autoreset_mode": AutoresetMode.DISABLED}
-
-    def tasks(self) -> tuple[str, ...]:
-        raise NotImplementedError
 
     def _seed_from(self, seed, options) -> int | None:
         if (options or {}).get("reset_mask") is not None and not np.all(options["reset_mask"]):

@@ -57,19 +57,14 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
     goal_tokens, _ = env.goals_for([start])
     decoded = env._decode(tokens)  # (T, n, 3, H, W)
     goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
-    model = env.action_model
     actions = torch.from_numpy(episode.action).to(env.device)
-    control = model.episode_control(actions[None, :-1])
-    state = model.start_rollout(tokens[None, :1], model.frame_control(control, slice(0, 1)))
-    done, features = [], []
-    for t in range(1, len(tokens)):
-        done.append(model.observe_frame(state, tokens[None, t : t + 1], model.frame_control(control, slice(t, t + 1))))
-        features.append(state.features)
-    parts = env.reward_fn(decoded[1:], goal[1:], torch.cat(done))
+    done, features = env.action_model.teacher_forced(tokens[None], actions[None, :-1])
+    done, features = done[0, 1:], features[0, 1:]
+    parts = env.reward_fn(decoded[1:], goal[1:], done)
     rewards = {"world_model": parts.reward, "world_model_dense": parts.dense, "rule_based":
                torch.from_numpy(episode.reward_label[1:])}  # fmt: skip
     if "embedding" in models:
-        rewards["embedding"] = models["embedding"](torch.cat(features))
+        rewards["embedding"] = models["embedding"](features)
     if "proxy" in models:
         rewards["proxy"] = models["proxy"](decoded[1:])
     return {k: v.float().cpu().numpy() for k, v in rewards.items()}

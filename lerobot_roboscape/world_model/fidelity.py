@@ -89,16 +89,6 @@ def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
     return {k: v.reshape(-1, n).mean(1).cpu().numpy() for k, v in values.items()}
 
 
-def _teacher_forced_done(model: STWorldModel, tokens_TS, actions) -> np.ndarray:
-    """Done probability of every real frame, each read after the previous ones (within the model's window)."""
-    control = model.episode_control(actions[None, :-1])
-    state = model.start_rollout(tokens_TS[None, :1], model.frame_control(control, slice(0, 1)))
-    done = [state.done]
-    for t in range(1, len(tokens_TS)):
-        done.append(model.observe_frame(state, tokens_TS[None, t : t + 1], model.frame_control(control, slice(t, t + 1))))
-    return torch.cat(done).cpu().numpy()
-
-
 def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
     positives = label > 0.5
     scores = {"accuracy": float(((prob >= threshold) == positives).mean()), "frames": int(len(label)),
@@ -152,7 +142,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
             for metric, values in _image_metrics(images, target, lpips_metric).items():
                 for step, value in enumerate(values):
                     per_step[f"{kind}_{metric}"][step].append(float(value))
-        tf = _teacher_forced_done(model, tokens, actions)
+        tf = model.teacher_forced(tokens[None], actions[None, :-1])[0][0].cpu().numpy()
         tf_prob.append(tf)
         tf_label.append(episode.done_label)
         ol_prob.append(pred_done[0].cpu().numpy())

@@ -219,6 +219,18 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
             dones.append(done)
         return torch.stack(frames, 1), torch.stack(dones, 1)
 
+    @torch.no_grad()
+    def teacher_forced(self, tokens_BTS, actions=None, instructions=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Read known frames one after the other, as a rollout would (each sees the window before it). Returns
+        done probabilities (B, T) and features (B, T, C). Actions: (B, T - 1, A), action t leading to frame t + 1."""
+        control = self.episode_control(actions, instructions=instructions)
+        state = self.start_rollout(tokens_BTS[:, :1], self.frame_control(control, slice(0, 1)))
+        done, features = [state.done], [state.features]
+        for t in range(1, tokens_BTS.shape[1]):
+            done.append(self.observe_frame(state, tokens_BTS[:, t : t + 1], self.frame_control(control, slice(t, t + 1))))
+            features.append(state.features)
+        return torch.stack(done, 1), torch.stack(features, 1)
+
     def episode_control(self, actions=None, no_action=None, instructions=None) -> Control:
         """Controls of an episode's frames from its actions (B, T - 1, A), action t leading to frame t + 1 (frame
         0 has none), or from its instructions (one control shared by all frames)."""
