@@ -69,6 +69,11 @@ class TrainingConfig:
                              f"{self.save_freq}")
 
 
+def resolve_device(value: str) -> str:
+    """"auto" -> "cuda" when a GPU is present, else "cpu"; anything else as given."""
+    return ("cuda" if torch.cuda.is_available() else "cpu") if value == "auto" else value
+
+
 def resolve_mixed_precision(value: str) -> str:
     if value != "auto":
         return value

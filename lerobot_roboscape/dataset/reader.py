@@ -71,13 +71,7 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
     meta = dataset.meta.episodes[episode_index]
     start, stop = meta["dataset_from_index"], meta["dataset_to_index"]
     rows = dataset.hf_dataset.select(range(*_local_range(dataset, start, stop)))
-    timestamps = [float(t) for t in rows["timestamp"]]
-    images = {}
-    for key in dataset.meta.camera_keys:
-        path = dataset.root / dataset.meta.get_video_file_path(episode_index, key)
-        offset = meta[f"videos/{key}/from_timestamp"]
-        frames = decode_video_frames(path, [offset + t for t in timestamps], dataset.tolerance_s, return_uint8=True)
-        images[key.removeprefix(f"{OBS_IMAGES}.")] = frames.permute(0, 2, 3, 1).numpy()
+    images = _decode_cameras(dataset, episode_index, [float(t) for t in rows["timestamp"]])
     # `next.success` at t is the outcome of action t, i.e. the state of frame t + 1.
     flags = SUCCESS if SUCCESS in rows.column_names else DONE
     outcome = np.asarray(rows[flags], dtype=np.float32).reshape(-1)
@@ -101,9 +95,13 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
 
 def read_frames(dataset: LeRobotDataset, episode_index: int, frames: list[int]) -> dict[str, np.ndarray]:
     """Selected frames of one episode (negative indices count from its end): camera -> (k, H, W, 3) uint8."""
+    length = dataset.meta.episodes[episode_index]["length"]
+    return _decode_cameras(dataset, episode_index, [(f % length) / dataset.fps for f in frames])
+
+
+def _decode_cameras(dataset: LeRobotDataset, episode_index: int, timestamps: list[float]) -> dict[str, np.ndarray]:
+    """Frames of one episode at `timestamps` (seconds from its start), one decoding pass per camera."""
     meta = dataset.meta.episodes[episode_index]
-    length = meta["length"]
-    timestamps = [(f % length) / dataset.fps for f in frames]
     images = {}
     for key in dataset.meta.camera_keys:
         path = dataset.root / dataset.meta.get_video_file_path(episode_index, key)

@@ -3,12 +3,12 @@
 from dataclasses import dataclass, field
 
 import gymnasium as gym
-import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_roboscape.tasks.base import CAMERA_NAMES
+from lerobot_roboscape.training import resolve_device
 
 CAMERAS = tuple(CAMERA_NAMES.values())
 STATE_DIM = 16  # joint positions (9) + TCP pose (7), as `observation.state` of the collected datasets
@@ -103,7 +103,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 
     @property
     def resolved_device(self) -> str:
-        return ("cuda" if torch.cuda.is_available() else "cpu") if self.device == "auto" else self.device
+        return resolve_device(self.device)
 
     @property
     def gym_kwargs(self) -> dict:

@@ -147,13 +147,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
-        grids = [self.tokenizer.encode(torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device)) for f in frames.values()]
-        return torch.stack(grids, 1).flatten(1)
+        return self.tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device)
+                                            for f in frames.values()])
 
     def _decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
         """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""
-        side = self.tokenizer.config.tokens_per_side
-        return self.tokenizer.decode(tokens_BS.reshape(-1, side, side)).unflatten(0, (-1, self._n_cameras))
+        return self.tokenizer.decode_views(tokens_BS, self._n_cameras)
 
     @torch.no_grad()
     def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:

@@ -64,7 +64,6 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)
     batches = ClipSampler(cache, episodes, world_model.config.window, cfg.train.batch_size, cfg.train.seed)
-    side = tokenizer.config.tokens_per_side
 
     def loss_fn(model, batch):
         world_model.to(batch["tokens"].device)
@@ -74,8 +73,7 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
                 control = world_model.encode_control(batch["actions"], batch["no_action"])
                 inputs = world_model.compute_hidden(batch["tokens"], control)[0].mean(dim=2).flatten(0, 1)
             else:
-                grids = batch["tokens"].reshape(-1, side, side)  # every view of every frame
-                inputs = tokenizer.decode(grids).unflatten(0, (-1, cfg.reward.n_cameras))
+                inputs = tokenizer.decode_views(batch["tokens"].flatten(0, 1), cfg.reward.n_cameras)
         return model.compute_loss(inputs, batch["reward"].flatten())
 
     set_seed(cfg.train.seed)

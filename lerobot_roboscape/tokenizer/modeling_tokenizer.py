@@ -139,3 +139,15 @@ class VisualTokenizer(nn.Module, PyTorchModelHubMixin, library_name="lerobot-rob
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """(B, h, w) codes -> (B, 3, H, W) float images in [0, 1]."""
         return ((self.decoder(self.indices_to_codes(indices)) + 1) / 2).clamp(0, 1)
+
+    @torch.no_grad()
+    def encode_views(self, views: list[torch.Tensor]) -> torch.Tensor:
+        """The camera views of the same T frames, each (T, 3, H, W), -> (T, S) tokens with the views' grids side
+        by side (the world model's frame layout)."""
+        return torch.stack([self.encode(v) for v in views], 1).flatten(1)
+
+    @torch.no_grad()
+    def decode_views(self, tokens_TS: torch.Tensor, n_cameras: int) -> torch.Tensor:
+        """(T, S) frame tokens -> (T, n_cameras, 3, H, W) images in [0, 1]; the inverse of `encode_views`."""
+        side = self.config.tokens_per_side
+        return self.decode(tokens_TS.reshape(-1, side, side)).unflatten(0, (-1, n_cameras))

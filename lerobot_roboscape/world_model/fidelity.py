@@ -20,10 +20,11 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 from torchmetrics.functional.classification import binary_auroc
 
-from lerobot_roboscape.dataset.reader import EpisodeData, episode_indices, open_dataset, read_episode
+from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read_episode
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.training import resolve_device
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -63,20 +64,6 @@ class FidelityConfig:
     device: str = "auto"
 
 
-def _frame_tokens(tokenizer: VisualTokenizer, episode: EpisodeData, device) -> torch.Tensor:
-    """(T, S) tokens of an episode, views side by side in the dataset's camera order."""
-    grids = [tokenizer.encode(torch.from_numpy(frames).permute(0, 3, 1, 2).to(device))
-             for frames in episode.images.values()]
-    return torch.stack(grids, 1).flatten(1)
-
-
-def _decode(tokenizer: VisualTokenizer, tokens_TS: torch.Tensor, n_cameras: int) -> torch.Tensor:
-    """(T, S) tokens -> (T, n_cameras, 3, H, W) images in [0, 1]."""
-    side = tokenizer.config.tokens_per_side
-    grids = tokens_TS.reshape(-1, side, side)  # (T * n_cameras, h, w)
-    return tokenizer.decode(grids).unflatten(0, (-1, n_cameras))
-
-
 def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
     """Per frame, averaged over views: pred/real (T, n_cameras, 3, H, W) in [0, 1]."""
     p, r = pred.flatten(0, 1), real.flatten(0, 1)
@@ -109,7 +96,7 @@ def _side_by_side(real, pred, prompt: int) -> np.ndarray:
 
 
 def evaluate_fidelity(cfg: FidelityConfig) -> dict:
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    device = resolve_device(cfg.device)
     dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
     model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
@@ -125,7 +112,8 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos = [], [], [], [], [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
         episode = read_episode(dataset, index)
-        tokens = _frame_tokens(tokenizer, episode, device)
+        tokens = tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(device)
+                                         for f in episode.images.values()])  # (T, S)
         actions = torch.from_numpy(episode.action).to(device)
         horizon = min(cfg.horizon, len(tokens) - prompt)
         if horizon < 1:
@@ -136,8 +124,8 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
         real = real.to(device).float() / 255  # (T, n, 3, H, W)
         target = real[prompt : prompt + horizon]
-        pred = _decode(tokenizer, pred_tokens[0], n_cameras)
-        recon = _decode(tokenizer, tokens[prompt : prompt + horizon], n_cameras)
+        pred = tokenizer.decode_views(pred_tokens[0], n_cameras)
+        recon = tokenizer.decode_views(tokens[prompt : prompt + horizon], n_cameras)
         for kind, images in (("prediction", pred), ("reconstruction", recon)):
             for metric, values in _image_metrics(images, target, lpips_metric).items():
                 for step, value in enumerate(values):

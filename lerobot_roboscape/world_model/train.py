@@ -4,7 +4,6 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
@@ -17,7 +16,7 @@ from lerobot_roboscape.tokenizer.token_cache import (
     open_token_cache,
     tokenizer_fingerprint,
 )
-from lerobot_roboscape.training import TrainingConfig, fit
+from lerobot_roboscape.training import TrainingConfig, fit, resolve_device
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -67,8 +66,7 @@ def prepare_token_cache(dataset_cfg: DatasetConfig, tokenizer_path: str, cache_d
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
     if token_cache is not None:
         return open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
-    return load_or_build_token_cache(dataset, tokenizer, cache_dir, device=device)
+    return load_or_build_token_cache(dataset, tokenizer, cache_dir, device=resolve_device(device))
 
 
 def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache) -> WorldModelConfig:

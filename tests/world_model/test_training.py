@@ -1,5 +1,4 @@
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -10,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from lerobot_roboscape.training import CHECKPOINTS, FINAL, last_checkpoint
+from lerobot_roboscape.training import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
