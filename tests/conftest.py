@@ -98,19 +98,32 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     return dirs
 
 
-@pytest.fixture(scope="session")
-def act_checkpoint(demo_dataset, tmp_path_factory):
-    """`lerobot-train` of LeRobot's ACT policy for two steps on `demo_dataset`: its pretrained_model directory."""
+def lerobot_train(root, out, steps, *policy_args) -> "Path":
+    """Run `lerobot-train` on `demo_dataset` in a subprocess; returns the last checkpoint's pretrained_model."""
     import subprocess
     import sys
 
-    _, root = demo_dataset
-    out = tmp_path_factory.mktemp("act") / "train"
     cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_train", "--dataset.repo_id=test/demos",
-           f"--dataset.root={root}", "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
-           "--policy.pretrained_backbone_weights=null", "--policy.dim_model=32", "--policy.n_encoder_layers=1",
-           "--policy.n_decoder_layers=1", "--policy.chunk_size=4", "--policy.n_action_steps=4", "--steps=2",
-           "--batch_size=2", "--num_workers=0", "--save_freq=2", f"--output_dir={out}"]
+           f"--dataset.root={root}", "--policy.device=cpu", "--policy.push_to_hub=false", f"--steps={steps}",
+           "--batch_size=2", "--num_workers=0", f"--save_freq={steps}", f"--output_dir={out}", *policy_args]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    return out / "checkpoints" / "000002" / "pretrained_model"
+    return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
+
+
+@pytest.fixture(scope="session")
+def act_checkpoint(demo_dataset, tmp_path_factory):
+    """LeRobot's ACT policy after two lerobot-train steps on `demo_dataset`."""
+    _, root = demo_dataset
+    return lerobot_train(root, tmp_path_factory.mktemp("act") / "train", 2, "--policy.type=act",
+                         "--policy.pretrained_backbone_weights=null", "--policy.dim_model=32",
+                         "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1", "--policy.chunk_size=4",
+                         "--policy.n_action_steps=4")
+
+
+@pytest.fixture(scope="session")
+def mlp_checkpoint(demo_dataset, tmp_path_factory):
+    """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`."""
+    _, root = demo_dataset
+    return lerobot_train(root, tmp_path_factory.mktemp("mlp") / "train", 4, "--policy.type=roboscape_mlp",
+                         "--policy.hidden_dim=32", "--policy.image_feature_dim=32")

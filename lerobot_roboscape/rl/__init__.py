@@ -1,0 +1,5 @@
+"""Reinforcement learning of policies in the roboscape envs."""
+
+from lerobot_roboscape.rl.actor_critic import ActionEvaluation, ActorCritic, PolicySample
+
+__all__ = ["ActionEvaluation", "ActorCritic", "PolicySample"]

@@ -1,0 +1,39 @@
+"""What PPO needs from a policy (DESIGN.md "Contracts"), shared by every policy plugin.
+
+A policy reads a batch that went through its own preprocessor. Its actions are in the policy's normalised
+space; the policy's postprocessor turns them into env actions. `raw_action` is whatever the policy needs to
+score the same choice again later (a Gaussian sample, or OpenVLA's action token ids), so the log-prob of
+`evaluate_actions` matches the one of `sample_action` exactly.
+"""
+
+from typing import NamedTuple, Protocol, runtime_checkable
+
+from torch import Tensor
+
+
+class PolicySample(NamedTuple):
+    action: Tensor  # (B, action_dim) normalised action, for the postprocessor
+    raw_action: Tensor  # (B, ...) passed back to evaluate_actions
+    log_prob: Tensor  # (B,)
+    value: Tensor  # (B,)
+
+
+class ActionEvaluation(NamedTuple):
+    log_prob: Tensor  # (B,)
+    entropy: Tensor  # (B,)
+    value: Tensor  # (B,)
+
+
+@runtime_checkable
+class ActorCritic(Protocol):
+    def sample_action(self, batch: dict) -> PolicySample:
+        """Draw an action from the policy's distribution, with its log-prob and the state value."""
+
+    def evaluate_actions(self, batch: dict, raw_action: Tensor) -> ActionEvaluation:
+        """Log-prob, entropy and value for actions drawn earlier by `sample_action`."""
+
+    def predict_value(self, batch: dict) -> Tensor:
+        """State value (B,)."""
+
+    def select_action(self, batch: dict) -> Tensor:
+        """Deterministic action (B, action_dim), for evaluation."""

@@ -1,0 +1,89 @@
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.optim import AdamWConfig
+
+
+@PreTrainedConfig.register_subclass("roboscape_mlp")
+@dataclass
+class RoboscapeMLPConfig(PreTrainedConfig):
+    """The MLP baseline: a small CNN per camera view, a hashed bag-of-words instruction embedding, an MLP trunk,
+    a Gaussian action head (state-independent log-std, as in CleanRL's PPO) and a value head.
+
+    It reads the camera images and the instruction only, never `observation.state`: the world model predicts
+    images, so a policy trained in `roboscape_wm` cannot rely on proprioception.
+
+    Args:
+        conv_channels: Output channels of the three conv layers of the image encoder (shared by all cameras).
+        image_feature_dim: Size of each camera's feature vector.
+        instruction_buckets: Hash buckets of the instruction's words (a cheap embedding needing no tokenizer).
+        instruction_dim: Size of the instruction embedding.
+        hidden_dim: Width of the MLP trunk.
+        n_hidden_layers: Depth of the MLP trunk.
+        init_log_std: Initial log standard deviation of the Gaussian head, in normalised action units.
+        optimizer_lr: Learning rate of the SFT optimiser preset.
+        optimizer_weight_decay: Weight decay of the SFT optimiser preset.
+    """
+
+    # Inputs and normalisation: images come in [0, 1]; actions are scaled to [-1, 1] with the dataset's range.
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+
+    # Architecture.
+    conv_channels: tuple[int, int, int] = (32, 64, 64)
+    image_feature_dim: int = 256
+    instruction_buckets: int = 4096
+    instruction_dim: int = 64
+    hidden_dim: int = 256
+    n_hidden_layers: int = 2
+
+    # Action distribution.
+    init_log_std: float = -1.5
+
+    # SFT optimiser preset.
+    optimizer_lr: float = 3e-4
+    optimizer_weight_decay: float = 1e-4
+
+    def __post_init__(self):
+        super().__post_init__()
+        if len(self.conv_channels) != 3:
+            raise ValueError(f"conv_channels must have 3 entries, got {self.conv_channels!r}")
+        for name in ("image_feature_dim", "instruction_buckets", "instruction_dim", "hidden_dim"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+
+    def validate_features(self) -> None:
+        # Datasets also carry observation.state; this policy ignores it (see the class docstring).
+        self.input_features = {
+            key: feature for key, feature in self.input_features.items() if feature.type is FeatureType.VISUAL
+        }
+        if not self.image_features:
+            raise ValueError("roboscape_mlp needs at least one camera among its inputs (observation.images.*)")
+        shapes = {tuple(feature.shape) for feature in self.image_features.values()}
+        if len(shapes) != 1:
+            raise ValueError(f"All cameras must have the same image shape, got {self.image_features}")
+        if self.action_feature is None:
+            raise ValueError("roboscape_mlp needs an `action` output feature")
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay)
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> None:
+        return None
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None

@@ -1,0 +1,119 @@
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
+from lerobot_roboscape.rl import ActorCritic
+from tests.conftest import IMAGE_SIZE
+
+CAMERAS = ("observation.images.third_view", "observation.images.wrist")
+
+
+def make_policy(**overrides) -> RoboscapeMLPPolicy:
+    features = {key: PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)) for key in CAMERAS}
+    features["observation.state"] = PolicyFeature(FeatureType.STATE, (16,))
+    config = RoboscapeMLPConfig(device="cpu", input_features=features, hidden_dim=32, image_feature_dim=32,
+                                output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))}, **overrides)
+    torch.manual_seed(0)
+    return RoboscapeMLPPolicy(config)
+
+
+def make_batch(batch_size=4, tasks=None):
+    batch = {key: torch.rand(batch_size, 3, IMAGE_SIZE, IMAGE_SIZE) for key in CAMERAS}
+    batch["task"] = tasks or ["push the can forward"] * batch_size
+    batch["action"] = torch.rand(batch_size, 7) * 2 - 1
+    return batch
+
+
+def test_registered_with_lerobot_and_ignores_state():
+    assert get_policy_class("roboscape_mlp") is RoboscapeMLPPolicy
+    policy = make_policy()
+    assert set(policy.config.input_features) == set(CAMERAS)  # proprioception dropped
+    assert isinstance(policy, ActorCritic)
+
+
+def test_sft_fits_demonstrations_that_depend_on_image_and_instruction():
+    policy = make_policy()
+    batch = make_batch(8, ["push the can forward", "pull the mug back"] * 4)
+    batch["action"] = torch.tensor([[0.5] * 7, [-0.5] * 7] * 4)  # the instruction alone decides the action
+    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=1e-3)
+    first = policy.forward(batch)[0].item()
+    for _ in range(150):
+        loss, _ = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert loss.item() < 0.01 * first
+    assert torch.allclose(policy.select_action(batch), batch["action"], atol=0.1)
+
+
+def test_sampled_log_probs_match_evaluation_and_the_gaussian():
+    policy = make_policy(init_log_std=-1.0)
+    batch = make_batch()
+    sample = policy.sample_action(batch)
+    assert sample.action.shape == (4, 7) and sample.log_prob.shape == (4,) and sample.value.shape == (4,)
+    evaluation = policy.evaluate_actions(batch, sample.raw_action)
+    torch.testing.assert_close(evaluation.log_prob, sample.log_prob)
+    torch.testing.assert_close(evaluation.value, sample.value)
+    mean = policy.select_action(batch)
+    expected = torch.distributions.Normal(mean, torch.full_like(mean, torch.e**-1.0)).log_prob(sample.action)
+    torch.testing.assert_close(sample.log_prob, expected.sum(-1))
+    std_entropy = 0.5 * (1 + torch.log(torch.tensor(2 * torch.pi))) - 1.0  # of N(., e^-1) per dimension
+    torch.testing.assert_close(evaluation.entropy, torch.full((4,), 7 * std_entropy.item()))
+
+
+def test_save_and_load_round_trip(tmp_path):
+    policy = make_policy()
+    batch = make_batch()
+    policy.save_pretrained(tmp_path)
+    loaded = RoboscapeMLPPolicy.from_pretrained(tmp_path)
+    torch.testing.assert_close(loaded.select_action(batch), policy.select_action(batch))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda b: b.pop("observation.images.wrist"), "expects camera 'observation.images.wrist'"),
+        (lambda b: b.update({"observation.images.wrist": torch.rand(4, 3, 16, 16)}), r"\(3, 16, 16\)"),
+        (lambda b: b.pop("task"), "instruction"),
+    ],
+)
+def test_bad_input_names_what_is_wrong(change, message):
+    batch = make_batch()
+    change(batch)
+    with pytest.raises((KeyError, ValueError), match=message):
+        make_policy().select_action(batch)
+
+
+def test_lerobot_train_checkpoint_has_processors_with_action_statistics(mlp_checkpoint):
+    assert (mlp_checkpoint / "policy_preprocessor.json").exists()
+    policy = RoboscapeMLPPolicy.from_pretrained(mlp_checkpoint)
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(mlp_checkpoint))
+    observation = {key: torch.rand(3, IMAGE_SIZE, IMAGE_SIZE) for key in CAMERAS}
+    batch = preprocessor({**observation, "task": "push the can forward"})
+    action = postprocessor(policy.select_action(batch))
+    assert action.shape == (1, 7) and torch.isfinite(action).all()
+
+
+@pytest.mark.parametrize("env_type", ["roboscape_maniskill", "roboscape_wm"])
+def test_lerobot_eval_runs_the_checkpoint_in_both_env_types(env_type, mlp_checkpoint, demo_dataset,
+                                                            trained_tokenizer, world_models, tmp_path):
+    env_args = ["--env.families=[push]", "--env.episode_length=3"]
+    if env_type == "roboscape_wm":
+        _, root = demo_dataset
+        env_args += ["--env.dataset_repo_id=test/demos", f"--env.dataset_root={root}",
+                     f"--env.tokenizer={trained_tokenizer}", f"--env.action_world_model={world_models['action']}",
+                     f"--env.text_world_model={world_models['text']}", "--env.allow_random_lpips=true",
+                     "--env.max_goal_steps=3", "--env.device=cpu"]
+    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={mlp_checkpoint}",
+           "--policy.device=cpu", f"--env.type={env_type}", f"--env.image_size={IMAGE_SIZE}", *env_args,
+           "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={tmp_path}"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    info = json.loads((tmp_path / "eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 2 and 0 <= info["overall"]["pc_success"] <= 100
