@@ -1,0 +1,109 @@
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.optim import AdamWConfig
+
+OPENVLA_7B = "openvla/openvla-7b"
+
+
+@PreTrainedConfig.register_subclass("openvla")
+@dataclass
+class OpenVLAConfig(PreTrainedConfig):
+    """OpenVLA-7B fine-tuned with LoRA, plus RL4VLA's value head for PPO.
+
+    Checkpoints of this policy hold only the LoRA adapter and the value head; `base_model` names the OpenVLA
+    checkpoint they apply to, which is loaded again (from the Hub cache or a local directory) at load time.
+
+    Args:
+        base_model: The OpenVLA checkpoint: a Hub repo id or a local directory in the published layout of
+            `openvla/openvla-7b`, or "tiny" for a random model of the same architecture at toy sizes (the tiny
+            preset, same weights for a given `tiny_seed`).
+        base_revision: Hub revision of `base_model`.
+        tiny_seed: Seed of the tiny preset's random weights.
+        camera: The image feature the model sees (OpenVLA reads one third-person image); default: the third
+            view if the dataset has one, else the first camera.
+        lora_r: LoRA rank.
+        lora_alpha: LoRA scaling numerator (scale = alpha / r).
+        lora_dropout: Dropout on the LoRA branch.
+        lora_target_modules: ["all-linear"] (every linear layer of the vision towers, projector and LLM, except
+            the LM head) or module-name suffixes understood by peft (e.g. ["q_proj", "v_proj"]).
+        dtype: Weights of the frozen base: "bfloat16", "float32", or "auto" (bfloat16 on GPUs that support it).
+        gradient_checkpointing: Recompute activations in the backward pass (needed at 7B scale).
+        value_head_dims: Hidden sizes of the value MLP on the last prompt token's hidden state.
+        temperature: Softmax temperature of PPO's action sampling (and of its log-probs).
+        optimizer_lr: Learning rate of the SFT optimiser preset.
+    """
+
+    # Inputs and normalisation: images in [0, 1]; actions scaled to [-1, 1] with the dataset's q01/q99, as
+    # OpenVLA does before binning.
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.QUANTILES,
+        }
+    )
+    camera: str | None = None
+
+    # Base model.
+    base_model: str = OPENVLA_7B
+    base_revision: str | None = None
+    tiny_seed: int = 0
+
+    # LoRA (OpenVLA's fine-tuning recipe).
+    lora_r: int = 32
+    lora_alpha: int = 16
+    lora_dropout: float = 0.0
+    lora_target_modules: list[str] = field(default_factory=lambda: ["all-linear"])
+
+    # Compute.
+    dtype: str = "auto"
+    gradient_checkpointing: bool = True
+
+    # RL (RL4VLA).
+    value_head_dims: tuple[int, ...] = (512, 128)
+    temperature: float = 1.0
+
+    # SFT optimiser preset.
+    optimizer_lr: float = 5e-4
+    optimizer_weight_decay: float = 0.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.dtype not in ("auto", "bfloat16", "float32"):
+            raise ValueError(f"dtype must be 'auto', 'bfloat16' or 'float32', got {self.dtype!r}")
+        if self.lora_r < 1:
+            raise ValueError(f"lora_r must be positive, got {self.lora_r!r}")
+        if self.temperature <= 0:
+            raise ValueError(f"temperature must be positive, got {self.temperature!r}")
+
+    def validate_features(self) -> None:
+        cameras = sorted(key for key, ft in self.input_features.items() if ft.type is FeatureType.VISUAL)
+        if not cameras:
+            raise ValueError("openvla needs a camera among its inputs (observation.images.*)")
+        if self.camera is None:
+            third_view = [key for key in cameras if key.endswith("third_view")]
+            self.camera = (third_view or cameras)[0]
+        if self.camera not in cameras:
+            raise ValueError(f"camera={self.camera!r} is not among the input cameras {cameras}")
+        self.input_features = {self.camera: self.input_features[self.camera]}  # one image, no proprioception
+        if self.action_feature is None or self.action_feature.shape != (7,):
+            raise ValueError(f"openvla predicts a 7-D action, got output features {self.output_features}")
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay)
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> None:
+        return None
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
