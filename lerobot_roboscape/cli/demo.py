@@ -3,11 +3,16 @@
 Stages: collect planner demonstrations in the task suite -> record a ManiSkill trajectory file and convert it
 (a held-out episode: another seed) -> train the image tokenizer -> train the action and the text world models ->
 write the world model's fidelity report on the held-out episode -> roll out random actions in the `roboscape_wm`
-environment built from those models. Each stage prints where its results are.
+environment built from those models -> SFT of the MLP policy with `lerobot-train` -> `lerobot-eval` of it in
+`roboscape_maniskill` and `roboscape_wm` -> SFT of the tiny OpenVLA and its evaluation in the simulator. Each
+stage prints where its results are.
 """
 
+import json
 import logging
 import shutil
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +40,7 @@ from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldMode
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-STAGES = 7
+STAGES = 10
 HELDOUT_SEED = 1000  # the recorded episode gets an initial state that the collected episodes do not have
 
 
@@ -51,6 +56,10 @@ class DemoConfig:
     tokenizer_steps: training steps of the tiny tokenizer.
     wm_steps: training steps of the tiny action world model.
     text_wm_steps: training steps of the tiny text world model.
+    mlp_steps: lerobot-train steps of the MLP policy.
+    openvla_steps: lerobot-train steps of the tiny OpenVLA (0 skips it).
+    eval_episodes: episodes per evaluation.
+    eval_episode_length: steps per evaluation episode.
     """
 
     output_dir: str = "outputs/demo"
@@ -62,6 +71,10 @@ class DemoConfig:
     tokenizer_steps: int = 300
     wm_steps: int = 300
     text_wm_steps: int = 150
+    mlp_steps: int = 1000
+    openvla_steps: int = 60
+    eval_episodes: int = 4
+    eval_episode_length: int = 80
 
 
 def _stage(name: str):
@@ -136,10 +149,68 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     artifacts["roboscape_wm rollout video (frame | goal)"] = rollout["video"]
     artifacts["roboscape_wm reward curve"] = rollout["plot"]
 
+    wm_env_args = ["--env.dataset_repo_id=local/roboscape_demos", f"--env.dataset_root={demos}",
+                   f"--env.tokenizer={tokenizer_dir / FINAL}",
+                   f"--env.action_world_model={out / 'world_model_action' / FINAL}",
+                   f"--env.text_world_model={out / 'world_model_text' / FINAL}", "--env.allow_random_lpips=true",
+                   "--env.max_goal_steps=40"]  # fmt: skip
+
+    start = _stage(f"8/{STAGES} SFT of the MLP policy with lerobot-train")
+    mlp = lerobot_sft(out / "sft_mlp", demos, ["--policy.type=roboscape_mlp"], cfg.mlp_steps, batch_size=16)
+    print(f"done in {time.time() - start:.0f}s")
+    artifacts["MLP policy after SFT"] = mlp
+
+    start = _stage(f"9/{STAGES} lerobot-eval of the MLP policy in roboscape_maniskill and roboscape_wm")
+    for env_type, env_args in (("roboscape_maniskill", []), ("roboscape_wm", wm_env_args)):
+        artifacts[f"MLP evaluation in {env_type}"] = lerobot_eval(out / f"eval_mlp_{env_type}", mlp, env_type,
+                                                                  cfg, env_args)
+    print(f"done in {time.time() - start:.0f}s")
+
+    if cfg.openvla_steps:
+        start = _stage(f"10/{STAGES} SFT of the tiny OpenVLA (LoRA) and lerobot-eval in roboscape_maniskill")
+        openvla_args = ["--policy.type=openvla", "--policy.base_model=tiny", "--policy.gradient_checkpointing=false"]
+        openvla = lerobot_sft(out / "sft_openvla", demos, openvla_args, cfg.openvla_steps, batch_size=8)
+        artifacts["tiny OpenVLA adapter after SFT"] = openvla
+        artifacts["tiny OpenVLA evaluation in roboscape_maniskill"] = lerobot_eval(
+            out / "eval_openvla_roboscape_maniskill", openvla, "roboscape_maniskill", cfg, [])
+        print(f"done in {time.time() - start:.0f}s")
+
     print("\n=== results ===")
     for name, path in artifacts.items():
         print(f"{name:40s} {path}")
     return artifacts
+
+
+def run_lerobot(script: str, args: list[str]) -> None:
+    """Run a LeRobot command line in a subprocess (its own progress display), failing loudly."""
+    result = subprocess.run([sys.executable, "-m", f"lerobot.scripts.{script}", *args], stdout=subprocess.DEVNULL)
+    if result.returncode != 0:
+        raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
+
+
+def lerobot_sft(output_dir: Path, demos: Path, policy_args: list[str], steps: int, batch_size: int) -> Path:
+    shutil.rmtree(output_dir, ignore_errors=True)
+    run_lerobot("lerobot_train", [
+        "--dataset.repo_id=local/roboscape_demos", f"--dataset.root={demos}", *policy_args,
+        "--policy.push_to_hub=false", f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}",
+        f"--log_freq={max(steps // 5, 1)}", "--num_workers=2", f"--output_dir={output_dir}",
+    ])  # fmt: skip
+    return output_dir / "checkpoints" / "last" / "pretrained_model"
+
+
+def lerobot_eval(output_dir: Path, checkpoint: Path, env_type: str, cfg: DemoConfig, env_args: list[str]) -> Path:
+    """Evaluate `checkpoint` in `env_type` with lerobot-eval; prints the result, returns its eval_info.json."""
+    shutil.rmtree(output_dir, ignore_errors=True)
+    run_lerobot("lerobot_eval", [
+        f"--policy.path={checkpoint}", f"--env.type={env_type}", f"--env.image_size={cfg.image_size}",
+        f"--env.families=[{','.join(cfg.families)}]", f"--env.episode_length={cfg.eval_episode_length}",
+        *env_args, f"--eval.n_episodes={cfg.eval_episodes}", f"--eval.batch_size={cfg.eval_episodes}",
+        f"--output_dir={output_dir}",
+    ])  # fmt: skip
+    result = json.loads((output_dir / "eval_info.json").read_text())["overall"]
+    print(f"{env_type}: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
+          f"mean return {result['avg_sum_reward']:.2f}")
+    return output_dir / "eval_info.json"
 
 
 def random_rollout(out: Path, demos: Path, image_size: int, episodes: int = 2, steps: int = 40) -> dict:

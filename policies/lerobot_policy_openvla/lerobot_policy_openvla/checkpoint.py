@@ -23,6 +23,7 @@ from transformers import LlamaTokenizerFast, PreTrainedTokenizerBase
 from lerobot_policy_openvla.prismatic import PrismaticArchitecture, PrismaticVLA
 
 TINY = "tiny"
+RANDOM_7B = "random-7b"
 CHECKPOINT_PATTERNS = ["*.json", "*.safetensors", "tokenizer.model"]
 SPIECE_SPACE = "\u2581"  # sentencepiece's word boundary, token 29871 in Llama-2
 
@@ -35,8 +36,9 @@ class OpenVLACheckpointError(ValueError):
 class OpenVLACheckpoint:
     path: str  # where it came from (local dir, Hub id or "tiny")
     config: dict  # the published config.json
-    state_dict: dict[str, torch.Tensor]  # published key names
+    state_dict: dict[str, torch.Tensor] | None  # published key names; None: random weights (a preset)
     tokenizer: PreTrainedTokenizerBase
+    init_seed: int = 0  # of the random weights
 
     @property
     def architecture(self) -> PrismaticArchitecture:
@@ -76,10 +78,11 @@ def architecture_from_config(config: dict, source: str) -> PrismaticArchitecture
     )
 
 
-def read_checkpoint(name_or_path: str, revision: str | None = None, tiny_seed: int = 0) -> OpenVLACheckpoint:
-    """A local directory, a Hub repo id (downloaded once, then read from the cache), or "tiny"."""
-    if name_or_path == TINY:
-        return tiny_checkpoint(tiny_seed)
+def read_checkpoint(name_or_path: str, revision: str | None = None, init_seed: int = 0) -> OpenVLACheckpoint:
+    """A local directory, a Hub repo id (downloaded once, then read from the cache), or a random preset:
+    "tiny" (toy sizes) or "random-7b" (the published sizes, for memory and speed measurements)."""
+    if name_or_path in RANDOM_PRESETS:
+        return OpenVLACheckpoint(name_or_path, RANDOM_PRESETS[name_or_path](), None, tiny_tokenizer(), init_seed)
     path = Path(name_or_path)
     if not path.is_dir():
         try:
@@ -123,7 +126,15 @@ def default_dtype(dtype: torch.dtype):
 
 
 def build_vla(checkpoint: OpenVLACheckpoint, device: str | torch.device, dtype: torch.dtype) -> PrismaticVLA:
-    """Build the network on `device` in `dtype` and copy the checkpoint's weights in, checking every key."""
+    """Build the network on `device` in `dtype` and copy the checkpoint's weights in, checking every key (or
+    draw them from `init_seed` for a random preset)."""
+    device = torch.device(device)
+    if checkpoint.state_dict is None:
+        accelerators = [] if device.type == "cpu" else None  # None: every device of device_type
+        rng = torch.random.fork_rng(devices=accelerators, device_type="cuda" if device.type == "cpu" else device.type)
+        with rng, torch.device(device), default_dtype(dtype):
+            torch.manual_seed(checkpoint.init_seed)
+            return PrismaticVLA(checkpoint.architecture)
     with torch.device(device), default_dtype(dtype):
         vla = PrismaticVLA(checkpoint.architecture)
     expected = {module_key_to_checkpoint_key(key): tensor for key, tensor in vla.state_dict().items()}
@@ -145,44 +156,54 @@ def build_vla(checkpoint: OpenVLACheckpoint, device: str | torch.device, dtype: 
     return vla
 
 
-# Tiny checkpoints: the published layout at toy sizes, for tests, the demo and CPU runs. The larger
+# Random presets: the published config.json, at its own sizes or at toy sizes. The tiny one's larger
 # initializer_range lets a 64-wide model behind its frozen random LM head reach confident action tokens.
 
-TINY_VISION = ({"embed_dim": 32, "depth": 3, "num_heads": 2}, {"embed_dim": 48, "depth": 3, "num_heads": 2})
-TINY_LLM = dict(vocab_size=32064, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
-                num_attention_heads=2, num_key_value_heads=2, max_position_embeddings=512, rms_norm_eps=1e-5,
-                pad_token_id=32000, initializer_range=0.1)  # fmt: skip
-
-
-def tiny_checkpoint(seed: int = 0) -> OpenVLACheckpoint:
-    """A random OpenVLA of the published architecture and key layout with a toy vision tower and LLM, the same
-    for a given seed (so an adapter trained on it can be loaded again)."""
-    config = {
+def published_config() -> dict:
+    """openvla/openvla-7b's config.json without its 25 datasets' norm_stats."""
+    return {
         "architectures": ["OpenVLAForActionPrediction"],
         "model_type": "openvla",
         "vision_backbone_id": "dinosiglip-vit-so-224px",
         "llm_backbone_id": "llama2-7b-pure",
+        "hf_llm_id": "meta-llama/Llama-2-7b-hf",
         "arch_specifier": "no-align+fused-gelu-mlp",
         "use_fused_vision_backbone": True,
         "image_resize_strategy": "resize-naive",
         "image_sizes": [224, 224],
         "timm_model_ids": ["vit_large_patch14_reg4_dinov2.lvd142m", "vit_so400m_patch14_siglip_224"],
         "timm_override_act_layers": [None, None],
-        "timm_model_kwargs": list(TINY_VISION),
-        "text_config": {"model_type": "llama", **TINY_LLM},
-        "llm_max_length": 512,
+        "text_config": {"model_type": "llama", "pad_token_id": 32000, "torch_dtype": "bfloat16", "vocab_size": 32064},
+        "llm_max_length": 2048,
         "pad_token_id": 32000,
         "pad_to_multiple_of": 64,
         "n_action_bins": 256,
         "norm_stats": {},
-        "torch_dtype": "float32",
+        "output_projector_states": False,
+        "torch_dtype": "bfloat16",
     }
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        with torch.device("cpu"), default_dtype(torch.float32):
-            vla = PrismaticVLA(architecture_from_config(config, TINY))
-    state_dict = {module_key_to_checkpoint_key(k): v for k, v in vla.state_dict().items()}
-    return OpenVLACheckpoint(TINY, config, state_dict, tiny_tokenizer())
+
+
+TINY_VISION = [{"embed_dim": 32, "depth": 3, "num_heads": 2}, {"embed_dim": 48, "depth": 3, "num_heads": 2}]
+TINY_LLM = dict(vocab_size=32064, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
+                num_attention_heads=2, num_key_value_heads=2, max_position_embeddings=512, rms_norm_eps=1e-6,
+                pad_token_id=32000, initializer_range=0.1)  # fmt: skip
+
+
+def tiny_config() -> dict:
+    return {**published_config(), "timm_model_kwargs": TINY_VISION, "llm_max_length": 512,
+            "text_config": {"model_type": "llama", **TINY_LLM}, "torch_dtype": "float32"}  # fmt: skip
+
+
+RANDOM_PRESETS = {TINY: tiny_config, RANDOM_7B: published_config}
+
+
+def tiny_checkpoint(seed: int = 0) -> OpenVLACheckpoint:
+    """The tiny preset with its weights drawn and renamed to the published keys (to write or test loading)."""
+    preset = read_checkpoint(TINY, init_seed=seed)
+    vla = build_vla(preset, "cpu", torch.float32)
+    state_dict = {module_key_to_checkpoint_key(key): tensor for key, tensor in vla.state_dict().items()}
+    return OpenVLACheckpoint(TINY, preset.config, state_dict, preset.tokenizer)
 
 
 def tiny_tokenizer() -> LlamaTokenizerFast:

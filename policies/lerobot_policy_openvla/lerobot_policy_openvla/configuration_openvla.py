@@ -17,10 +17,11 @@ class OpenVLAConfig(PreTrainedConfig):
 
     Args:
         base_model: The OpenVLA checkpoint: a Hub repo id or a local directory in the published layout of
-            `openvla/openvla-7b`, or "tiny" for a random model of the same architecture at toy sizes (the tiny
-            preset, same weights for a given `tiny_seed`).
+            `openvla/openvla-7b` (the paper preset), or a random preset of the same architecture: "tiny" (toy
+            sizes, for CPU runs, tests and the demo) or "random-7b" (the published sizes, to measure memory and
+            speed without downloading). Random presets draw the same weights for a given `init_seed`.
         base_revision: Hub revision of `base_model`.
-        tiny_seed: Seed of the tiny preset's random weights.
+        init_seed: Seed of a random preset's weights.
         camera: The image feature the model sees (OpenVLA reads one third-person image); default: the third
             view if the dataset has one, else the first camera.
         lora_r: LoRA rank.
@@ -48,7 +49,7 @@ class OpenVLAConfig(PreTrainedConfig):
     # Base model.
     base_model: str = OPENVLA_7B
     base_revision: str | None = None
-    tiny_seed: int = 0
+    init_seed: int = 0
 
     # LoRA (OpenVLA's fine-tuning recipe).
     lora_r: int = 32

@@ -39,7 +39,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         dtype = resolve_dtype(config.dtype, config.device)
-        checkpoint = read_checkpoint(config.base_model, config.base_revision, tiny_seed=config.tiny_seed)
+        checkpoint = read_checkpoint(config.base_model, config.base_revision, init_seed=config.init_seed)
         self.tokenizer = checkpoint.tokenizer
         self.action_tokenizer = OpenVLAActionTokenizer(n_bins=256, vocab_size=self.tokenizer.vocab_size)
         self.space_token_id = self.tokenizer.convert_tokens_to_ids(SPIECE_SPACE)
@@ -52,10 +52,8 @@ class OpenVLAPolicy(PreTrainedPolicy):
             parameter.requires_grad_("lora_" in name)
             if "lora_" in name:
                 parameter.data = parameter.data.float()  # adapters train in fp32 on a bf16 base
-        hidden = self.vla.language_model.config.hidden_size
-        dims = (hidden, *config.value_head_dims)
-        layers = [m for a, b in zip(dims, dims[1:], strict=False) for m in (nn.Linear(a, b), nn.GELU())]
-        self.value_head = nn.Sequential(*layers, nn.Linear(dims[-1], 1)).to(config.device or "cpu")
+        self.value_head = OpenVLAValueHead(self.vla.language_model.config.hidden_size, config.value_head_dims)
+        self.value_head.to(config.device or "cpu")
         if config.gradient_checkpointing:
             self.vla.language_model.activation_checkpointing_enable({"use_reentrant": False})
             self.vla.vision_backbone.featurizer.set_grad_checkpointing(True)
@@ -162,7 +160,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
         return logits[..., first : first + self.action_tokenizer.n_bins].float() / self.config.temperature
 
     def value(self, hidden_BC: Tensor) -> Tensor:
-        return self.value_head(hidden_BC.float()).squeeze(-1)
+        return self.value_head(hidden_BC.float())
 
     def predict_suffix(self, batch: dict, suffix_ids: Tensor) -> tuple[Tensor, Tensor]:
         """Teacher-forced pass over prompt + `suffix_ids` (B, K): the logits predicting each suffix token
@@ -224,7 +222,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
         pad = self.tokenizer.pad_token_id
         input_ids = [[ids[0]] + [pad] * (length - len(ids)) + ids[1:] for ids in rows]
         mask = [[1] + [0] * (length - len(ids)) + [1] * (len(ids) - 1) for ids in rows]
-        device = self.value_head[0].weight.device
+        device = self.value_head.layers[0].weight.device
         return torch.tensor(input_ids, device=device), torch.tensor(mask, device=device)
 
     def image(self, batch: dict) -> Tensor:
@@ -239,6 +237,26 @@ class OpenVLAPolicy(PreTrainedPolicy):
                 f"{self.image_shape} (C, H, W)"
             )
         return images.to(self.vla.projector.fc1.weight.dtype)
+
+
+class OpenVLAValueHead(nn.Module):
+    """RL4VLA's critic: an MLP (4096 -> 512 -> 128 -> 1, GELU) on the LLM's last-layer hidden state of the last
+    prompt token, kaiming-initialised with a small, bias-free output layer."""
+
+    def __init__(self, hidden_size: int, dims: tuple[int, ...]):
+        super().__init__()
+        sizes = (hidden_size, *dims)
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes, sizes[1:], strict=False))
+        self.out = nn.Linear(sizes[-1], 1, bias=False)
+        for layer in self.layers:
+            nn.init.kaiming_normal_(layer.weight, mode="fan_out", nonlinearity="relu")
+            nn.init.zeros_(layer.bias)
+        nn.init.normal_(self.out.weight, std=0.02)
+
+    def forward(self, hidden_BC: Tensor) -> Tensor:
+        for layer in self.layers:
+            hidden_BC = F.gelu(layer(hidden_BC))
+        return self.out(hidden_BC).squeeze(-1)
 
 
 def resolve_dtype(name: str, device: str | None) -> torch.dtype:

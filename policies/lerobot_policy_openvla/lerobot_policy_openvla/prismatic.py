@@ -21,8 +21,10 @@ from timm.models.vision_transformer import VisionTransformer
 from torch import Tensor, nn
 from transformers import LlamaConfig, LlamaForCausalLM
 
-DINO_MEAN, DINO_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
-SIGLIP_MEAN, SIGLIP_STD = (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)
+# ImageNet statistics as the published processor stores them (rounded to bf16 when it was converted); SigLIP's
+# are 0.5 / 0.5.
+DINO_MEAN = (0.484375, 0.455078125, 0.40625)
+DINO_STD = (0.228515625, 0.2236328125, 0.224609375)
 
 
 @dataclass
