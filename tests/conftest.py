@@ -123,7 +123,10 @@ def act_checkpoint(demo_dataset, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def mlp_checkpoint(demo_dataset, tmp_path_factory):
-    """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`."""
+    """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`, evaluated in
+    roboscape_maniskill at the end of training (lerobot-train's periodic evaluation)."""
     _, root = demo_dataset
     return lerobot_train(root, tmp_path_factory.mktemp("mlp") / "train", 4, "--policy.type=roboscape_mlp",
-                         "--policy.hidden_dim=32", "--policy.image_feature_dim=32")
+                         "--policy.hidden_dim=32", "--policy.image_feature_dim=32", "--env_eval_freq=4",
+                         "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}", "--env.episode_length=2",
+                         "--eval.n_episodes=1", "--eval.batch_size=1")

@@ -92,6 +92,8 @@ def test_bad_input_names_what_is_wrong(change, message):
 
 def test_lerobot_train_checkpoint_has_processors_with_action_statistics(mlp_checkpoint):
     assert (mlp_checkpoint / "policy_preprocessor.json").exists()
+    run_dir = mlp_checkpoint.parents[2]
+    assert list((run_dir / "eval").glob("videos_step_000004/roboscape_maniskill_0/*.mp4"))  # periodic evaluation
     policy = RoboscapeMLPPolicy.from_pretrained(mlp_checkpoint)
     preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(mlp_checkpoint))
     observation = {key: torch.rand(3, IMAGE_SIZE, IMAGE_SIZE) for key in CAMERAS}
