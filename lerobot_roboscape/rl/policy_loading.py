@@ -1,0 +1,58 @@
+"""Load a LeRobot policy checkpoint (local or Hub) with its processors, as an actor-critic for an env."""
+
+from pathlib import Path
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.envs.configs import EnvConfig
+from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+from lerobot_roboscape.rl.actor_critic import ActorCritic
+
+
+def load_policy(path: str | Path, device: str):
+    """(policy, preprocessor, postprocessor) of the checkpoint at `path`, on `device`."""
+    try:
+        config = PreTrainedConfig.from_pretrained(str(path))
+    except Exception as error:
+        raise FileNotFoundError(
+            f"No LeRobot policy checkpoint at {path!r} ({type(error).__name__}: {error}). Pass the "
+            f"pretrained_model directory of a lerobot-train or roboscape-ppo run, or a Hub repo id."
+        ) from error
+    config.device = device
+    policy = get_policy_class(config.type).from_pretrained(str(path), config=config)
+    overrides = {"device_processor": {"device": device}}
+    preprocessor, postprocessor = make_pre_post_processors(
+        config, pretrained_path=str(path), preprocessor_overrides=overrides
+    )
+    return policy, preprocessor, postprocessor
+
+
+def check_actor_critic(policy, path) -> None:
+    if not isinstance(policy, ActorCritic):
+        raise TypeError(
+            f"The {policy.name!r} policy at {path} cannot be trained by PPO: it lacks sample_action, "
+            f"evaluate_actions or predict_value (lerobot_roboscape.rl.ActorCritic). Use roboscape_mlp or openvla."
+        )
+
+
+def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
+    """Every camera the policy reads must come out of the env, at the same image shape."""
+    env_images = {
+        env_cfg.features_map[key]: tuple(feature.shape)
+        for key, feature in env_cfg.features.items()
+        if feature.type is FeatureType.VISUAL
+    }
+    for key, feature in policy.config.input_features.items():
+        if feature.type is not FeatureType.VISUAL:
+            raise ValueError(f"The policy at {path} reads {key!r}, which the {env_cfg.type} env does not provide")
+        channels_first = tuple(feature.shape)
+        if key not in env_images:
+            raise ValueError(f"The policy at {path} reads camera {key!r}; the {env_cfg.type} env gives "
+                             f"{sorted(env_images)}")
+        height, width, channels = env_images[key]
+        if channels_first != (channels, height, width):
+            raise ValueError(
+                f"The policy at {path} expects {key} images of shape {channels_first} (C, H, W); the "
+                f"{env_cfg.type} env renders {(channels, height, width)}: set --env.image_size={channels_first[-1]}"
+            )

@@ -1,0 +1,113 @@
+import json
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import make_pre_post_processors
+from safetensors.torch import load_file
+
+from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.rl.ppo import PPOConfig, compute_gae, ppo_losses, train_ppo
+from tests.rl.reach_env import ReachEnvConfig
+
+
+def test_gae_against_a_hand_computed_case():
+    # Two envs, three steps. Env 0 terminates at step 1 (its step 2 is after the end); env 1 runs to the time
+    # limit and bootstraps from the last value.
+    rewards = torch.tensor([[1.0, 0.0], [2.0, 1.0], [0.0, 1.0]])
+    values = torch.tensor([[0.5, 0.2], [1.0, 0.4], [9.0, 0.6]])
+    terminated = torch.tensor([[False, False], [True, False], [False, False]])
+    last_value = torch.tensor([7.0, 0.8])
+    gamma, lam = 0.9, 0.8
+    advantages, returns = compute_gae(rewards, values, terminated, last_value, gamma, lam)
+    # env 0: delta1 = 2 - 1 = 1 (terminal: no bootstrap); delta0 = 1 + 0.9*1.0 - 0.5 = 1.4
+    #        A1 = 1, A0 = 1.4 + 0.9*0.8*1 = 2.12
+    # env 1: delta2 = 1 + 0.9*0.8 - 0.6 = 1.12; delta1 = 1 + 0.9*0.6 - 0.4 = 1.14; delta0 = 0 + 0.9*0.4 - 0.2 = 0.16
+    #        A2 = 1.12, A1 = 1.14 + 0.72*1.12 = 1.9464, A0 = 0.16 + 0.72*1.9464 = 1.561408
+    torch.testing.assert_close(advantages[:2, 0], torch.tensor([2.12, 1.0]))
+    torch.testing.assert_close(advantages[:, 1], torch.tensor([1.561408, 1.9464, 1.12]))
+    torch.testing.assert_close(returns, advantages + values)
+
+
+def test_ppo_loss_terms_on_known_inputs():
+    old = torch.zeros(3)
+    new = torch.log(torch.tensor([1.5, 0.5, 1.1]))  # ratios 1.5, 0.5, 1.1
+    advantages = torch.tensor([1.0, 1.0, -2.0])
+    losses = ppo_losses(new, old, advantages, new_value=torch.tensor([1.0, 0.0, 3.0]),
+                        old_value=torch.tensor([0.0, 0.0, 0.0]), returns=torch.tensor([1.0, 1.0, 1.0]),
+                        entropy=torch.tensor([0.3, 0.3, 0.3]), clip_coef=0.2, value_clip_coef=0.5,
+                        huber_delta=None)  # fmt: skip
+    # -min(r*A, clip(r)*A): 1.5 -> -1.2; 0.5 -> -0.5 (unclipped side is smaller); 1.1 with A=-2 -> 2.2
+    torch.testing.assert_close(losses.policy, torch.tensor((-1.2 - 0.5 + 2.2) / 3))
+    # value: max(0.5*(v-R)^2, 0.5*(clipped-R)^2) with clipped = 0.5, 0, 0.5 -> max(0, .125), max(.5, .5), max(2, .125)
+    torch.testing.assert_close(losses.value, torch.tensor((0.125 + 0.5 + 2.0) / 3))
+    torch.testing.assert_close(losses.clip_fraction, torch.tensor(2 / 3))
+    torch.testing.assert_close(losses.entropy, torch.tensor(0.3))
+    huber = ppo_losses(new, old, advantages, torch.tensor([4.0]), torch.tensor([4.0]), torch.tensor([1.0]),
+                       torch.zeros(1), 0.2, None, huber_delta=1.0)  # fmt: skip
+    torch.testing.assert_close(huber.value, torch.tensor(3.0 - 0.5))  # linear beyond delta: delta*(|e| - delta/2)
+
+
+@pytest.fixture
+def fresh_mlp(tmp_path):
+    """A randomly initialised roboscape_mlp checkpoint (with processors) for 32 px third-view images."""
+    config = RoboscapeMLPConfig(
+        device="cpu", hidden_dim=32, image_feature_dim=16, init_log_std=-1.0,
+        input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+    )  # fmt: skip
+    torch.manual_seed(0)
+    policy = RoboscapeMLPPolicy(config)
+    stats = {"action": {"min": -torch.ones(7), "max": torch.ones(7)}}
+    path = tmp_path / "sft" / "pretrained_model"
+    policy.save_pretrained(path)
+    for processor in make_pre_post_processors(config, dataset_stats=stats):
+        processor.save_pretrained(path)
+    return path
+
+
+def ppo_config(policy_path, output_dir, **overrides) -> PPOConfig:
+    kwargs = dict(policy_path=str(policy_path), env=ReachEnvConfig(), output_dir=output_dir, num_envs=8,
+                  iterations=12, policy_lr=3e-3, value_lr=3e-3, minibatch_size=16, device="cpu",
+                  mixed_precision="no", save_freq=4)  # fmt: skip
+    return PPOConfig(**{**kwargs, **overrides})
+
+
+def returns_logged(output_dir) -> list[float]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(next(output_dir.glob("ppo/events*")).parent))
+    events.Reload()
+    return [event.value for event in events.Scalars("charts/episode_return")]
+
+
+def test_ppo_improves_the_return_on_a_certain_task(fresh_mlp, tmp_path):
+    final = train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", iterations=15, video_freq=10))
+    returns = returns_logged(tmp_path / "ppo")
+    assert len(returns) == 15
+    assert sum(returns[-3:]) / 3 > sum(returns[:3]) / 3 + 0.5  # out of a maximum of 4
+    assert (final / "policy_postprocessor.json").exists() and (final / "model.safetensors").exists()
+    assert list((tmp_path / "ppo" / "videos").glob("*.mp4"))
+
+
+def test_resume_equals_uninterrupted_training(fresh_mlp, tmp_path):
+    reference = train_ppo(ppo_config(fresh_mlp, tmp_path / "reference", iterations=6, save_freq=2))
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=4, save_freq=2))  # "killed" after 4
+    resumed = train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=6, save_freq=2, resume=True))
+    assert json.loads((resumed.parent / "training_state" / "iteration.json").read_text())["iteration"] == 6
+    expected, got = load_file(reference / "model.safetensors"), load_file(resumed / "model.safetensors")
+    assert expected.keys() == got.keys()
+    assert all(torch.equal(expected[key], got[key]) for key in expected)
+    with pytest.raises(FileExistsError, match="--resume=true"):
+        train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=8))
+
+
+def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_path):
+    with pytest.raises(FileNotFoundError, match="No LeRobot policy checkpoint at .*missing"):
+        train_ppo(ppo_config(tmp_path / "missing", tmp_path / "a"))
+    with pytest.raises(ValueError, match="--env.image_size=32"):
+        train_ppo(ppo_config(fresh_mlp, tmp_path / "b", env=ReachEnvConfig(image_size=16)))
+    with pytest.raises(ValueError, match="observation.images.third_view"):
+        config = RoboscapeManiSkillEnvConfig(image_size=32, cameras=("wrist",))
+        train_ppo(ppo_config(fresh_mlp, tmp_path / "c", env=config))
