@@ -2,16 +2,22 @@
 
 from pathlib import Path
 
+import numpy as np
+from torch import Tensor
+
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.envs.configs import EnvConfig
+from lerobot.envs.utils import preprocess_observation
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_roboscape.rl.actor_critic import ActorCritic
 
 
 def load_policy(path: str | Path, device: str):
     """(policy, preprocessor, postprocessor) of the checkpoint at `path`, on `device`."""
+    register_third_party_plugins()  # the lerobot_policy_* distributions register their policy types
     try:
         config = PreTrainedConfig.from_pretrained(str(path))
     except Exception as error:
@@ -56,3 +62,19 @@ def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
                 f"The policy at {path} expects {key} images of shape {channels_first} (C, H, W); the "
                 f"{env_cfg.type} env renders {(channels, height, width)}: set --env.image_size={channels_first[-1]}"
             )
+
+
+class PolicyIO:
+    """Env observations -> the policy's batch (LeRobot's conversion, then the policy's preprocessor), and the
+    policy's normalised actions -> env actions (its postprocessor)."""
+
+    def __init__(self, preprocessor, postprocessor):
+        self.preprocessor, self.postprocessor = preprocessor, postprocessor
+
+    def batch(self, pixels: dict[str, np.ndarray], tasks: list[str]) -> dict:
+        observation = preprocess_observation({"pixels": pixels})
+        observation["task"] = list(tasks)
+        return self.preprocessor(observation)
+
+    def env_action(self, action: Tensor) -> np.ndarray:
+        return self.postprocessor(action).to("cpu").numpy()

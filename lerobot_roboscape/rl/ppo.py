@@ -21,13 +21,12 @@ import numpy as np
 import torch
 from accelerate import Accelerator
 from lerobot.envs.configs import EnvConfig
-from lerobot.envs.utils import preprocess_observation
 from lerobot.optim.optimizers import load_optimizer_state, save_optimizer_state
 from torch import Tensor, nn
 from tqdm import tqdm
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.rl.policy_loading import check_actor_critic, check_policy_fits_env, load_policy
+from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, check_policy_fits_env, load_policy
 from lerobot_roboscape.training import CHECKPOINTS, FINAL, _make_tmp_dir, last_checkpoint, resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
@@ -185,22 +184,6 @@ class Rollout(NamedTuple):
     returns: np.ndarray  # (B,) episode returns
     successes: np.ndarray  # (B,) success at any step
     frames: list[np.ndarray]  # render() per step, when recorded
-
-
-class PolicyIO:
-    """Env observations -> the policy's batch (LeRobot's conversion, then the policy's preprocessor), and the
-    policy's normalised actions -> env actions (its postprocessor)."""
-
-    def __init__(self, preprocessor, postprocessor):
-        self.preprocessor, self.postprocessor = preprocessor, postprocessor
-
-    def batch(self, pixels: dict[str, np.ndarray], tasks: list[str]) -> dict:
-        observation = preprocess_observation({"pixels": pixels})
-        observation["task"] = list(tasks)
-        return self.preprocessor(observation)
-
-    def env_action(self, action: Tensor) -> np.ndarray:
-        return self.postprocessor(action).to("cpu").numpy()
 
 
 @torch.no_grad()

@@ -1,0 +1,146 @@
+"""`roboscape-eval`: success rate of a policy in `roboscape_maniskill`, per split (IND: training scenes with new
+initial states; OOD: held-out scenes) and task family, with 95% Wilson intervals and videos."""
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
+from lerobot_roboscape.tasks import TASK_FAMILIES
+from lerobot_roboscape.training import resolve_device
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class EvalConfig:
+    """Args:
+    policy_path: the policy (a pretrained_model directory or a Hub repo id).
+    families: task families (empty: all four).
+    splits: "ind" and/or "ood".
+    episodes: episodes per (split, family).
+    batch_size: parallel episodes (families are dealt to them in turn).
+    episode_length: steps before an episode counts as failed.
+    image_size: camera image side (0: the policy's).
+    seed: seed of the initial states; the datasets' episodes use small seeds, so the default is far from them.
+    videos: episodes recorded per split (the first batch's).
+    output_dir: eval.json, eval.md and videos/.
+    device: "auto", "cpu" or "cuda".
+    """
+
+    policy_path: str = ""
+    families: list[str] = field(default_factory=list)
+    splits: list[str] = field(default_factory=lambda: ["ind", "ood"])
+    episodes: int = 20
+    batch_size: int = 8
+    episode_length: int = 160
+    image_size: int = 0
+    seed: int = 100_000
+    videos: int = 2
+    output_dir: Path = Path("outputs/eval")
+    device: str = "auto"
+
+    def __post_init__(self):
+        if not self.policy_path:
+            raise ValueError("--policy_path is required")
+        unknown = set(self.families) - set(TASK_FAMILIES)
+        if unknown:
+            raise ValueError(f"unknown task families {sorted(unknown)}; known: {list(TASK_FAMILIES)}")
+        if not set(self.splits) <= {"ind", "ood"} or not self.splits:
+            raise ValueError(f"splits must be among 'ind', 'ood', got {self.splits}")
+        self.output_dir = Path(self.output_dir)
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate (sensible at 0 and n successes, unlike the normal one)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@torch.no_grad()
+def run_episodes(env, policy, io: PolicyIO, seed: int, record: bool = False) -> tuple[np.ndarray, list]:
+    """One batch of episodes with the deterministic policy: (success per env, rendered frames if recorded)."""
+    policy.reset()
+    observation, _ = env.reset(seed=seed)
+    tasks = list(env.call("task"))
+    success = np.zeros(env.num_envs, dtype=bool)
+    ended = np.zeros(env.num_envs, dtype=bool)
+    frames = [np.concatenate(env.render(), axis=1)] if record else []
+    for _ in range(env.call("_max_episode_steps")[0]):
+        action = policy.select_action(io.batch(observation["pixels"], tasks))
+        observation, _, terminated, truncated, info = env.step(io.env_action(action))
+        success |= np.asarray(info["is_success"], dtype=bool)
+        ended |= terminated | truncated
+        if record:
+            frames.append(np.concatenate(env.render(), axis=1))
+        if ended.all():
+            break
+    return success, frames
+
+
+def evaluate_success(cfg: EvalConfig) -> dict:
+    """Evaluate, write eval.json / eval.md / videos under output_dir, and return the results."""
+    from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
+    from lerobot_roboscape.rl.ppo import write_video
+
+    device = resolve_device(cfg.device)
+    policy, preprocessor, postprocessor = load_policy(cfg.policy_path, device)
+    policy.eval()
+    io = PolicyIO(preprocessor, postprocessor)
+    image_size = cfg.image_size or next(
+        feature.shape[-1] for feature in policy.config.input_features.values() if len(feature.shape) == 3
+    )
+    families = list(cfg.families) or list(TASK_FAMILIES)
+    results = {"policy": cfg.policy_path, "episode_length": cfg.episode_length, "splits": {}}
+    for split in cfg.splits:
+        env_cfg = RoboscapeManiSkillEnvConfig(families=families, split=split, image_size=image_size,
+                                              episode_length=cfg.episode_length, seed=cfg.seed)  # fmt: skip
+        check_policy_fits_env(policy, env_cfg, cfg.policy_path)
+        env = RoboscapeManiSkillEnv(env_cfg, num_envs=min(cfg.batch_size, cfg.episodes * len(families)))
+        outcomes = {family: [] for family in families}
+        batches = math.ceil(cfg.episodes * len(families) / env.num_envs)
+        for k in tqdm(range(batches), desc=f"eval {split}", leave=False):
+            record = k == 0 and cfg.videos > 0
+            success, frames = run_episodes(env, policy, io, seed=cfg.seed + 7919 * k, record=record)
+            for family, ok in zip(env.slot_families, success, strict=True):
+                if len(outcomes[family]) < cfg.episodes:
+                    outcomes[family].append(bool(ok))
+            if record:
+                clip = [frame[:, : frame.shape[1] * cfg.videos // env.num_envs] for frame in frames]
+                write_video(cfg.output_dir / "videos" / f"{split}.mp4", clip, env.metadata["render_fps"])
+        env.close()
+        results["splits"][split] = {family: summarise(o) for family, o in outcomes.items()}
+        results["splits"][split]["all"] = summarise([x for o in outcomes.values() for x in o])
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    (cfg.output_dir / "eval.json").write_text(json.dumps(results, indent=2))
+    (cfg.output_dir / "eval.md").write_text(markdown_table(results))
+    return results
+
+
+def summarise(outcomes: list[bool]) -> dict:
+    n, successes = len(outcomes), int(sum(outcomes))
+    low, high = wilson_interval(successes, n)
+    return {"success_rate": successes / n if n else 0.0, "successes": successes, "episodes": n,
+            "ci95": [round(low, 4), round(high, 4)]}  # fmt: skip
+
+
+def markdown_table(results: dict) -> str:
+    lines = [f"Success rate of `{results['policy']}` in roboscape_maniskill (95% Wilson interval)", "",
+             "| split | family | success | 95% CI | episodes |", "|---|---|---:|---:|---:|"]  # fmt: skip
+    for split, cells in results["splits"].items():
+        for family, cell in cells.items():
+            low, high = cell["ci95"]
+            lines.append(f"| {split.upper()} | {family} | {cell['success_rate']:.0%} | {low:.0%}-{high:.0%} | "
+                         f"{cell['episodes']} |")
+    return "\n".join(lines) + "\n"
