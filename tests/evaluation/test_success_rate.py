@@ -1,0 +1,53 @@
+import json
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import make_pre_post_processors
+
+from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success, run_episodes, wilson_interval
+from lerobot_roboscape.rl.policy_loading import PolicyIO
+from tests.rl.reach_env import TARGET, ReachEnv
+
+
+def test_wilson_interval_known_values():
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
+    assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+
+
+@pytest.mark.parametrize(("constant_action", "expected"), [(TARGET, True), (-TARGET, False)])
+def test_run_episodes_counts_what_the_env_reports(constant_action, expected):
+    config = RoboscapeMLPConfig(
+        device="cpu", input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+    )  # fmt: skip
+    policy = RoboscapeMLPPolicy(config)
+    with torch.no_grad():  # a policy that always outputs `constant_action`
+        policy.action_mean.weight.zero_()
+        policy.action_mean.bias.fill_(constant_action)
+    stats = {"action": {"min": -torch.ones(7), "max": torch.ones(7)}}
+    io = PolicyIO(*make_pre_post_processors(config, dataset_stats=stats))
+    success, frames = run_episodes(ReachEnv(32, 3, num_envs=5), policy, io, seed=0, record=True)
+    assert success.tolist() == [expected] * 5
+    assert len(frames) == 4  # the first frame and one per step
+
+
+def test_evaluate_success_in_the_simulator(mlp_checkpoint, tmp_path):
+    cfg = EvalConfig(policy_path=str(mlp_checkpoint), families=["push", "pull"], episodes=2, batch_size=4,
+                     episode_length=2, output_dir=tmp_path, device="cpu", videos=1)  # fmt: skip
+    results = evaluate_success(cfg)
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    assert saved == results
+    for split in ("ind", "ood"):
+        cells = results["splits"][split]
+        assert cells["push"]["episodes"] == cells["pull"]["episodes"] == 2 and cells["all"]["episodes"] == 4
+        assert 0 <= cells["all"]["successes"] <= 4
+        assert (tmp_path / "videos" / f"{split}.mp4").exists()
+    assert "| OOD | pull |" in (tmp_path / "eval.md").read_text()
+
+
+def test_unknown_family_is_refused():
+    with pytest.raises(ValueError, match="unknown task families"):
+        EvalConfig(policy_path="x", families=["juggle"])
