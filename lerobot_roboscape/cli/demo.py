@@ -11,8 +11,6 @@ stage prints where its results are.
 import json
 import logging
 import shutil
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +27,7 @@ from lerobot_roboscape.cli.convert import ConvertConfig, convert
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.evaluation.tables import TablesConfig, lerobot_sft, run_lerobot, run_tables
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
@@ -157,7 +156,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
                    "--env.max_goal_steps=40"]  # fmt: skip
 
     start = _stage(f"8/{STAGES} SFT of the MLP policy with lerobot-train")
-    mlp = lerobot_sft(out / "sft_mlp", demos, ["--policy.type=roboscape_mlp"], cfg.mlp_steps, batch_size=16)
+    mlp = lerobot_sft(out / "sft_mlp", "local/roboscape_demos", str(demos), ["--policy.type=roboscape_mlp"],
+                      cfg.mlp_steps, batch_size=16)
     print(f"done in {time.time() - start:.0f}s")
     artifacts["MLP policy after SFT"] = mlp
 
@@ -170,7 +170,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     if cfg.openvla_steps:
         start = _stage(f"10/{STAGES} SFT of the tiny OpenVLA (LoRA) and lerobot-eval in roboscape_maniskill")
         openvla_args = ["--policy.type=openvla", "--policy.base_model=tiny", "--policy.gradient_checkpointing=false"]
-        openvla = lerobot_sft(out / "sft_openvla", demos, openvla_args, cfg.openvla_steps, batch_size=8)
+        openvla = lerobot_sft(out / "sft_openvla", "local/roboscape_demos", str(demos), openvla_args,
+                              cfg.openvla_steps, batch_size=8)
         artifacts["tiny OpenVLA adapter after SFT"] = openvla
         artifacts["tiny OpenVLA evaluation in roboscape_maniskill"] = lerobot_eval(
             out / "eval_openvla_roboscape_maniskill", openvla, "roboscape_maniskill", cfg, [])
@@ -180,23 +181,6 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     for name, path in artifacts.items():
         print(f"{name:40s} {path}")
     return artifacts
-
-
-def run_lerobot(script: str, args: list[str]) -> None:
-    """Run a LeRobot command line in a subprocess (its own progress display), failing loudly."""
-    result = subprocess.run([sys.executable, "-m", f"lerobot.scripts.{script}", *args], stdout=subprocess.DEVNULL)
-    if result.returncode != 0:
-        raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
-
-
-def lerobot_sft(output_dir: Path, demos: Path, policy_args: list[str], steps: int, batch_size: int) -> Path:
-    shutil.rmtree(output_dir, ignore_errors=True)
-    run_lerobot("lerobot_train", [
-        "--dataset.repo_id=local/roboscape_demos", f"--dataset.root={demos}", *policy_args,
-        "--policy.push_to_hub=false", f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}",
-        f"--log_freq={max(steps // 5, 1)}", "--num_workers=2", f"--output_dir={output_dir}",
-    ])  # fmt: skip
-    return output_dir / "checkpoints" / "last" / "pretrained_model"
 
 
 def lerobot_eval(output_dir: Path, checkpoint: Path, env_type: str, cfg: DemoConfig, env_args: list[str]) -> Path:
