@@ -4,8 +4,9 @@ Stages: collect planner demonstrations in the task suite -> record a ManiSkill t
 (a held-out episode: another seed) -> train the image tokenizer -> train the action and the text world models ->
 write the world model's fidelity report on the held-out episode -> roll out random actions in the `roboscape_wm`
 environment built from those models -> SFT of the MLP policy with `lerobot-train` -> `lerobot-eval` of it in
-`roboscape_maniskill` and `roboscape_wm` -> SFT of the tiny OpenVLA and its evaluation in the simulator. Each
-stage prints where its results are.
+`roboscape_maniskill` and `roboscape_wm` -> PPO of it in both envs and the small Table 1 (success in the
+simulator, IND/OOD) -> optionally SFT of the tiny OpenVLA and its evaluation in the simulator. Each stage prints
+where its results are.
 """
 
 import json
@@ -39,7 +40,6 @@ from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldMode
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-STAGES = 10
 HELDOUT_SEED = 1000  # the recorded episode gets an initial state that the collected episodes do not have
 
 
@@ -58,8 +58,12 @@ class DemoConfig:
     mlp_steps: lerobot-train steps of the MLP policy.
     openvla_steps: lerobot-train steps of the tiny OpenVLA; 0 (the default, to keep the demo short) skips it,
         60 adds about 4 minutes on 2 cores.
-    eval_episodes: episodes per evaluation.
+    eval_episodes: episodes per lerobot-eval run.
     eval_episode_length: steps per evaluation episode.
+    ppo_iterations: PPO iterations in each env (one episode per parallel env each).
+    ppo_envs: parallel episodes of PPO.
+    ppo_episode_length: steps per PPO episode.
+    table_episodes: simulator episodes per (split, family) behind each cell of the small Table 1.
     """
 
     output_dir: str = "outputs/demo"
@@ -75,6 +79,10 @@ class DemoConfig:
     openvla_steps: int = 0
     eval_episodes: int = 4
     eval_episode_length: int = 80
+    ppo_iterations: int = 3
+    ppo_envs: int = 8
+    ppo_episode_length: int = 40
+    table_episodes: int = 1
 
 
 def _stage(name: str):
@@ -83,12 +91,13 @@ def _stage(name: str):
 
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
+    stages = 11 if cfg.openvla_steps else 10
     out = Path(cfg.output_dir).resolve()
     for stale in ("tokenizer", "world_model_action", "world_model_text"):  # a new demo run trains from scratch
         shutil.rmtree(out / stale, ignore_errors=True)
     artifacts: dict[str, Path] = {}
 
-    start = _stage(f"1/{STAGES} collect planner demonstrations (ManiSkill, both cameras)")
+    start = _stage(f"1/{stages} collect planner demonstrations (ManiSkill, both cameras)")
     demos = out / "datasets" / "roboscape_demos"
     ds = collect(CollectConfig(repo_id="local/roboscape_demos", root=str(demos), families=cfg.families,
                                max_scenes=cfg.scenes, episodes_per_scene=cfg.episodes_per_scene,
@@ -96,7 +105,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     print(f"{ds.meta.total_episodes} episodes, {ds.meta.total_frames} frames in {time.time() - start:.0f}s")
     artifacts["demonstrations (LeRobotDataset)"] = demos
 
-    start = _stage(f"2/{STAGES} record a held-out ManiSkill trajectory file and convert it")
+    start = _stage(f"2/{stages} record a held-out ManiSkill trajectory file and convert it")
     scene = select_scenes("ind")[0]
     h5 = record_maniskill_trajectories(out / "maniskill_trajectories", cfg.families[0], scene.id, episodes=1,
                                        image_size=cfg.image_size, seed=HELDOUT_SEED)
@@ -108,7 +117,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     artifacts["converted dataset (LeRobotDataset)"] = converted
 
     demos_cfg = DatasetConfig(repo_id="local/roboscape_demos", root=str(demos))
-    start = _stage(f"3/{STAGES} train the image tokenizer (tiny preset)")
+    start = _stage(f"3/{stages} train the image tokenizer (tiny preset)")
     tokenizer_dir = out / "tokenizer"
     train_tokenizer(TrainTokenizerConfig(
         dataset=demos_cfg, tokenizer=TinyTokenizerConfig(image_size=cfg.image_size),
@@ -119,7 +128,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     artifacts["tokenizer"] = tokenizer_dir / FINAL
 
     for number, control, steps in ((4, "action", cfg.wm_steps), (5, "text", cfg.text_wm_steps)):
-        start = _stage(f"{number}/{STAGES} train the {control} world model (tiny preset)")
+        start = _stage(f"{number}/{stages} train the {control} world model (tiny preset)")
         wm_dir = out / f"world_model_{control}"
         train_world_model(TrainWorldModelConfig(
             dataset=demos_cfg, tokenizer=str(tokenizer_dir / FINAL), wm=TinyWorldModelConfig(control=control),
@@ -129,7 +138,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
         print(f"done in {time.time() - start:.0f}s")
         artifacts[f"{control} world model"] = wm_dir / FINAL
 
-    start = _stage(f"6/{STAGES} fidelity report of the action world model on the held-out episode")
+    start = _stage(f"6/{stages} fidelity report of the action world model on the held-out episode")
     report = evaluate_fidelity(FidelityConfig(
         dataset=DatasetConfig(repo_id="local/maniskill_converted", root=str(converted)),
         tokenizer=str(tokenizer_dir / FINAL), world_model=str(out / "world_model_action" / FINAL),
@@ -142,7 +151,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     artifacts["fidelity report"] = out / "fidelity" / "fidelity.md"
     artifacts["predicted vs real video"] = out / "fidelity" / "side_by_side.mp4"
 
-    start = _stage(f"7/{STAGES} random actions in the roboscape_wm environment (world-model reward)")
+    start = _stage(f"7/{stages} random actions in the roboscape_wm environment (world-model reward)")
     rollout = random_rollout(out, demos, cfg.image_size)
     print(f"{rollout['steps']} steps of {rollout['episodes']} episodes, return {rollout['returns']}, "
           f"in {time.time() - start:.0f}s")
@@ -155,20 +164,41 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
                    f"--env.text_world_model={out / 'world_model_text' / FINAL}", "--env.allow_random_lpips=true",
                    "--env.max_goal_steps=40"]  # fmt: skip
 
-    start = _stage(f"8/{STAGES} SFT of the MLP policy with lerobot-train")
+    start = _stage(f"8/{stages} SFT of the MLP policy with lerobot-train")
     mlp = lerobot_sft(out / "sft_mlp", "local/roboscape_demos", str(demos), ["--policy.type=roboscape_mlp"],
                       cfg.mlp_steps, batch_size=16)
     print(f"done in {time.time() - start:.0f}s")
     artifacts["MLP policy after SFT"] = mlp
 
-    start = _stage(f"9/{STAGES} lerobot-eval of the MLP policy in roboscape_maniskill and roboscape_wm")
+    start = _stage(f"9/{stages} lerobot-eval of the MLP policy in roboscape_maniskill and roboscape_wm")
     for env_type, env_args in (("roboscape_maniskill", []), ("roboscape_wm", wm_env_args)):
         artifacts[f"MLP evaluation in {env_type}"] = lerobot_eval(out / f"eval_mlp_{env_type}", mlp, env_type,
                                                                   cfg, env_args)
     print(f"done in {time.time() - start:.0f}s")
 
+    start = _stage(f"10/{stages} PPO of the MLP policy in roboscape_maniskill and in roboscape_wm; the small Table 1")
+    tables = TablesConfig(
+        dataset_repo_id="local/roboscape_demos", dataset_root=str(demos), tokenizer=str(tokenizer_dir / FINAL),
+        action_world_model=str(out / "world_model_action" / FINAL),
+        text_world_model=str(out / "world_model_text" / FINAL), families=cfg.families, per_task=False,
+        ppo_iterations=cfg.ppo_iterations, num_envs=cfg.ppo_envs, episode_length=cfg.ppo_episode_length,
+        eval_episodes=cfg.table_episodes, eval_batch_size=len(cfg.families) * cfg.table_episodes,
+        eval_episode_length=cfg.eval_episode_length, image_size=cfg.image_size, allow_random_lpips=True,
+        output_dir=out / "tables", device="cpu",
+    )  # fmt: skip
+    shutil.rmtree(tables.output_dir, ignore_errors=True)
+    run_tables(tables, sft_checkpoints={"roboscape_mlp": mlp})
+    print((tables.output_dir / "tables.md").read_text())
+    print(f"done in {time.time() - start:.0f}s")
+    artifacts["MLP after PPO in ManiSkill"] = tables.output_dir / "roboscape_mlp" / "ppo_maniskill_" \
+        f"{'-'.join(cfg.families)}" / "checkpoints" / "last"
+    artifacts["MLP after PPO in the world model"] = tables.output_dir / "roboscape_mlp" / "ppo_world_model_" \
+        f"{'-'.join(cfg.families)}" / "checkpoints" / "last"
+    artifacts["small Table 1"] = tables.output_dir / "tables.md"
+    artifacts["Table 1 bar chart"] = tables.output_dir / "tables.png"
+
     if cfg.openvla_steps:
-        start = _stage(f"10/{STAGES} SFT of the tiny OpenVLA (LoRA) and lerobot-eval in roboscape_maniskill")
+        start = _stage(f"11/{stages} SFT of the tiny OpenVLA (LoRA) and lerobot-eval in roboscape_maniskill")
         openvla_args = ["--policy.type=openvla", "--policy.base_model=tiny", "--policy.gradient_checkpointing=false"]
         openvla = lerobot_sft(out / "sft_openvla", "local/roboscape_demos", str(demos), openvla_args,
                               cfg.openvla_steps, batch_size=8)

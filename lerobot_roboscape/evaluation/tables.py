@@ -120,7 +120,7 @@ def run_tables(cfg: TablesConfig, sft_checkpoints: dict[str, Path] | None = None
             results[name][method] = merged
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "tables.json").write_text(json.dumps(results, indent=2))
-    title = "Table 1 layout, one RL run per task family" if cfg.per_task else "Table 1 layout, one multi-task RL run (the Table 2 setting)"
+    title = "Table 1, one RL run per task family" if cfg.per_task else "Table 1 layout, one multi-task RL run each"
     (cfg.output_dir / "tables.md").write_text(format_table(results, cfg.families, title))
     bar_chart(results, cfg.families, cfg.output_dir / "tables.png", title)
     return results
