@@ -29,7 +29,11 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     """The world models as an environment (see envs/world_model_env.py).
 
     Args:
-        dataset_repo_id: LeRobot dataset whose episodes give the initial frames and instructions.
+        world_models: a world-models repo (Hub repo id or local folder, made by `roboscape-push
+            --artifact=world_models`) holding the tokenizer and both world models; it replaces the next three and
+            names the dataset they were trained on.
+        dataset_repo_id: LeRobot dataset whose episodes give the initial frames and instructions (default: the one
+            named by world_models).
         dataset_root: its local directory (default: the LeRobot cache / Hub).
         tokenizer: trained tokenizer, local directory or Hub repo id.
         action_world_model: action world model, local directory or Hub repo id.
@@ -59,7 +63,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 
     task: str | None = None
     fps: int = 20
-    dataset_repo_id: str = "local/roboscape"
+    world_models: str | None = None
+    dataset_repo_id: str | None = None
     dataset_root: str | None = None
     tokenizer: str = "outputs/tokenizer/pretrained_model"
     action_world_model: str = "outputs/world_model_action/pretrained_model"

@@ -13,14 +13,20 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 import logging
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_frames
+from lerobot_roboscape.dataset.reader import (
+    camera_names,
+    episode_facts,
+    episode_indices,
+    open_dataset,
+    read_frames,
+)
 from lerobot_roboscape.envs.batched import BatchedEnv
+from lerobot_roboscape.hub.pull import pull_world_models, snapshot
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
@@ -41,17 +47,27 @@ class EpisodeStart:
 
 
 def load_pretrained(cls, ref: str, what: str, command: str):
-    """`cls.from_pretrained(ref)` for a local directory or a Hub repo id, with an error naming what is missing."""
-    path = Path(ref).expanduser()
-    looks_local = path.is_absolute() or ref.startswith(".") or ref.count("/") != 1
-    if looks_local and not (path / "config.json").is_file():
+    """`cls.from_pretrained` of a local directory or a Hub repo id, with an error naming what is missing."""
+    path = snapshot(ref, what, f"train one with `{command}`")
+    if not (path / "config.json").is_file():
         raise FileNotFoundError(f"no {what} at {ref} (config.json missing); train one with `{command}` or give a "
                                 "Hub repo id")
-    try:
-        return cls.from_pretrained(str(path) if path.is_dir() else ref)
-    except (OSError, ValueError) as error:  # huggingface_hub's not-found and offline errors are OSErrors
-        raise FileNotFoundError(f"could not load the {what} {ref!r} from a local directory or the Hub ({error}); "
-                                f"train one with `{command}`") from error
+    return cls.from_pretrained(str(path))
+
+
+def model_refs(config) -> tuple[str, str, str | None, str]:
+    """Tokenizer, action model, text model (None when unused) and dataset repo id of a `roboscape_wm` config:
+    from its `world_models` repo, or given one by one."""
+    uses_text = config.goal_source == "text_model"
+    if config.world_models:
+        bundle = pull_world_models(config.world_models)
+        return (str(bundle.tokenizer), str(bundle.action_world_model),
+                str(bundle.text_world_model) if uses_text else None, config.dataset_repo_id or bundle.dataset_repo_id)
+    if not config.dataset_repo_id:
+        raise ValueError("roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or world_models "
+                         "(a repo that names it)")
+    return config.tokenizer, config.action_world_model, config.text_world_model if uses_text else None, \
+        config.dataset_repo_id
 
 
 @lru_cache(maxsize=8)
@@ -83,12 +99,11 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         """config: a `RoboscapeWorldModelEnvConfig` (see envs/configs.py)."""
         self.config, self.num_envs = config, num_envs
         self.device = config.resolved_device
-        self.tokenizer, self.action_model, self.text_model = load_models(
-            config.tokenizer, config.action_world_model,
-            config.text_world_model if config.goal_source == "text_model" else None, self.device,
-        )  # fmt: skip
+        tokenizer, action_model, text_model, self.dataset_repo_id = model_refs(config)
+        self.tokenizer, self.action_model, self.text_model = load_models(tokenizer, action_model, text_model,
+                                                                         self.device)
         if self.action_model.config.control != "action":
-            raise ValueError(f"{config.action_world_model} is a {self.action_model.config.control} world model, "
+            raise ValueError(f"{action_model} is a {self.action_model.config.control} world model, "
                              "not an action world model")
         self.reward_fn = WorldModelReward(
             load_reward_lpips(self.tokenizer.config.lpips_net, config.lpips_weights, config.allow_random_lpips,
@@ -122,7 +137,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     def _load_starts(self) -> tuple[list[EpisodeStart], list[str]]:
         cfg = self.config
-        dataset = open_dataset(cfg.dataset_repo_id, cfg.dataset_root)
+        dataset = open_dataset(self.dataset_repo_id, cfg.dataset_root)
         cameras = camera_names(dataset)
         if len(cameras) != self.action_model.config.n_cameras:
             raise ValueError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
