@@ -83,14 +83,14 @@ def run_lerobot(script: str, args: list[str]) -> None:
 
 
 def lerobot_sft(output_dir: Path, dataset_repo_id: str, dataset_root: str | None, policy_args: list[str],
-                steps: int, batch_size: int) -> Path:
+                steps: int, batch_size: int, num_workers: int = 2) -> Path:
     """SFT with `lerobot-train`; returns the final pretrained_model directory."""
     shutil.rmtree(output_dir, ignore_errors=True)
     root = [f"--dataset.root={dataset_root}"] if dataset_root else []
     run_lerobot("lerobot_train", [
         f"--dataset.repo_id={dataset_repo_id}", *root, *policy_args, "--policy.push_to_hub=false",
         f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}", f"--log_freq={max(steps // 5, 1)}",
-        "--num_workers=2", f"--output_dir={output_dir}",
+        f"--num_workers={num_workers}", f"--output_dir={output_dir}",
     ])  # fmt: skip
     return output_dir / "checkpoints" / "last" / "pretrained_model"
 
