@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -17,7 +19,7 @@ def demo_dataset(tmp_path_factory):
     return collect(cfg), root
 
 
-def record_maniskill_file(out_dir, obs_mode="rgb", episodes=2, steps=6, env_id="PickCube-v1") -> "Path":
+def record_maniskill_file(out_dir, obs_mode="rgb", episodes=2, steps=6, env_id="PickCube-v1") -> Path:
     """Trajectory file written by ManiSkill's own RecordEpisode wrapper (random actions)."""
     import mani_skill.envs  # noqa: F401  registers PickCube-v1
     from mani_skill.utils.wrappers.record import RecordEpisode
@@ -98,7 +100,7 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     return dirs
 
 
-def lerobot_train(root, out, steps, *policy_args) -> "Path":
+def lerobot_train(root, out, steps, *policy_args) -> Path:
     """Run `lerobot-train` on `demo_dataset` in a subprocess; returns the last checkpoint's pretrained_model."""
     import subprocess
     import sys

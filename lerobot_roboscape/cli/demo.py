@@ -52,28 +52,30 @@ import matplotlib.pyplot as plt  # noqa: E402
 HELDOUT_SEED = 1000  # the recorded episode gets an initial state that the collected episodes do not have
 ALL = list(TASK_FAMILIES)
 
-# What each scale sets; a flag given on the command line wins. "tiny" is the embedded default (2 CPU cores, <20
-# min); "smoke" runs every stage at its smallest; "paper" is the paper's setting (GPUs, days: 80 scenes, 128 px,
-# the paper presets of tokenizer and world models, OpenVLA-7B with LoRA).
+# What each scale sets; a flag given on the command line wins. "tiny" is the embedded default (2 CPU cores, under
+# 20 min: two task families, so that the simulator evaluations behind the table fit); "smoke" runs every stage
+# at its smallest; "paper" is the paper's setting (GPUs, days: 80 scenes, 128 px, the paper presets of the
+# tokenizer and world models, OpenVLA-7B with LoRA).
 SCALES = {
     "smoke": dict(
         families=["push"], scenes=1, episodes_per_scene=1, image_size=64, workers=1, preset="tiny",
-        tokenizer_steps=4, wm_steps=4, text_wm_steps=4, wm_batch_size=4, mlp_steps=4, openvla_steps=0,
-        openvla_base="tiny", eval_episodes=1, eval_episode_length=4, ppo_iterations=1, ppo_envs=2,
-        ppo_episode_length=4, table_episodes=1, max_goal_steps=4, loader_workers=0, device="cpu",
+        tokenizer_steps=4, tokenizer_batch_size=8, wm_steps=4, text_wm_steps=4, wm_batch_size=4, mlp_steps=4,
+        openvla_steps=0, openvla_base="tiny", eval_episodes=1, eval_episode_length=4, ppo_iterations=1,
+        ppo_envs=2, ppo_episode_length=4, table_episodes=1, max_goal_steps=4, loader_workers=0, device="cpu",
     ),
     "tiny": dict(
-        families=ALL, scenes=2, episodes_per_scene=1, image_size=64, workers=2, preset="tiny",
-        tokenizer_steps=250, wm_steps=300, text_wm_steps=150, wm_batch_size=4, mlp_steps=600, openvla_steps=0,
-        openvla_base="tiny", eval_episodes=4, eval_episode_length=60, ppo_iterations=2, ppo_envs=8,
-        ppo_episode_length=30, table_episodes=1, max_goal_steps=40, loader_workers=2, device="cpu",
+        families=["pick_place", "push"], scenes=2, episodes_per_scene=2, image_size=64, workers=2, preset="tiny",
+        tokenizer_steps=200, tokenizer_batch_size=8, wm_steps=200, text_wm_steps=100, wm_batch_size=4,
+        mlp_steps=400, openvla_steps=0, openvla_base="tiny", eval_episodes=2, eval_episode_length=60,
+        ppo_iterations=2, ppo_envs=6, ppo_episode_length=30, table_episodes=1, max_goal_steps=40,
+        loader_workers=2, device="cpu",
     ),
     "paper": dict(
         families=ALL, scenes=None, episodes_per_scene=25, image_size=128, workers=16, preset="paper",
-        tokenizer_steps=100_000, wm_steps=200_000, text_wm_steps=100_000, wm_batch_size=32, mlp_steps=20_000,
-        openvla_steps=20_000, openvla_base="openvla/openvla-7b", eval_episodes=50, eval_episode_length=160,
-        ppo_iterations=200, ppo_envs=64, ppo_episode_length=80, table_episodes=50, max_goal_steps=100,
-        loader_workers=8, device="auto",
+        tokenizer_steps=100_000, tokenizer_batch_size=32, wm_steps=200_000, text_wm_steps=100_000,
+        wm_batch_size=32, mlp_steps=20_000, openvla_steps=20_000, openvla_base="openvla/openvla-7b",
+        eval_episodes=50, eval_episode_length=160, ppo_iterations=200, ppo_envs=64, ppo_episode_length=80,
+        table_episodes=50, max_goal_steps=100, loader_workers=8, device="auto",
     ),
 }
 
@@ -90,6 +92,7 @@ class DemoConfig:
     workers: ManiSkill worker processes.
     preset: "tiny" or "paper" presets of the tokenizer and world models.
     tokenizer_steps: training steps of the tokenizer.
+    tokenizer_batch_size: frames per tokenizer training step.
     wm_steps: training steps of the action world model.
     text_wm_steps: training steps of the text world model.
     wm_batch_size: clips per world-model training step.
@@ -119,6 +122,7 @@ class DemoConfig:
     workers: int | None = None
     preset: str | None = None
     tokenizer_steps: int | None = None
+    tokenizer_batch_size: int | None = None
     wm_steps: int | None = None
     text_wm_steps: int | None = None
     wm_batch_size: int | None = None
@@ -199,7 +203,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     tokenizer = out / "tokenizer" / FINAL
     train_tokenizer(TrainTokenizerConfig(
         dataset=demos_cfg, tokenizer=TokenizerConfig.get_choice_class(cfg.preset)(image_size=cfg.image_size),
-        train=TokenizerTrainingConfig(steps=cfg.tokenizer_steps, save_freq=cfg.tokenizer_steps),
+        train=TokenizerTrainingConfig(steps=cfg.tokenizer_steps, batch_size=cfg.tokenizer_batch_size,
+                                      save_freq=cfg.tokenizer_steps),
         output_dir=tokenizer.parent, num_workers=min(cfg.workers, 2), allow_random_lpips=True,
     ))  # fmt: skip
     artifacts["tokenizer"] = tokenizer
@@ -263,7 +268,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
         action_world_model=str(models["action"]), text_world_model=str(models["text"]),
         policies=["roboscape_mlp"] + ([openvla_spec] if cfg.openvla_steps else []), families=cfg.families,
         per_task=False, ppo_iterations=cfg.ppo_iterations, num_envs=cfg.ppo_envs,
-        episode_length=cfg.ppo_episode_length, eval_episodes=cfg.table_episodes,
+        episode_length=cfg.ppo_episode_length, max_goal_steps=cfg.max_goal_steps,
+        eval_episodes=cfg.table_episodes,
         eval_batch_size=len(cfg.families) * cfg.table_episodes, eval_episode_length=cfg.eval_episode_length,
         image_size=cfg.image_size, allow_random_lpips=True, output_dir=out / "tables", device=cfg.device,
     )  # fmt: skip

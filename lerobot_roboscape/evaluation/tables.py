@@ -41,6 +41,7 @@ class TablesConfig:
     ppo_iterations: PPO iterations per run.
     num_envs: parallel episodes in PPO.
     episode_length: PPO episode length.
+    max_goal_steps: frames the text world model may generate while looking for a goal.
     eval_episodes: evaluation episodes per (split, family).
     eval_batch_size: parallel evaluation episodes.
     eval_episode_length: evaluation episode length.
@@ -65,6 +66,7 @@ class TablesConfig:
     episode_length: int = 80
     eval_episodes: int = 50
     eval_batch_size: int = 16
+    max_goal_steps: int = 100
     eval_episode_length: int = 160
     image_size: int = 64
     allow_random_lpips: bool = False
@@ -134,7 +136,7 @@ def make_env_config(cfg: TablesConfig, env_type: str, families: list[str]):
         dataset_repo_id=cfg.dataset_repo_id, dataset_root=cfg.dataset_root, tokenizer=cfg.tokenizer,
         action_world_model=cfg.action_world_model, text_world_model=cfg.text_world_model, families=families,
         split="ind", image_size=cfg.image_size, episode_length=cfg.episode_length,
-        allow_random_lpips=cfg.allow_random_lpips, device=cfg.device,
+        max_goal_steps=cfg.max_goal_steps, allow_random_lpips=cfg.allow_random_lpips, device=cfg.device,
     )  # fmt: skip
 
 
