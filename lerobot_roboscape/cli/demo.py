@@ -13,6 +13,8 @@ Hub repos (or to the Hub with `--push_to_hub=true`). The summary names every art
     roboscape-demo --scale=paper --push_to_hub=true --hub_namespace=me   # paper presets, GPUs
 """
 
+import contextlib
+import io
 import json
 import logging
 import shutil
@@ -307,7 +309,9 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 
     print(f"\n=== results ({(time.time() - stage.began) / 60:.1f} min) ===")
     for name, path in artifacts.items():
-        print(f"{name:44s} {load_artifact(path):34s} {path}")
+        with contextlib.redirect_stdout(io.StringIO()):  # LeRobot's from_pretrained prints where it loads from
+            loaded = load_artifact(path)
+        print(f"{name:44s} {loaded:34s} {path}")
     return artifacts
 
 
