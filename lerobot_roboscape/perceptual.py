@@ -37,7 +37,9 @@ def _read_trunk_state_dict(path: Path) -> dict[str, torch.Tensor]:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def load_lpips(net: str = "alex", trunk_path: str | Path | None = None, allow_random_trunk: bool = False) -> lpips.LPIPS:
+def load_lpips(
+    net: str = "alex", trunk_path: str | Path | None = None, allow_random_trunk: bool = False
+) -> lpips.LPIPS:
     """An `lpips.LPIPS` metric in eval mode with frozen weights. Inputs are images in [-1, 1], (B, 3, H, W).
 
     Args:
@@ -54,7 +56,9 @@ def load_lpips(net: str = "alex", trunk_path: str | Path | None = None, allow_ra
     if path.is_file():
         state = _read_trunk_state_dict(path)
         features = TRUNK_BUILDERS[net]().features
-        features.load_state_dict({k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")})
+        features.load_state_dict(
+            {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
+        )
         # LPIPS splits the trunk's `features` into slices that keep the original layer indices as names.
         for slice_ in (getattr(metric.net, f"slice{i}") for i in range(1, metric.net.N_slices + 1)):
             for name, module in slice_.named_children():
@@ -62,7 +66,9 @@ def load_lpips(net: str = "alex", trunk_path: str | Path | None = None, allow_ra
     elif trunk_path is not None:
         raise LPIPSTrunkMissingError(f"LPIPS trunk weights not found at {path}")
     elif allow_random_trunk:
-        logger.warning("LPIPS trunk weights not found at %s: using a random %s trunk (not a perceptual metric).", path, net)
+        logger.warning(
+            "LPIPS trunk weights not found at %s: using a random %s trunk (not a perceptual metric).", path, net
+        )
     else:
         raise LPIPSTrunkMissingError(
             f"LPIPS needs torchvision's {net} weights at {path}. Copy {TRUNK_FILES[net]} there (or pass its path), "

@@ -13,7 +13,6 @@ import time
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
-
 from lerobot_policy_openvla import OpenVLAConfig, OpenVLAPolicy
 
 CAMERA = "observation.images.third_view"

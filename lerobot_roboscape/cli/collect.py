@@ -102,7 +102,8 @@ def main(argv: list[str] | None = None):
             print(f"{scene.id:40s} {scene.split}")
         return
     dataset = collect(cfg)
-    print(f"Wrote {dataset.meta.total_episodes} episodes, {dataset.meta.total_frames} frames to {Path(cfg.root).resolve()}")
+    meta = dataset.meta
+    print(f"Wrote {meta.total_episodes} episodes, {meta.total_frames} frames to {Path(cfg.root).resolve()}")
 
 
 if __name__ == "__main__":

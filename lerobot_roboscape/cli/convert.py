@@ -60,7 +60,8 @@ def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(ConvertConfig, args=argv)
     dataset = convert(cfg)
-    print(f"Wrote {dataset.meta.total_episodes} episodes, {dataset.meta.total_frames} frames to {Path(cfg.root).resolve()}")
+    meta = dataset.meta
+    print(f"Wrote {meta.total_episodes} episodes, {meta.total_frames} frames to {Path(cfg.root).resolve()}")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
     roboscape-push --artifact=dataset --repo_id=me/roboscape_demos --dataset_root=outputs/datasets/roboscape
     roboscape-push --artifact=world_models --repo_id=me/roboscape_world_models \\
-        --tokenizer=outputs/tokenizer/pretrained_model --action_world_model=outputs/world_model_action/pretrained_model \\
+        --tokenizer=outputs/tokenizer/pretrained_model \\
+        --action_world_model=outputs/world_model_action/pretrained_model \\
         --text_world_model=outputs/world_model_text/pretrained_model --fidelity_dir=outputs/fidelity
     roboscape-push --artifact=policy --repo_id=me/roboscape_mlp_ppo_wm \\
         --policy=outputs/ppo/checkpoints/last/pretrained_model --eval_dir=outputs/eval

@@ -4,7 +4,8 @@ separates successful from failed episodes.
     roboscape-reward-report --dataset.repo_id=local/heldout --dataset.root=outputs/datasets/heldout \
         --env.tokenizer=outputs/tokenizer/pretrained_model --env.action_world_model=outputs/wm_action/pretrained_model \
         --env.text_world_model=outputs/wm_text/pretrained_model \
-        --embedding_reward=outputs/reward_embedding/pretrained_model --proxy_reward=outputs/reward_proxy/pretrained_model
+        --embedding_reward=outputs/reward_embedding/pretrained_model \
+        --proxy_reward=outputs/reward_proxy/pretrained_model
 """
 
 import logging

@@ -47,7 +47,9 @@ def image_size(dataset: LeRobotDataset) -> int:
     shapes = {tuple(dataset.features[key]["shape"]) for key in dataset.meta.camera_keys}
     sides = {s[0] for s in shapes} | {s[1] for s in shapes}
     if len(sides) != 1:
-        raise DatasetError(f"dataset {dataset.root} cameras must be square and of one size, got shapes {sorted(shapes)}")
+        raise DatasetError(
+            f"dataset {dataset.root} cameras must be square and of one size, got shapes {sorted(shapes)}"
+        )
     return sides.pop()
 
 

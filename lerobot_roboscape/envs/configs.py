@@ -99,7 +99,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         if self.reward_type not in ("world_model", "embedding", "proxy"):
             raise ValueError(f"reward_type must be world_model, embedding or proxy, got {self.reward_type!r}")
         if self.reward_type != "world_model" and not self.reward_model:
-            raise ValueError(f"reward_type={self.reward_type} needs reward_model (train one with roboscape-train-reward)")
+            raise ValueError(
+                f"reward_type={self.reward_type} needs reward_model (train one with roboscape-train-reward)"
+            )
         if self.goal_source == "text_model" and not self.text_world_model:
             raise ValueError("goal_source=text_model needs text_world_model")
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:

@@ -133,7 +133,8 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
         if method == "sft":
             dataset_repo_id = dataset_repo_id or train["dataset"]["repo_id"]
     method_text, method_details = {
-        "sft": ("supervised fine-tuning", "Trained by behaviour cloning of planner demonstrations with `lerobot-train`."),
+        "sft": ("supervised fine-tuning",
+                "Trained by behaviour cloning of planner demonstrations with `lerobot-train`."),
         "roboscape_wm": ("PPO in the world model", "Fine-tuned from its SFT checkpoint by PPO inside the learned world "
                          "models (`roboscape_wm`), with the world models' own reward, as in RoboScape-R."),
         "roboscape_maniskill": ("PPO in ManiSkill", "Fine-tuned from its SFT checkpoint by PPO in the ManiSkill "

@@ -3,14 +3,13 @@
 from pathlib import Path
 
 import numpy as np
-from torch import Tensor
-
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import preprocess_observation
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 from lerobot.utils.import_utils import register_third_party_plugins
+from torch import Tensor
 
 from lerobot_roboscape.rl.actor_critic import ActorCritic
 

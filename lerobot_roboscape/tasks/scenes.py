@@ -132,7 +132,10 @@ _SCENES_BY_ID = {scene.id: scene for scene in SCENES}
 
 def get_scene(scene_id: str) -> Scene:
     if scene_id not in _SCENES_BY_ID:
-        raise ValueError(f"Unknown scene {scene_id!r}; known scenes look like {SCENES[0].id!r} (see `roboscape-collect --list-scenes`)")
+        raise ValueError(
+            f"Unknown scene {scene_id!r}; known scenes look like {SCENES[0].id!r} "
+            "(see `roboscape-collect --list-scenes`)"
+        )
     return _SCENES_BY_ID[scene_id]
 
 

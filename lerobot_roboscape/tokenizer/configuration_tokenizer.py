@@ -45,7 +45,9 @@ class TokenizerConfig(draccus.ChoiceRegistry):
                 f"(from channel_multipliers={self.channel_multipliers})"
             )
         if not 1 <= self.codebook_bits <= 16:
-            raise ValueError(f"codebook_bits must be in [1, 16] (tokens are stored as uint16), got {self.codebook_bits}")
+            raise ValueError(
+                f"codebook_bits must be in [1, 16] (tokens are stored as uint16), got {self.codebook_bits}"
+            )
 
     @classmethod
     def default_choice_name(cls) -> str:

@@ -131,7 +131,9 @@ class VisualTokenizer(nn.Module, PyTorchModelHubMixin, library_name="lerobot-rob
     def indices_to_codes(self, indices: torch.Tensor) -> torch.Tensor:
         """(B, h, w) codes -> (B, codebook_bits, h, w) quantised latents."""
         if indices.min() < 0 or indices.max() >= self.config.codebook_size:
-            raise ValueError(f"token ids must be in [0, {self.config.codebook_size}), got [{indices.min()}, {indices.max()}]")
+            raise ValueError(
+                f"token ids must be in [0, {self.config.codebook_size}), got [{indices.min()}, {indices.max()}]"
+            )
         codes = self.quantizer.indices_to_codes(indices.flatten(1).long())  # (B, h * w, bits)
         return rearrange(codes, "b (h w) d -> b d h w", h=indices.shape[1])
 

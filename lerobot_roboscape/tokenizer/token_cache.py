@@ -91,7 +91,9 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
     path = Path(path)
     manifest_path = path / "manifest.json"
     if not manifest_path.is_file():
-        raise TokenCacheMismatchError(f"{path} is not a token cache (no manifest.json); build one with roboscape-train-wm")
+        raise TokenCacheMismatchError(
+            f"{path} is not a token cache (no manifest.json); build one with roboscape-train-wm"
+        )
     manifest = json.loads(manifest_path.read_text())
     if manifest.get("format_version") != FORMAT_VERSION:
         raise TokenCacheMismatchError(f"token cache {path} has format {manifest.get('format_version')}, this version "
@@ -127,7 +129,8 @@ def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))
-        actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, dataset.meta.features["action"]["shape"][0]))
+        action_dim = dataset.meta.features["action"]["shape"][0]
+        actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, action_dim))
         done = np.lib.format.open_memmap(tmp / "done.npy", "w+", np.float32, (n,))
         rewards = np.lib.format.open_memmap(tmp / "rewards.npy", "w+", np.float32, (n,))
         tokenizer = tokenizer.to(device).eval()

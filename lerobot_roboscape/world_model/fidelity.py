@@ -17,14 +17,14 @@ import matplotlib
 import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
-from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 from torchmetrics.functional.classification import binary_auroc
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read_episode
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -120,7 +120,9 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
             logger.warning("episode %d has %d frames, not more than the %d prompt frames: skipped", index,
                            len(tokens), prompt)
             continue
-        pred_tokens, pred_done = model.generate(tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1])
+        pred_tokens, pred_done = model.generate(
+            tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1]
+        )
         real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
         real = real.to(device).float() / 255  # (T, n, 3, H, W)
         target = real[prompt : prompt + horizon]
@@ -151,7 +153,9 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "mean": {k: float(np.mean(sum(steps, []))) for k, steps in per_step.items()},
         "done_teacher_forced": _done_scores(np.concatenate(tf_prob), np.concatenate(tf_label), cfg.done_threshold),
         "done_open_loop": _done_scores(np.concatenate(ol_prob), np.concatenate(ol_label), cfg.done_threshold),
-        "episode_success_accuracy": float(np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])),
+        "episode_success_accuracy": float(
+            np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])
+        ),
         "episodes": episodes_out,
     }
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
@@ -177,8 +181,9 @@ def markdown_table(report: dict) -> str:
         "|---:|---:|---:|---:|---:|---:|---:|",
     ]  # fmt: skip
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    per_step = report["per_step"]
     for i in range(steps):
-        cells = [fmt(report["per_step"][f"{kind}_{m}"][i]) for m in METRICS for kind in ("prediction", "reconstruction")]
+        cells = [fmt(per_step[f"{kind}_{m}"][i]) for m in METRICS for kind in ("prediction", "reconstruction")]
         lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
     for name in ("done_teacher_forced", "done_open_loop"):
         d = report[name]

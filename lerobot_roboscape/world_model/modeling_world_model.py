@@ -227,7 +227,8 @@ class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-robosc
         state = self.start_rollout(tokens_BTS[:, :1], self.frame_control(control, slice(0, 1)))
         done, features = [state.done], [state.features]
         for t in range(1, tokens_BTS.shape[1]):
-            done.append(self.observe_frame(state, tokens_BTS[:, t : t + 1], self.frame_control(control, slice(t, t + 1))))
+            frame_control = self.frame_control(control, slice(t, t + 1))
+            done.append(self.observe_frame(state, tokens_BTS[:, t : t + 1], frame_control))
             features.append(state.features)
         return torch.stack(done, 1), torch.stack(features, 1)
 

@@ -5,8 +5,8 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.batched import SingleEnv
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward

@@ -4,8 +4,8 @@ import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
-
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
+
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success, run_episodes, wilson_interval
 from lerobot_roboscape.rl.policy_loading import PolicyIO
 from tests.rl.reach_env import TARGET, ReachEnv

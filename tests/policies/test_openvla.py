@@ -6,8 +6,6 @@ import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-from safetensors import safe_open
-
 from lerobot_policy_openvla import OpenVLAConfig, OpenVLAPolicy
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
 from lerobot_policy_openvla.checkpoint import (
@@ -18,6 +16,8 @@ from lerobot_policy_openvla.checkpoint import (
     write_checkpoint,
 )
 from lerobot_policy_openvla.modeling_openvla import openvla_prompt
+from safetensors import safe_open
+
 from lerobot_roboscape.rl import ActorCritic
 from tests.conftest import IMAGE_SIZE, lerobot_train
 
@@ -174,7 +174,8 @@ def test_adapter_only_checkpoint_round_trip(policy, tmp_path):
     loaded = OpenVLAPolicy.from_pretrained(tmp_path)
     torch.testing.assert_close(loaded.select_action(batch), policy.select_action(batch))
     raw = torch.randint(0, 256, (3, 7))
-    torch.testing.assert_close(loaded.evaluate_actions(batch, raw).log_prob, policy.evaluate_actions(batch, raw).log_prob)
+    expected = policy.evaluate_actions(batch, raw).log_prob
+    torch.testing.assert_close(loaded.evaluate_actions(batch, raw).log_prob, expected)
 
 
 def test_adapter_for_another_lora_config_is_refused(policy, tmp_path):

@@ -3,8 +3,8 @@ import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
+
 from lerobot_roboscape.rl import ActorCritic
 from tests.conftest import IMAGE_SIZE
 

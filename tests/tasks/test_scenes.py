@@ -1,5 +1,12 @@
 from lerobot_roboscape.tasks.scenes import (
-    CONTAINERS, OBJECTS, OOD_OBJECTS, SCENES, TABLES, TASK_FAMILIES, get_scene, select_scenes,
+    CONTAINERS,
+    OBJECTS,
+    OOD_OBJECTS,
+    SCENES,
+    TABLES,
+    TASK_FAMILIES,
+    get_scene,
+    select_scenes,
 )
 
 

@@ -25,7 +25,8 @@ def test_cache_holds_every_frame_with_labels(demo_dataset, trained_tokenizer, to
     tokenizer = VisualTokenizer.from_pretrained(trained_tokenizer).eval()
     row = token_cache.episodes[1]
     frame = dataset[row["start"] + 3]["observation.images.wrist"]
-    assert torch.equal(tokenizer.encode(frame[None])[0], torch.from_numpy(token_cache.tokens[row["start"] + 3, 1].astype(np.int64)))
+    cached = torch.from_numpy(token_cache.tokens[row["start"] + 3, 1].astype(np.int64))
+    assert torch.equal(tokenizer.encode(frame[None])[0], cached)
     np.testing.assert_array_equal(token_cache.actions[row["start"] : row["start"] + row["length"]],
                                   np.stack([dataset[row["start"] + t]["action"].numpy() for t in range(row["length"])]))
     for row in token_cache.episodes:

@@ -97,7 +97,8 @@ def read_checkpoint(name_or_path: str, revision: str | None = None, init_seed: i
     if not config_file.exists():
         raise OpenVLACheckpointError(f"{path} has no config.json: not an OpenVLA checkpoint")
     config = json.loads(config_file.read_text())
-    return OpenVLACheckpoint(str(name_or_path), config, read_safetensors(path), LlamaTokenizerFast.from_pretrained(path))
+    tokenizer = LlamaTokenizerFast.from_pretrained(path)
+    return OpenVLACheckpoint(str(name_or_path), config, read_safetensors(path), tokenizer)
 
 
 def read_safetensors(path: Path) -> dict[str, torch.Tensor]:

@@ -97,7 +97,9 @@ class OpenVLAPolicy(PreTrainedPolicy):
         return model
 
     def wrap_with_peft(self, peft_config=None, peft_cli_overrides=None):
-        raise ValueError("openvla applies LoRA itself: use --policy.lora_r/lora_alpha/lora_target_modules, not --peft.*")
+        raise ValueError(
+            "openvla applies LoRA itself: use --policy.lora_r/lora_alpha/lora_target_modules, not --peft.*"
+        )
 
     # LeRobot's policy API.
 
