@@ -146,9 +146,11 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
             raise FileNotFoundError(f"no roboscape-eval results in {eval_dir} (eval.md missing)")
         results = (Path(eval_dir) / "eval.md").read_text().split("\n", 1)[1].strip()  # drop the local path line
         shutil.copy2(Path(eval_dir) / "eval.json", folder / "eval.json")
+    base_model = config.get("base_model")  # a Hub id, a local folder or a random preset ("tiny")
     card = model_card(
         "policy.md", repo_id=repo_id, policy_type=config["type"], method=method, method_text=method_text,
-        method_details=method_details, dataset_repo_id=dataset_repo_id, base_model=config.get("base_model"),
+        method_details=method_details, dataset_repo_id=dataset_repo_id, base_model=base_model,
+        base_model_repo=base_model if base_model and "/" in base_model and not Path(base_model).exists() else None,
         results=results, training=training,
     )  # fmt: skip
     card.save(folder / "README.md")

@@ -4,6 +4,7 @@ import sys
 
 import pytest
 import torch
+from huggingface_hub import ModelCard
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 from lerobot_policy_openvla import OpenVLAConfig, OpenVLAPolicy
@@ -18,6 +19,7 @@ from lerobot_policy_openvla.checkpoint import (
 from lerobot_policy_openvla.modeling_openvla import openvla_prompt
 from safetensors import safe_open
 
+from lerobot_roboscape.hub.push import push_policy
 from lerobot_roboscape.rl import ActorCritic
 from tests.conftest import IMAGE_SIZE, lerobot_train
 
@@ -216,7 +218,12 @@ def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
                                "--policy.gradient_checkpointing=false")
     assert (checkpoint / "policy_postprocessor.json").exists()
     assert (checkpoint / "model.safetensors").stat().st_size < 5e6  # the adapter and value head, not the base
-    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={checkpoint}",
+    # lerobot-eval reads the policy from the folder its Hub repo would hold.
+    repo = push_policy("me/openvla_sft", checkpoint, local_dir=tmp_path / "hub")
+    card = ModelCard.load(f"{repo}/README.md")
+    assert "openvla" in card.data.tags and card.data.base_model is None  # "tiny" is a preset, not a Hub repo
+    assert "adapter and value head only" in card.text and "`tiny`" in card.text
+    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={repo}",
            "--policy.device=cpu", "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}",
            "--env.families=[push]", "--env.episode_length=2", "--eval.n_episodes=1", "--eval.batch_size=1",
            f"--output_dir={tmp_path / 'eval'}"]
