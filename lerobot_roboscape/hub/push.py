@@ -23,7 +23,7 @@ from lerobot_roboscape.hub.cards import (
     parameter_count,
     read_json,
 )
-from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
+from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST, looks_like_repo_id
 
 WORLD_MODEL_FOLDERS = {"tokenizer": "tokenizer", "action_world_model": "action_world_model",
                        "text_world_model": "text_world_model"}
@@ -150,7 +150,7 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
     card = model_card(
         "policy.md", repo_id=repo_id, policy_type=config["type"], method=method, method_text=method_text,
         method_details=method_details, dataset_repo_id=dataset_repo_id, base_model=base_model,
-        base_model_repo=base_model if base_model and "/" in base_model and not Path(base_model).exists() else None,
+        base_model_repo=base_model if base_model and looks_like_repo_id(base_model) else None,
         results=results, training=training,
     )  # fmt: skip
     card.save(folder / "README.md")
