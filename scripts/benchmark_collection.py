@@ -28,8 +28,8 @@ def bench_collect(tmp: Path, episodes: int, image_size: int, workers: int) -> di
     from lerobot_roboscape.cli.collect import CollectConfig, collect
 
     cfg = CollectConfig(root=str(tmp / "collected"), families=["pick_place"], max_scenes=episodes,
-                        episodes_per_scene=1, suboptimal_fraction=0.0, image_size=image_size, workers=workers,
-                        keep_failed=True)
+                        episodes_per_scene=1, failed_fraction=0.0, suboptimal_fraction=0.0, image_size=image_size,
+                        workers=workers)
     start = time.perf_counter()
     ds = collect(cfg)
     seconds = time.perf_counter() - start

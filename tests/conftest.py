@@ -11,11 +11,12 @@ IMAGE_SIZE = 32
 
 @pytest.fixture(scope="session")
 def demo_dataset(tmp_path_factory):
-    """A small real collection: two families, two scenes, one optimal and one suboptimal episode each."""
+    """A small real collection: two families on one scene, one optimal, one suboptimal and one deliberately failed
+    episode each (episodes 0-2 pick and place, 3-5 push; the failed ones are 2 and 3)."""
     root = tmp_path_factory.mktemp("collect") / "demos"
     cfg = CollectConfig(repo_id="test/demos", root=str(root), families=["pick_place", "push"], max_scenes=1,
-                        episodes_per_scene=2, suboptimal_fraction=0.5, image_size=IMAGE_SIZE, workers=2,
-                        keep_failed=True, seed=3)
+                        episodes_per_scene=3, failed_fraction=1 / 3, suboptimal_fraction=0.5, image_size=IMAGE_SIZE,
+                        workers=2, seed=3)
     return collect(cfg), root
 
 

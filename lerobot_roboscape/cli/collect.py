@@ -1,7 +1,7 @@
 """`roboscape-collect`: planner demonstrations in the task suite, written as a LeRobotDataset v3.
 
     roboscape-collect --families='[pick_place,push]' --split=ind --episodes_per_scene=4 \
-        --suboptimal_fraction=0.5 --root=outputs/datasets/demos
+        --failed_fraction=0.25 --suboptimal_fraction=0.5 --root=outputs/datasets/demos
 """
 
 import logging
@@ -31,11 +31,13 @@ class CollectConfig:
     scenes: explicit scene ids (overrides `max_scenes`; still filtered by `split`).
     max_scenes: use only the first N scenes of the split (None: all).
     episodes_per_scene: episodes per (family, scene).
-    suboptimal_fraction: share of suboptimal trajectories (the rest are optimal).
+    failed_fraction: share of deliberately failed attempts (a grasp or push beside the object, the object put
+        down or pushed short of its target), dealt per family: the world model must see what failure looks like.
+    suboptimal_fraction: share of suboptimal trajectories among the other attempts (the rest are optimal).
     seed: base seed; episode k of the run uses seed + k.
     image_size: square camera resolution for both cameras.
     workers: parallel ManiSkill processes (0: run in this process).
-    keep_failed: also write attempts that did not succeed.
+    keep_failed: also write attempts that did not succeed (in the simulator, whatever their kind).
     overwrite: replace an existing dataset at `root`.
     list_scenes: print the scenes with their split and exit.
     """
@@ -47,11 +49,12 @@ class CollectConfig:
     scenes: list[str] | None = None
     max_scenes: int | None = None
     episodes_per_scene: int = 2
+    failed_fraction: float = 0.25
     suboptimal_fraction: float = 0.5
     seed: int = 0
     image_size: int = 64
     workers: int = 2
-    keep_failed: bool = False
+    keep_failed: bool = True
     overwrite: bool = False
     list_scenes: bool = False
 
@@ -59,6 +62,8 @@ class CollectConfig:
         unknown = [f for f in self.families if f not in TASK_FAMILIES]
         if unknown:
             raise ValueError(f"Unknown task families {unknown}; expected a subset of {list(TASK_FAMILIES)}")
+        if not 0.0 <= self.failed_fraction <= 1.0:
+            raise ValueError(f"failed_fraction must be in [0, 1], got {self.failed_fraction}")
         if not 0.0 <= self.suboptimal_fraction <= 1.0:
             raise ValueError(f"suboptimal_fraction must be in [0, 1], got {self.suboptimal_fraction}")
         if self.episodes_per_scene < 1:
@@ -74,13 +79,18 @@ def make_jobs(cfg: CollectConfig) -> list[EpisodeJob]:
     if not scenes:
         raise ValueError(f"No scene matches split={cfg.split!r} scenes={cfg.scenes}")
     rng = np.random.default_rng(cfg.seed)
+    # Kinds are dealt over all episodes of a family, not per scene: a few episodes per scene would round a small
+    # failed_fraction down to no failure at all.
+    n = len(scenes) * cfg.episodes_per_scene
+    n_failed = round(n * cfg.failed_fraction)
+    n_sub = round((n - n_failed) * cfg.suboptimal_fraction)
+    deck = ["failed"] * n_failed + ["suboptimal"] * n_sub + ["optimal"] * (n - n_failed - n_sub)
     jobs = []
     for family in cfg.families:
+        kinds = iter(rng.permutation(deck))
         for scene in scenes:
-            n_sub = int(round(cfg.episodes_per_scene * cfg.suboptimal_fraction))
-            kinds = [False] * n_sub + [True] * (cfg.episodes_per_scene - n_sub)
-            for optimal in rng.permutation(kinds):
-                jobs.append(EpisodeJob(family, scene.id, cfg.seed + len(jobs), bool(optimal), cfg.image_size))
+            for _ in range(cfg.episodes_per_scene):
+                jobs.append(EpisodeJob(family, scene.id, cfg.seed + len(jobs), str(next(kinds)), cfg.image_size))
     return jobs
 
 

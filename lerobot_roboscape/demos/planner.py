@@ -4,10 +4,11 @@ The paper plans with MPLib, but mani-skill 3.0.1 pins mplib 0.1.1, which segfaul
 LeRobot needs). The tabletop is free of obstacles above the table, so straight Cartesian segments between
 waypoints, tracked by the `pd_ee_delta_pose` controller, give the same kind of trajectory: an *optimal* one
 visits only the essential waypoints; a *suboptimal* one adds detours with position/rotation noise, interpolated
-points and small perturbations near grasp and place (paper, section 4.1).
+points and small perturbations near grasp and place (paper, section 4.1). A *failed* one is a realistic attempt
+that misses: the world model's done head has to see what failure looks like, not only successes.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -15,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from lerobot_roboscape.tasks.base import RoboscapeTabletopEnv
 
 GRIPPER_OPEN, GRIPPER_CLOSED = 1.0, -1.0
+KINDS = ("optimal", "suboptimal", "failed")  # of plans; recorded with each episode as its "kind"
 # pd_ee_delta_pose maps [-1, 1] to +-0.1 m and +-0.1 rad per control step. Its rotation is scaled by the
 # controller's `rot_lower` (-0.1), so a positive action turns the negative way.
 POS_SCALE, ROT_SCALE = 0.1, -0.1
@@ -60,6 +62,26 @@ class SuboptimalConfig:
     interpolate_prob: float = 0.4
     perturb_prob: float = 0.6
     perturb_noise: float = 0.015
+
+
+@dataclass
+class FailureConfig:
+    """How a failed attempt departs from the optimal plan: it misses the object, or it falls short.
+
+    Args:
+        miss_prob: chance of a miss (the fingers close on air beside the object, or the paddle passes beside it)
+            rather than falling short (the object put down early, or a push stopped early).
+        miss_clearance: (low, high) distance (m) from the object's outline to the fingers' centre line in a miss.
+        release_fraction: (low, high) share of the carry made before the object is put down; the target is at
+            least 0.15 m away, so the object rests well outside it.
+        push_fraction: (low, high) share of the push stroke made before stopping; the object then moves less than
+            half the required distance.
+    """
+
+    miss_prob: float = 0.5
+    miss_clearance: tuple[float, float] = (0.025, 0.04)
+    release_fraction: tuple[float, float] = (0.0, 0.3)
+    push_fraction: tuple[float, float] = (0.15, 0.45)
 
 
 def essential_waypoints(env: RoboscapeTabletopEnv) -> list[Waypoint]:
@@ -131,6 +153,31 @@ def make_suboptimal(plan: list[Waypoint], rng: np.random.Generator, cfg: Subopti
     return out
 
 
+def make_failed(plan: list[Waypoint], rng: np.random.Generator, family: str, object_radius: float,
+                cfg: FailureConfig) -> list[Waypoint]:
+    """A perturbed `essential_waypoints` plan of `family` that does not accomplish the task but otherwise moves like
+    a real attempt. `object_radius`: the object's outline seen from above (m)."""
+    miss = rng.random() < cfg.miss_prob
+    # Misses are sideways in y, across the push and across the fingers, which close along x at the rest pose.
+    shift = np.array([0.0, rng.choice([-1.0, 1.0]) * (object_radius + rng.uniform(*cfg.miss_clearance)), 0.0])
+    if family in ("pick_place", "move_to_aim"):
+        grasp = next(i for i, w in enumerate(plan) if w.gripper == GRIPPER_CLOSED)
+        if miss:  # the fingers go down and close beside the object, lift and carry on as if holding it
+            return [replace(w, position=w.position + shift) if i <= grasp + 1 else w for i, w in enumerate(plan)]
+        # The same place moves, at a point part of the way: put down gently rather than dropped from the carry
+        # height, from which a ball would bounce and could roll over the target.
+        lift, carry_end = plan[grasp + 1].position, plan[grasp + 2].position
+        short = (rng.uniform(*cfg.release_fraction) - 1) * (carry_end - lift)
+        return plan[: grasp + 2] + [replace(w, position=w.position + short) for w in plan[grasp + 2 :]]
+    if family in ("push", "pull"):
+        if miss:  # the paddle passes beside the object
+            return [replace(w, position=w.position + shift) for w in plan]
+        approach, behind, end, _ = plan
+        stop = behind.position + rng.uniform(*cfg.push_fraction) * (end.position - behind.position)
+        return [approach, behind, replace(end, position=stop), replace(end, position=stop + [0, 0, 0.1])]
+    raise ValueError(f"No failure for task family {family!r}")
+
+
 class WaypointFollower:
     """Turns a waypoint list into `pd_ee_delta_pose` actions, one control step at a time.
 
@@ -190,13 +237,19 @@ class WaypointFollower:
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 
 
-def plan_episode(env: RoboscapeTabletopEnv, optimal: bool, rng: np.random.Generator,
-                 suboptimal: SuboptimalConfig | None = None) -> WaypointFollower:
-    """A follower for the env's freshly reset episode."""
+def plan_episode(env: RoboscapeTabletopEnv, kind: str, rng: np.random.Generator,
+                 suboptimal: SuboptimalConfig | None = None, failure: FailureConfig | None = None) -> WaypointFollower:
+    """A follower of a `kind` (one of KINDS) plan for the env's freshly reset episode."""
+    if kind not in KINDS:
+        raise ValueError(f"Unknown plan kind {kind!r}; expected one of {KINDS}")
     plan = essential_waypoints(env)
-    if not optimal:
+    if kind == "suboptimal":
         plan = make_suboptimal(plan, rng, suboptimal or SuboptimalConfig())
-    max_step = 0.035 if optimal else float(rng.uniform(0.02, 0.035))
+    elif kind == "failed":
+        spec = env.scene_spec.object
+        radius = float(np.hypot(*spec.size[:2])) if spec.shape in ("cube", "box") else spec.size[0]
+        plan = make_failed(plan, rng, env.family, radius, failure or FailureConfig())
+    max_step = 0.035 if kind == "optimal" else float(rng.uniform(0.02, 0.035))
     start_quat = env.agent.tcp_pose.q[0].cpu().numpy()
     return WaypointFollower(plan, start_quat, max_step=max_step)
 

@@ -17,7 +17,7 @@ def record_maniskill_trajectories(out_dir: str | Path, family: str, scene_id: st
                         source_type="roboscape_planner", source_desc=f"{family} waypoint planner")
     try:
         for k in range(episodes):
-            run_planned_episode(env, EpisodeJob(family, scene_id, seed + k, optimal=True, image_size=image_size))
+            run_planned_episode(env, EpisodeJob(family, scene_id, seed + k, "optimal", image_size))
     finally:
         env.close()  # writes the last episode and the .json
     return Path(out_dir) / f"{name}.h5"

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_roboscape.demos.episode import Episode
-from lerobot_roboscape.demos.planner import SuboptimalConfig, plan_episode
+from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
 
 SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest
@@ -20,7 +20,7 @@ class EpisodeJob:
     family: str
     scene_id: str
     seed: int
-    optimal: bool
+    kind: str  # of the plan, one of planner.KINDS: "optimal", "suboptimal" or "failed"
     image_size: int
 
 
@@ -35,12 +35,13 @@ def observation_images(obs: dict) -> dict[str, np.ndarray]:
     return {CAMERA_NAMES[uid]: data["rgb"][0].cpu().numpy() for uid, data in obs["sensor_data"].items()}
 
 
-def run_planned_episode(env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None) -> Episode:
+def run_planned_episode(env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None,
+                        failure: FailureConfig | None = None) -> Episode:
     """Reset `env` (a task env of `job.family`) into `job.scene_id` and follow a planned trajectory to its end."""
     obs, _ = env.reset(seed=job.seed, options={"scene_id": job.scene_id})
     task_env: RoboscapeTabletopEnv = env.unwrapped
     rng = np.random.default_rng(job.seed)
-    follower = plan_episode(task_env, job.optimal, rng, suboptimal)
+    follower = plan_episode(task_env, job.kind, rng, suboptimal, failure)
     frames: dict[str, list] = {"state": [], "action": [], "reward": [], "success": [], "images": []}
     settle = SETTLE_STEPS
     while True:
@@ -72,7 +73,8 @@ def run_planned_episode(env, job: EpisodeJob, suboptimal: SuboptimalConfig | Non
             "task_family": job.family,
             "scene": job.scene_id,
             "split": task_env.scene_spec.split,
-            "optimal": job.optimal,
+            "optimal": job.kind == "optimal",
+            "kind": job.kind,
             "seed": job.seed,
             "skipped_waypoints": follower.skipped,
         },

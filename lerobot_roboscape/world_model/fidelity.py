@@ -3,7 +3,8 @@
 For each episode the model reads `prompt_frames` real frames, then generates `horizon` frames from the recorded
 actions alone. Per horizon step it reports PSNR, SSIM and LPIPS of the decoded prediction against the real frame,
 next to the tokenizer's own reconstruction of the real frame (the best the world model could do). The done head
-is scored against the recorded success labels, both teacher-forced (reading the real frames) and open-loop.
+is scored against the recorded success labels, both teacher-forced (reading the real frames) and open-loop, and on
+the failed episodes alone: how often it calls a failed attempt done (its false positives).
 """
 
 import json
@@ -44,7 +45,7 @@ class FidelityConfig:
     horizon: generated frames compared per episode.
     max_episodes: episodes evaluated, at most.
     video_episodes: episodes shown in the side-by-side video.
-    done_threshold: done probability counted as "done" for accuracy.
+    done_threshold: done probability counted as "done" for accuracy and false positives.
     lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
     allow_random_lpips: report LPIPS from a random trunk when no weights are found (marked in the report).
     device: "auto", "cpu" or "cuda".
@@ -85,6 +86,27 @@ def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
     else:
         scores["roc_auc"] = None  # undefined with one class only
     return scores
+
+
+def _false_positives(episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: list[np.ndarray],
+                     threshold: float) -> dict | None:
+    """How often the done head calls a failed attempt (an episode never recorded done) done: over its frames,
+    teacher-forced and open-loop, and per episode (`predicted_success`: its highest teacher-forced probability).
+    None without a failed episode."""
+    failed = [i for i, e in enumerate(episodes) if not e["recorded_success"]]
+    if not failed:
+        return None
+
+    def rate(flagged: np.ndarray) -> dict:
+        return {"rate": float(flagged.mean()), "flagged": int(flagged.sum()), "total": int(flagged.size)}
+
+    return {
+        "threshold": threshold,
+        "failed_episodes": len(failed),
+        "frames_teacher_forced": rate(np.concatenate([tf_prob[i] for i in failed]) >= threshold),
+        "frames_open_loop": rate(np.concatenate([ol_prob[i] for i in failed]) >= threshold),
+        "episodes": rate(np.array([episodes[i]["predicted_success"] for i in failed])),
+    }
 
 
 def _side_by_side(real, pred, prompt: int) -> np.ndarray:
@@ -156,6 +178,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "episode_success_accuracy": float(
             np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])
         ),
+        "done_false_positive": _false_positives(episodes_out, tf_prob, ol_prob, cfg.done_threshold),
         "episodes": episodes_out,
     }
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
@@ -190,6 +213,16 @@ def markdown_table(report: dict) -> str:
         lines.append(f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
                      f"({d['positive_frames']}/{d['frames']} done frames)")
     lines.append(f"\nepisode success predicted correctly: {report['episode_success_accuracy']:.3f}")
+    fp = report["done_false_positive"]
+    if fp is None:
+        lines.append("\ndone false positives: no failed episode among those evaluated")
+    else:
+        lines += [f"\ndone false positives on {fp['failed_episodes']} failed episodes (done probability >= "
+                  f"{fp['threshold']}):\n", "| counted over | rate | flagged / total |", "|---|---:|---:|"]
+        rows = {"frames, teacher-forced": "frames_teacher_forced", "frames, open-loop": "frames_open_loop",
+                "episodes (highest teacher-forced)": "episodes"}
+        for name, key in rows.items():
+            lines.append(f"| {name} | {fp[key]['rate']:.3f} | {fp[key]['flagged']}/{fp[key]['total']} |")
     return "\n".join(lines) + "\n"
 
 

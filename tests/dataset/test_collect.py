@@ -1,15 +1,21 @@
+import shutil
+from collections import Counter
+
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.cli.collect import CollectConfig, collect, make_jobs
-from lerobot_roboscape.dataset import read_episode_info
+from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
+from lerobot_roboscape.dataset.reader import successful_episodes
+from lerobot_roboscape.evaluation.tables import sft_episodes
+from tests.conftest import IMAGE_SIZE
 
 
 def test_collected_dataset_loads_with_lerobot(demo_dataset):
     _, root = demo_dataset
     ds = LeRobotDataset("test/demos", root=root)
-    assert ds.meta.total_episodes == 4
+    assert ds.meta.total_episodes == 6
     for key in ["observation.images.third_view", "observation.images.wrist", "observation.state", "action",
                 "next.reward", "next.done", "next.success"]:
         assert key in ds.features
@@ -20,18 +26,19 @@ def test_collected_dataset_loads_with_lerobot(demo_dataset):
     # Exactly one done per episode, on its last frame.
     done = np.array(ds.hf_dataset["next.done"]).reshape(-1)
     episode = np.array(ds.hf_dataset["episode_index"])
-    for e in range(4):
+    for e in range(6):
         assert done[episode == e].tolist() == [False] * (int((episode == e).sum()) - 1) + [True]
 
 
 def test_episode_facts_recorded_with_dataset(demo_dataset):
     ds, root = demo_dataset
     info = read_episode_info(root)
-    assert [r["episode_index"] for r in info] == [0, 1, 2, 3]
+    assert [r["episode_index"] for r in info] == list(range(6))
     assert {r["task_family"] for r in info} == {"pick_place", "push"}
-    assert {r["optimal"] for r in info} == {True, False}
+    assert [r["kind"] for r in info] == ["optimal", "suboptimal", "failed", "failed", "optimal", "suboptimal"]
+    assert all(r["optimal"] == (r["kind"] == "optimal") for r in info)
     assert all(r["split"] == "ind" and r["scene"] == "red_cube-plate-wooden" for r in info)
-    lengths = [ds.meta.episodes[i]["length"] for i in range(4)]
+    lengths = [ds.meta.episodes[i]["length"] for i in range(6)]
     assert lengths == [r["length"] for r in info]
     successes = np.array(ds.hf_dataset["next.success"]).reshape(-1)
     ends = np.cumsum(lengths) - 1
@@ -39,10 +46,50 @@ def test_episode_facts_recorded_with_dataset(demo_dataset):
 
 
 def test_job_mix_follows_flags():
-    cfg = CollectConfig(families=["pull"], split="ood", max_scenes=3, episodes_per_scene=4, suboptimal_fraction=0.25)
+    cfg = CollectConfig(families=["pull", "push"], split="ood", max_scenes=3, episodes_per_scene=4,
+                        failed_fraction=0.25, suboptimal_fraction=0.5)
     jobs = make_jobs(cfg)
-    assert len(jobs) == 12 and sum(not j.optimal for j in jobs) == 3
-    assert len({j.seed for j in jobs}) == 12
+    assert len(jobs) == 24 and len({j.seed for j in jobs}) == 24
+    for family in ("pull", "push"):  # dealt per family: 3 of its 12 failed, half of the other 9 suboptimal
+        kinds = Counter(j.kind for j in jobs if j.family == family)
+        assert kinds == {"failed": 3, "suboptimal": 4, "optimal": 5}
+    # A family's few episodes still get their failures (dealt over all its scenes, not per scene).
+    few = make_jobs(CollectConfig(families=["push"], max_scenes=2, episodes_per_scene=2, failed_fraction=0.25))
+    assert [j.kind for j in few].count("failed") == 1
+
+
+@pytest.fixture(scope="module")
+def failed_collection(tmp_path_factory):
+    """Only planned failures, one miss and one given-up attempt per family (the plan's first random draw picks the
+    kind of failure; seeds 1-4 draw give up, miss, miss, give up)."""
+    root = tmp_path_factory.mktemp("failed") / "demos"
+    cfg = CollectConfig(repo_id="test/failed", root=str(root), families=["pick_place", "push"], max_scenes=1,
+                        episodes_per_scene=2, failed_fraction=1.0, image_size=IMAGE_SIZE, workers=2, seed=1)
+    return collect(cfg), root
+
+
+def test_planned_failures_fail_in_the_simulator(failed_collection, demo_dataset):
+    ds, root = failed_collection
+    info = read_episode_info(root)
+    assert [(r["task_family"], r["kind"]) for r in info] == [("pick_place", "failed")] * 2 + [("push", "failed")] * 2
+    # The simulator's verdict, on the last frame and on every frame: never accomplished, not even in passing.
+    assert [r["success"] for r in info] == [False] * 4
+    assert not np.array(ds.hf_dataset["next.success"]).any()
+    assert successful_episodes(ds) == []
+    with pytest.raises(ValueError, match=str(root)):
+        sft_episodes("test/failed", str(root))
+
+    demos, _ = demo_dataset
+    assert successful_episodes(demos) == [r["episode_index"] for r in read_episode_info(demos.root) if r["success"]]
+    assert not {2, 3} & set(successful_episodes(demos))  # the fixture's planned failures
+
+
+def test_successful_episodes_without_facts(demo_dataset, tmp_path):
+    demos, root = demo_dataset
+    bare = tmp_path / "bare"
+    shutil.copytree(root, bare)
+    (bare / EPISODES_SIDECAR).unlink()
+    assert successful_episodes(LeRobotDataset("test/demos", root=bare)) == successful_episodes(demos)
 
 
 def test_existing_output_directory_is_refused(demo_dataset, tmp_path):
@@ -60,6 +107,8 @@ def test_bad_flags_are_named():
         CollectConfig(families=["fly"])
     with pytest.raises(ValueError, match="1.5"):
         CollectConfig(suboptimal_fraction=1.5)
+    with pytest.raises(ValueError, match="failed_fraction.*-0.1"):
+        CollectConfig(failed_fraction=-0.1)
 
 
 def test_lerobot_train_accepts_dataset(act_checkpoint):

@@ -5,13 +5,19 @@ import sys
 import time
 
 import draccus
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
 
 from lerobot_roboscape.training import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
-from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.fidelity import (
+    FidelityConfig,
+    _false_positives,
+    evaluate_fidelity,
+    markdown_table,
+)
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
@@ -59,9 +65,9 @@ class _FixedStart:
 
 def test_episode_filters(token_cache):
     every = select_episodes(token_cache)
-    assert len(every) == 4
+    assert len(every) == 6
     kept = select_episodes(token_cache, only_optimal=True, only_successful=True)
-    assert all(row["optimal"] and row["success"] for row in kept) and len(kept) < 4
+    assert all(row["optimal"] and row["success"] for row in kept) and len(kept) < 6
     with pytest.raises(ValueError, match=r"episodes \[99\] are not in the token cache"):
         select_episodes(token_cache, episodes=[99])
 
@@ -129,6 +135,34 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
     assert report["lpips_trunk"].startswith("random")
     # The reconstruction baseline is the tokenizer's own round trip; PSNR is in a sane range for both.
     assert 5 < report["mean"]["reconstruction_psnr"] < 60 and 5 < report["mean"]["prediction_psnr"] < 60
+
+    # Episode 3 is a planned failure (see demo_dataset): the done head's false positives are counted on it.
+    failed = [e for e in report["episodes"] if not e["recorded_success"]]
+    assert 3 in [e["episode_index"] for e in failed]
+    fp = report["done_false_positive"]
+    assert fp["failed_episodes"] == len(failed) and fp["threshold"] == cfg.done_threshold
+    assert fp["frames_teacher_forced"]["total"] == sum(e["frames"] for e in failed)
+    assert fp["frames_open_loop"]["total"] == sum(e["horizon"] for e in failed)
+    assert fp["episodes"] == {"rate": sum(e["predicted_success"] for e in failed) / len(failed),
+                              "flagged": sum(e["predicted_success"] for e in failed), "total": len(failed)}
+    for counts in (fp["frames_teacher_forced"], fp["frames_open_loop"]):
+        assert 0 <= counts["flagged"] <= counts["total"] and counts["rate"] == counts["flagged"] / counts["total"]
+    assert json.loads((tmp_path / "fidelity.json").read_text())["done_false_positive"] == fp
+    table = (tmp_path / "fidelity.md").read_text()
+    assert f"done false positives on {len(failed)} failed episodes" in table
+    assert f"| frames, open-loop | {fp['frames_open_loop']['rate']:.3f} |" in table
+    assert "no failed episode" in markdown_table({**report, "done_false_positive": None})
+
+
+def test_false_positives_count_frames_and_episodes_of_failures():
+    episodes = [{"recorded_success": False, "predicted_success": True}, {"recorded_success": True},
+                {"recorded_success": False, "predicted_success": False}]
+    tf = [np.array([0.2, 0.6, 0.5]), np.array([0.9, 0.9]), np.array([0.1])]  # at the threshold counts as done
+    fp = _false_positives(episodes, tf, [np.array([0.7]), np.array([0.9]), np.array([0.0])], threshold=0.5)
+    assert fp["frames_teacher_forced"] == {"rate": 0.5, "flagged": 2, "total": 4}  # the successful one left out
+    assert fp["frames_open_loop"] == {"rate": 0.5, "flagged": 1, "total": 2}
+    assert fp["episodes"] == {"rate": 0.5, "flagged": 1, "total": 2} and fp["failed_episodes"] == 2
+    assert _false_positives(episodes[1:2], tf[1:2], tf[1:2], threshold=0.5) is None
 
 
 def test_fidelity_needs_the_action_model(demo_dataset, trained_tokenizer, tmp_path):
