@@ -118,6 +118,24 @@ def episode_facts(dataset: LeRobotDataset, episode_index: int) -> dict:
     return _sidecar(dataset).get(episode_index, {})
 
 
+def successful_episodes(dataset: LeRobotDataset) -> list[int]:
+    """Indices of the episodes that accomplished their task: their recorded `success` fact, or where none is
+    recorded, the `next.success` flag of their last frame."""
+    successful = []
+    for index in episode_indices(dataset):
+        succeeded = episode_facts(dataset, index).get("success")
+        if succeeded is None:
+            if SUCCESS not in dataset.features:
+                raise DatasetError(f"dataset {dataset.root} records no success of episode {index} (no roboscape "
+                                   f"facts, no '{SUCCESS}' feature)")
+            meta = dataset.meta.episodes[index]
+            _, stop = _local_range(dataset, meta["dataset_from_index"], meta["dataset_to_index"])
+            succeeded = bool(np.asarray(dataset.hf_dataset[stop - 1][SUCCESS]).any())
+        if succeeded:
+            successful.append(index)
+    return successful
+
+
 def _local_range(dataset: LeRobotDataset, start: int, stop: int) -> tuple[int, int]:
     # With an episode selection, hf_dataset holds only the selected rows; find this episode's rows among them.
     if dataset.episodes is None:
@@ -150,3 +168,22 @@ class CameraFrames(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> torch.Tensor:
         item = self.dataset[i]
         return torch.stack([item[key] for key in self.keys])
+
+
+def family_horizons(dataset: LeRobotDataset) -> dict[str | None, int]:
+    """The fixed RL horizon of each task family: its longest successful episode in the dataset, so that every
+    demonstrated way of doing the task fits (all its episodes when none succeeded). Key None: over all families."""
+    successful = set(successful_episodes(dataset))
+    lengths: dict[str | None, list[tuple[bool, int]]] = {}
+    for index in episode_indices(dataset):
+        entry = (index in successful, int(dataset.meta.episodes[index]["length"]))
+        for key in (episode_facts(dataset, index).get("task_family"), None):
+            lengths.setdefault(key, []).append(entry)
+    return {key: max(n for ok, n in entries if ok or not any(ok for ok, _ in entries))
+            for key, entries in lengths.items()}  # fmt: skip
+
+
+def action_range(dataset: LeRobotDataset) -> tuple[np.ndarray, np.ndarray]:
+    """Per-dimension (low, high) of the dataset's actions, from its statistics."""
+    stats = dataset.meta.stats[ACTION]
+    return np.asarray(stats["min"], dtype=np.float32), np.asarray(stats["max"], dtype=np.float32)

@@ -1,4 +1,5 @@
-"""What the two env types share: a batched gymnasium VectorEnv that LeRobot's evaluation can drive."""
+"""What the two env types share: a batched gymnasium VectorEnv that LeRobot's evaluation can drive, and the
+episode bookkeeping of the paper's objective (Algorithm 1)."""
 
 import gymnasium as gym
 import numpy as np
@@ -43,6 +44,49 @@ class BatchedEnv(gym.vector.VectorEnv):
 
     def get_attr(self, name: str) -> tuple:
         return self.call(name)
+
+
+class EpisodeBook:
+    """Per-episode bookkeeping of a batch, the same in both env types.
+
+    By default (paper Algorithm 1) every episode runs its fixed horizon and never terminates: success is the task
+    done at any step (`is_success` stays true once reached), and the env keeps paying its reward, so reaching the
+    goal early and staying there earns the most. With `terminate_on_success`, an episode ends at its first success
+    and that step also pays `max_step_reward` for every step left in its horizon: no continuation can earn more
+    than that, so success is never worth less than failure, whatever the per-step reward pays elsewhere.
+
+    Args:
+        horizons: (B,) steps of each episode before truncation.
+        terminate_on_success: end an episode at its first success.
+        max_step_reward: the most one step can pay (the terminal bonus's rate).
+    """
+
+    def __init__(self, horizons: np.ndarray, terminate_on_success: bool, max_step_reward: float):
+        self.horizons = np.asarray(horizons, dtype=np.int64)
+        self.terminate_on_success, self.max_step_reward = terminate_on_success, max_step_reward
+        n = len(self.horizons)
+        self.steps = 0
+        self.succeeded = np.zeros(n, dtype=bool)
+        self.terminated = np.zeros(n, dtype=bool)
+        self.truncated = np.zeros(n, dtype=bool)
+
+    @property
+    def finished(self) -> np.ndarray:
+        return self.terminated | self.truncated
+
+    def step(self, reward: np.ndarray, success: np.ndarray) -> np.ndarray:
+        """Book one step of every episode (reward and success of the episodes still running; the finished ones
+        are ignored). Returns the rewards to hand out: 0 for episodes that had already ended."""
+        live = ~self.finished
+        self.steps += 1
+        success = np.asarray(success, dtype=bool) & live
+        reward = np.where(live, reward, 0.0).astype(np.float32)
+        self.succeeded |= success
+        if self.terminate_on_success:
+            reward += np.where(success, self.max_step_reward * (self.horizons - self.steps), 0.0).astype(np.float32)
+            self.terminated |= success
+        self.truncated |= live & ~self.terminated & (self.steps >= self.horizons)
+        return reward
 
 
 class SingleEnv(gym.Env):

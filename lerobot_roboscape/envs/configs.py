@@ -14,6 +14,11 @@ CAMERAS = tuple(CAMERA_NAMES.values())
 STATE_DIM = 16  # joint positions (9) + TCP pose (7), as `observation.state` of the collected datasets
 
 
+def check_episode_length(episode_length: int | None) -> None:
+    if episode_length is not None and episode_length < 1:
+        raise ValueError(f"episode_length must be >= 1 or null (per-family horizons), got {episode_length}")
+
+
 def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
     features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
     features_map = {ACTION: ACTION}
@@ -46,17 +51,25 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             hidden state, as iVideoGPT) or "proxy" (an image-to-reward network, as DiWA), fitted to the rule-based
             reward by roboscape-train-reward.
         reward_model: the baseline reward model (local directory or Hub repo id).
-        theta: done threshold of the goal and of termination.
+        theta: done threshold of the goal and of success.
         theta_sps: done threshold of the sparse reward.
         alpha: weight of the sparse reward.
-        beta: weight of the dense (LPIPS) reward.
-        sparse_reward: value of the sparse reward when done >= theta_sps.
-        episode_length: steps before truncation.
+        beta: weight of the dense (similarity) reward.
+        sparse_reward: value of the sparse reward, paid at every step while done >= theta_sps.
+        similarity: the dense reward's distance to the goal: "lpips" (the paper's), "tokenizer" (features of the
+            project's own tokenizer encoder, needs no download) or "auto" (lpips when its trunk weights are
+            present, else tokenizer).
+        episode_length: the fixed horizon of every episode; null: per task family, the longest successful
+            episode of that family in the dataset.
+        terminate_on_success: end an episode when done >= theta, paying the rest of its horizon at the most a step
+            can earn (the default runs the fixed horizon, as Algorithm 1).
+        clip_actions: clip actions to the per-dimension range seen in the dataset (`env.action_range`).
         max_goal_steps: frames the text model may generate while looking for the goal.
         temperature: sampling temperature of the world model (0: greedy, deterministic).
         image_size: camera image side (must match the tokenizer).
         lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
-        allow_random_lpips: run with a random LPIPS trunk when no weights are found (not a perceptual reward).
+        allow_random_lpips: with similarity=lpips, run with a random trunk when no weights are found (tests only:
+            not a perceptual metric).
         device: "auto", "cpu" or "cuda".
         seed: seed of the start sampling when reset() gets none.
     """
@@ -80,7 +93,10 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     alpha: float = 0.5
     beta: float = 0.5
     sparse_reward: float = 10.0
-    episode_length: int = 160
+    similarity: str = "auto"
+    episode_length: int | None = None
+    terminate_on_success: bool = False
+    clip_actions: bool = False
     max_goal_steps: int = 100
     temperature: float = 0.0
     image_size: int = 64
@@ -93,7 +109,11 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 
     def __post_init__(self):
         from lerobot_roboscape.envs.world_model_env import GOAL_SOURCES
+        from lerobot_roboscape.perceptual import SIMILARITIES
 
+        if self.similarity not in SIMILARITIES:
+            raise ValueError(f"similarity must be one of {SIMILARITIES}, got {self.similarity!r}")
+        check_episode_length(self.episode_length)
         if self.goal_source not in GOAL_SOURCES:
             raise ValueError(f"goal_source must be one of {GOAL_SOURCES}, got {self.goal_source!r}")
         if self.reward_type not in ("world_model", "embedding", "proxy"):
@@ -127,13 +147,22 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 @dataclass
 class RoboscapeManiSkillEnvConfig(EnvConfig):
     """The task suite in the ManiSkill simulator (see envs/maniskill_env.py), for evaluation and the "RL in
-    ManiSkill" baseline. Observations, actions and task strings are laid out as in `roboscape_wm`.
+    ManiSkill" baseline. Observations, actions, task strings and the reward's shape are laid out as in
+    `roboscape_wm`: reward = alpha * sparse_reward * success + beta * the task's normalised dense reward (in [0, 1]).
 
     Args:
         families: task families, dealt to the parallel envs in turn (empty: all four).
         split: "ind", "ood" or "" (all scenes).
         scenes: scene ids (empty: every scene of the split).
-        episode_length: steps before truncation.
+        alpha: weight of the success term.
+        beta: weight of the normalised dense reward.
+        sparse_reward: value of the success term, paid at every step while the task is accomplished.
+        episode_length: the fixed horizon of every episode; null: per task family, the longest successful episode
+            of that family in `dataset_root` when given, else the task's registered time limit.
+        terminate_on_success: end an episode at its first success, paying the rest of its horizon at the most a
+            step can earn (evaluation uses it to save simulation; PPO runs the fixed horizon by default).
+        dataset_repo_id: demonstrations whose episode lengths set the per-family horizons.
+        dataset_root: their local directory.
         image_size: camera image side.
         cameras: camera names (the dataset's).
         include_state: also return the robot's proprioception (`agent_pos` -> observation.state: joint positions and
@@ -147,7 +176,13 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
     families: list[str] = field(default_factory=list)
     split: str = "ind"
     scenes: list[str] = field(default_factory=list)
-    episode_length: int = 160
+    alpha: float = 0.5
+    beta: float = 0.5
+    sparse_reward: float = 10.0
+    episode_length: int | None = None
+    terminate_on_success: bool = False
+    dataset_repo_id: str | None = None
+    dataset_root: str | None = None
     image_size: int = 64
     cameras: tuple[str, ...] = CAMERAS
     include_state: bool = False
@@ -158,6 +193,7 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
     def __post_init__(self):
         if self.split not in ("", "ind", "ood"):
             raise ValueError(f"split must be 'ind', 'ood' or '', got {self.split!r}")
+        check_episode_length(self.episode_length)
         self.cameras = tuple(self.cameras)
         self.features, self.features_map = camera_features(self.image_size, self.cameras)
         if self.include_state:

@@ -2,19 +2,33 @@
 
 Same camera names, image size, 7-D actions and task strings, so one policy runs in both. Each of the B slots holds
 one ManiSkill env of a task family (families are dealt to slots in turn) and is reset into a scene drawn from the
-selected split/scenes. Reward is the task's normalised dense reward (the rule-based reward of the paper's
-baselines); `is_success` comes from the simulator. As in `roboscape_wm`, an ended episode stays frozen until the
-next reset, which restarts all slots.
+selected split/scenes. The reward has the world-model reward's shape, with the simulator in place of the models:
+alpha * sparse_reward while the task is accomplished + beta * the task's normalised dense reward (the rule-based
+reward of the paper's baselines). As in `roboscape_wm`, episodes run a fixed horizon and `is_success` is success
+at any step (`EpisodeBook`); an ended episode stays frozen until the next reset, which restarts all slots.
 """
 
 import gymnasium as gym
 import numpy as np
 
+from lerobot_roboscape.dataset.reader import family_horizons, open_dataset
 from lerobot_roboscape.demos.rollout import observation_images, observation_state
-from lerobot_roboscape.envs.batched import BatchedEnv
+from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.configs import STATE_DIM
-from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from lerobot_roboscape.reward.world_model_reward import max_step_reward
+from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tasks.make import make_task_env
+
+
+def task_horizons(config, families: list[str]) -> dict[str, int]:
+    """The fixed horizon of each family: `episode_length`, else the longest successful demonstration of the family
+    in the given dataset, else the task's registered time limit."""
+    if config.episode_length:
+        return dict.fromkeys(families, config.episode_length)
+    from_dataset = {}
+    if config.dataset_root or config.dataset_repo_id:
+        from_dataset = family_horizons(open_dataset(config.dataset_repo_id, config.dataset_root))
+    return {f: from_dataset.get(f) or gym.spec(ENV_IDS[f]).max_episode_steps for f in families}
 
 
 class RoboscapeManiSkillEnv(BatchedEnv):
@@ -26,8 +40,10 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         if not self.scenes:
             raise ValueError(f"no scene matches split={config.split!r} scenes={config.scenes}")
         self.slot_families = [families[i % len(families)] for i in range(num_envs)]
+        horizons = task_horizons(config, families)
+        self.horizons = np.array([horizons[f] for f in self.slot_families])
         self.envs = [make_task_env(family, self.scenes[0].id, image_size=config.image_size,
-                                   max_episode_steps=config.episode_length, reward_mode="normalized_dense")
+                                   max_episode_steps=horizons[family], reward_mode="normalized_dense")
                      for family in self.slot_families]  # fmt: skip
         size = config.image_size
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in config.cameras}
@@ -39,7 +55,10 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.render_mode = "rgb_array"
-        self._max_episode_steps = config.episode_length
+        self._max_episode_steps = int(self.horizons.max())
+        self._max_step_reward = max_step_reward(config.alpha, config.beta, config.sparse_reward)
+        self.reward_description = (f"simulator: {config.alpha} x {config.sparse_reward} while the task is accomplished "
+                                   f"+ {config.beta} x the task's normalised dense reward")
         self._rng = np.random.default_rng(config.seed)
         self._obs = None
 
@@ -58,9 +77,7 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             self._obs.append(observation_images(obs))
             self._state[len(self._obs) - 1] = observation_state(obs)
         self._tasks = [env.unwrapped.instruction for env in self.envs]
-        self._terminated = np.zeros(self.num_envs, dtype=bool)
-        self._truncated = np.zeros(self.num_envs, dtype=bool)
-        self._steps = 0
+        self._book = EpisodeBook(self.horizons, self.config.terminate_on_success, self._max_step_reward)
         return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids)}
 
     def step(self, actions):
@@ -69,19 +86,15 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         actions, clipped = self._check_actions(actions)
         reward = np.zeros(self.num_envs, dtype=np.float32)
         success = np.zeros(self.num_envs, dtype=bool)
-        self._steps += 1
-        for i, env in enumerate(self.envs):
-            if self._terminated[i] or self._truncated[i]:
-                continue
-            obs, r, terminated, truncated, info = env.step(actions[i])
+        for i in np.flatnonzero(~self._book.finished):  # ended episodes are not simulated any more
+            obs, dense, _, _, info = self.envs[i].step(actions[i])
             self._obs[i] = observation_images(obs)
             self._state[i] = observation_state(obs)
-            reward[i] = float(r[0])
             success[i] = bool(info["success"][0])
-            self._terminated[i] = success[i]  # the task is done once it succeeds
-            self._truncated[i] = not success[i] and (bool(truncated[0]) or self._steps >= self.config.episode_length)
-        info = {"is_success": self._terminated.copy(), "clipped_actions": clipped}
-        return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
+            reward[i] = self.config.alpha * self.config.sparse_reward * success[i] + self.config.beta * float(dense[0])
+        reward = self._book.step(reward, success)
+        info = {"is_success": self._book.succeeded.copy(), "clipped_actions": clipped}
+        return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
     def _observation(self) -> dict:
         obs = {"pixels": {cam: np.stack([o[cam] for o in self._obs]) for cam in self.config.cameras}}

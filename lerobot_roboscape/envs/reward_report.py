@@ -3,7 +3,8 @@ recorded trajectories, and how well each one's episode return separates successf
 
 Frames are the dataset's own, read through the tokenizer (as the env's frames are); the world-model reward uses
 the goal the text model generates for the episode's first frame, and the action model reads the real frames
-(teacher forcing) for the done signal and the embedding features.
+(teacher forcing) for the done signal and the embedding features. As in the env (Algorithm 1), an episode is
+scored over its family's fixed horizon: past the recording's end its last frame holds, and so does each reward.
 """
 
 import json
@@ -30,7 +31,7 @@ logger = logging.getLogger(__name__)
 @dataclass
 class RewardReportConfig:
     """Args:
-    env: the roboscape_wm settings (models, thresholds, weights, LPIPS); its dataset is the one reported on.
+    env: the roboscape_wm settings (models, thresholds, weights, similarity); its dataset is the one reported on.
     dataset: held-out episodes, IND and OOD, successful and failed (--dataset.episodes to pick some).
     embedding_reward: embedding-based reward model to include (optional).
     proxy_reward: proxy-based reward model to include (optional).
@@ -50,7 +51,8 @@ class RewardReportConfig:
 
 @torch.no_grad()
 def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[str, np.ndarray]:
-    """Every reward type along one recorded episode, frame by frame (frames 1..T-1, which follow an action)."""
+    """Every reward type along one recorded episode, step by step over its horizon (frames 1..T-1 follow an
+    action; then the last one holds)."""
     frames = {cam: episode.images[cam] for cam in env.cameras}
     tokens = env._encode(frames)  # (T, S)
     start = next(s for s in env.starts if s.episode_index == episode.index)
@@ -59,15 +61,16 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
     goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
     actions = torch.from_numpy(episode.action).to(env.device)
     done, features = env.action_model.teacher_forced(tokens[None], actions[None, :-1])
+    world_model, _ = env.replay(episode.index, tokens, done[0])
     done, features = done[0, 1:], features[0, 1:]
-    parts = env.reward_fn(decoded[1:], goal[1:], done)
-    rewards = {"world_model": parts.reward, "world_model_dense": parts.dense, "rule_based":
-               torch.from_numpy(episode.reward_label[1:])}  # fmt: skip
+    per_frame = {"world_model_dense": env.reward_fn(decoded[1:], goal[1:], done).dense,
+                 "rule_based": torch.from_numpy(episode.reward_label[1:])}  # fmt: skip
     if "embedding" in models:
-        rewards["embedding"] = models["embedding"](features)
+        per_frame["embedding"] = models["embedding"](features)
     if "proxy" in models:
-        rewards["proxy"] = models["proxy"](decoded[1:])
-    return {k: v.float().cpu().numpy() for k, v in rewards.items()}
+        per_frame["proxy"] = models["proxy"](decoded[1:])
+    held = np.minimum(np.arange(start.horizon), len(tokens) - 2)
+    return {"world_model": world_model} | {k: v.float().cpu().numpy()[held] for k, v in per_frame.items()}
 
 
 def write_reward_report(cfg: RewardReportConfig) -> dict:
@@ -94,7 +97,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         summary[kind] = {"roc_auc_of_return": auc, "mean_return_success": _mean(returns[success]),
                          "mean_return_failure": _mean(returns[~success])}
     report = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "summary": summary,
-              "lpips_trunk": "random (not perceptual)" if env.reward_fn.lpips.random_trunk else "pretrained",
+              "similarity": env.similarity,
               "episodes": [{**e, "rewards": {k: v.tolist() for k, v in e["rewards"].items()}} for e in episodes]}
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -112,8 +115,9 @@ def _mean(values: np.ndarray) -> float | None:
 def _markdown(report: dict, n: int, n_success: int) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     lines = [f"# Reward report ({n} episodes, {n_success} successful)", "",
-             f"LPIPS trunk: {report['lpips_trunk']}. ROC-AUC: how well the episode return separates successful from "
-             "failed episodes (- when only one kind is present).", "",
+             f"Dense reward's similarity: {report['similarity']}. Returns are summed over each family's fixed "
+             "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
+             "one kind is present).", "",
              "| reward | ROC-AUC of return | mean return, success | mean return, failure |", "|---|---:|---:|---:|"]
     for kind, s in report["summary"].items():
         lines.append(f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "

@@ -6,8 +6,10 @@ B episodes run side by side on one device, stepped by one batched call of the ac
   the scenes and task families selected, so one env covers many scenes at once. The goal frame of each start is
   generated once by the text world model (the first frame whose done >= theta) and cached.
 - **step** predicts the next frame and done from the action; the reward is `WorldModelReward` (sparse done term +
-  LPIPS alignment with the goal). An episode terminates when done >= theta and is truncated at max steps. A finished
-  episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
+  similarity to the goal). As in Algorithm 1, an episode runs its fixed horizon (by default the longest successful
+  demonstration of its task family) and does not terminate at done; `is_success` is true once done crossed theta
+  at any step. `terminate_on_success` ends episodes at success instead, with a terminal bonus (see `EpisodeBook`).
+  A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
 """
 
 import logging
@@ -19,15 +21,17 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.dataset.reader import (
+    action_range,
     camera_names,
     episode_facts,
     episode_indices,
+    family_horizons,
     open_dataset,
     read_frames,
 )
-from lerobot_roboscape.envs.batched import BatchedEnv
+from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.hub.pull import pull_world_models, snapshot
-from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.perceptual import load_similarity
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -35,6 +39,9 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 logger = logging.getLogger(__name__)
 GOAL_SOURCES = ("text_model", "dataset_last_frame")
+# Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
+# starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.
+GOAL_BATCH = 8
 
 
 @dataclass
@@ -44,6 +51,7 @@ class EpisodeStart:
     first_tokens: torch.Tensor  # (S,)
     last_tokens: torch.Tensor  # (S,)
     facts: dict
+    horizon: int  # steps of an episode from this start
 
 
 def load_pretrained(cls, ref: str, what: str, command: str):
@@ -90,8 +98,8 @@ def load_reward_model(ref: str | None, device: str) -> RewardModel:
 
 
 @lru_cache(maxsize=4)
-def load_reward_lpips(net: str, weights: str | None, allow_random: bool, device: str):
-    return load_lpips(net, weights, allow_random).to(device)
+def load_reward_distance(kind: str, tokenizer: VisualTokenizer, weights: str | None, allow_random: bool, device: str):
+    return load_similarity(kind, tokenizer, tokenizer.config.lpips_net, weights, allow_random).to(device)
 
 
 class RoboscapeWorldModelEnv(BatchedEnv):
@@ -106,17 +114,23 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             raise ValueError(f"{action_model} is a {self.action_model.config.control} world model, "
                              "not an action world model")
         self.reward_fn = WorldModelReward(
-            load_reward_lpips(self.tokenizer.config.lpips_net, config.lpips_weights, config.allow_random_lpips,
-                              self.device),
+            load_reward_distance(config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips,
+                                 self.device),
             alpha=config.alpha, beta=config.beta, theta_sps=config.theta_sps, sparse_value=config.sparse_reward,
         )  # fmt: skip
+        self.similarity = self.reward_fn.distance.name
+        self.reward_description = (
+            f"world models: {config.alpha} x {config.sparse_reward} while done >= {config.theta_sps} + {config.beta} "
+            f"x (1 - {self.similarity} distance to the goal frame)"
+        )
+        logger.info("roboscape_wm reward: %s", self.reward_description)
         self.reward_model = None
         if config.reward_type != "world_model":
             self.reward_model = load_reward_model(config.reward_model, self.device)
             if self.reward_model.config.kind != config.reward_type:
                 raise ValueError(f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
                                  f"reward_type is {config.reward_type!r}")
-        self.starts, self.cameras = self._load_starts()
+        self.starts, self.cameras, self.action_range = self._load_starts()
         self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
 
         size, n = self.tokenizer.config.image_size, len(self.cameras)
@@ -127,7 +141,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.render_mode = "rgb_array"
-        self._max_episode_steps = config.episode_length
+        self._max_episode_steps = max(s.horizon for s in self.starts)
         self._n_cameras = n
         self._rng = np.random.default_rng(config.seed)
         self._generator = torch.Generator(self.device).manual_seed(config.seed)
@@ -135,13 +149,15 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     # ---- starts and goals ----------------------------------------------------------------------------------
 
-    def _load_starts(self) -> tuple[list[EpisodeStart], list[str]]:
+    def _load_starts(self) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray]]:
+        """The starts, the camera names and the per-dimension action range (low, high) of the dataset."""
         cfg = self.config
         dataset = open_dataset(self.dataset_repo_id, cfg.dataset_root)
         cameras = camera_names(dataset)
         if len(cameras) != self.action_model.config.n_cameras:
             raise ValueError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
                              f"{self.action_model.config.n_cameras} views")
+        horizons = family_horizons(dataset) if cfg.episode_length is None else {}
         starts = []
         for index in episode_indices(dataset):
             facts = episode_facts(dataset, index)
@@ -154,11 +170,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             frames = read_frames(dataset, index, [0, -1])
             tokens = self._encode(frames)  # (2, S)
             task = dataset.meta.episodes[index]["tasks"][0]
-            starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts))
+            horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
+            starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts, horizon))
         if not starts:
             raise ValueError(f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} "
                              f"scenes={cfg.scenes}")
-        return starts, cameras
+        return starts, cameras, action_range(dataset)
 
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
@@ -183,12 +200,17 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return torch.stack([g for g, _ in goals]), [reached for _, reached in goals]
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
+        for chunk in range(0, len(starts), GOAL_BATCH):
+            self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
+
+    def _generate_goal_batch(self, starts: list[EpisodeStart]) -> None:
         model, theta = self.text_model, self.config.theta
-        prompt = torch.stack([s.first_tokens for s in starts])[:, None]
-        control = model.encode_control(instructions=[s.task for s in starts])
+        padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
+        prompt = torch.stack([s.first_tokens for s in padded])[:, None]
+        control = model.encode_control(instructions=[s.task for s in padded])
         state = model.start_rollout(prompt, control)
         goal = prompt[:, 0].clone()
-        reached = torch.zeros(len(starts), dtype=torch.bool, device=prompt.device)
+        reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
         for _ in range(self.config.max_goal_steps):
             frame, done = model.predict_next_frame(state, control)
             newly = (done >= theta) & ~reached
@@ -227,10 +249,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
-        self._step = 0
-        self._terminated = np.zeros(self.num_envs, dtype=bool)
-        self._truncated = np.zeros(self.num_envs, dtype=bool)
-        self._finished = np.zeros(self.num_envs, dtype=bool)
+        self._book = EpisodeBook(np.array([s.horizon for s in starts]), self.config.terminate_on_success,
+                                 self.reward_fn.max_step_reward)
         info = {"task": [s.task for s in starts], "episode_index": np.array([s.episode_index for s in starts]),
                 "goal_from_text_model": np.array(reached), "goal": self._pixels(self._goals)}
         return self._observation(), info
@@ -239,35 +259,29 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         actions, clipped = self._check_actions(actions)
+        if self.config.clip_actions:
+            actions = np.clip(actions, *self.action_range)
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
         tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature,
                                                                 self._generator)
         frames = self._decode(tokens)
         parts = self.reward_fn(frames, self._goals, done)
-        rewards_t = self.compute_reward(parts, frames)
-        self._step += 1
-        live = torch.from_numpy(~self._finished).to(self.device)
-        self._frames = torch.where(live[:, None, None, None, None], frames, self._frames)
-
+        live = ~self._book.finished
+        self._frames = torch.where(torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames,
+                                   self._frames)
         done_np = done.cpu().numpy()
-        live_np = ~self._finished
-        newly_terminated = (done_np >= self.config.theta) & live_np
-        newly_truncated = (self._step >= self.config.episode_length) & live_np & ~newly_terminated
-        reward = np.where(live_np, rewards_t.cpu().numpy(), 0.0).astype(np.float32)
-        self._terminated |= newly_terminated
-        self._truncated |= newly_truncated
-        self._finished = self._terminated | self._truncated
+        reward = self._book.step(self.compute_reward(parts, frames).cpu().numpy(), done_np >= self.config.theta)
         info = {
-            "is_success": self._terminated.copy(),
+            "is_success": self._book.succeeded.copy(),
             "done_probability": done_np,
-            "reward_sparse": parts.sparse.cpu().numpy() * live_np,
-            "reward_dense": parts.dense.cpu().numpy() * live_np,
-            "lpips_to_goal": parts.lpips.cpu().numpy(),
+            "reward_sparse": parts.sparse.cpu().numpy() * live,
+            "reward_dense": parts.dense.cpu().numpy() * live,
+            "distance_to_goal": parts.distance.cpu().numpy(),
             "clipped_actions": clipped,
             "goal": self._pixels(self._goals),
         }
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
-        return self._observation(), reward, self._terminated.copy(), self._truncated.copy(), info
+        return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
     @torch.no_grad()
     def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:
@@ -277,6 +291,25 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if self.config.reward_type == "proxy":
             return self.reward_model(frames)
         return parts.reward
+
+    @torch.no_grad()
+    def replay(self, episode_index: int, tokens_TS: torch.Tensor, done_T: torch.Tensor) -> tuple[np.ndarray, bool]:
+        """The world-model reward this env pays along given frames from one of its starts, as if the action model
+        had predicted them: frames (T, S) tokens, the first being the start, and the done signal of each (T,).
+        Past the last frame, it holds (with its done) until the start's horizon. Returns the rewards of the
+        horizon's steps (0 after an early termination) and whether the episode succeeded."""
+        start = next(s for s in self.starts if s.episode_index == episode_index)
+        shown = np.minimum(np.arange(1, start.horizon + 1), len(tokens_TS) - 1)  # the frame after each step
+        goal = self._decode(self.goals_for([start])[0])
+        per_step = []
+        for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
+            frames = self._decode(tokens_TS[chunk])
+            per_step.append(self.reward_fn(frames, goal.expand_as(frames), done_T[chunk]).reward.cpu().numpy())
+        per_step, done = np.concatenate(per_step), done_T[shown].cpu().numpy()
+        book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
+        rewards = np.array([book.step(per_step[t : t + 1], done[t : t + 1] >= self.config.theta)[0]
+                            for t in range(start.horizon)])  # fmt: skip
+        return rewards, bool(book.succeeded[0])
 
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
         uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()

@@ -41,3 +41,22 @@ def test_ood_split_only_draws_ood_scenes():
     assert {s.split for s in env.scenes} == {"ood"}
     _, info = env.reset(seed=1)
     assert get_scene(str(info["scene_id"][0])).split == "ood"
+
+
+def test_fixed_horizons_per_family(demo_dataset):
+    from lerobot_roboscape.dataset.reader import episode_facts, open_dataset
+
+    # No dataset: each task's registered time limit.
+    env = RoboscapeManiSkillEnv(make_config(families=["pick_place", "push"], episode_length=None), num_envs=2)
+    assert env.horizons.tolist() == [160, 100] and env.call("_max_episode_steps")[0] == 160
+    # A dataset: each family's longest successful demonstration.
+    _, root = demo_dataset
+    data = open_dataset("test/demos", root)
+    longest = {}
+    for i in range(data.meta.total_episodes):
+        facts = episode_facts(data, i)
+        if facts["success"]:
+            longest[facts["task_family"]] = max(longest.get(facts["task_family"], 0), data.meta.episodes[i]["length"])
+    env = RoboscapeManiSkillEnv(make_config(families=["pick_place", "push"], episode_length=None,
+                                            dataset_repo_id="test/demos", dataset_root=str(root)), num_envs=2)
+    assert env.horizons.tolist() == [longest["pick_place"], longest["push"]]

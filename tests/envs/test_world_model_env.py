@@ -5,6 +5,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
@@ -37,15 +38,14 @@ def test_batched_reset_and_step(env_config):
     assert obs["pixels"]["wrist"].shape == (3, IMAGE_SIZE, IMAGE_SIZE, 3) and obs["pixels"]["wrist"].dtype == np.uint8
     assert obs in env.observation_space
     assert len(info["task"]) == 3 and info["goal"]["third_view"].shape == (3, IMAGE_SIZE, IMAGE_SIZE, 3)
-    ended = np.zeros(3, dtype=bool)
-    for _ in range(6):
+    success = np.zeros(3, dtype=bool)
+    for step in range(6):
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert reward.shape == (3,) and np.isfinite(reward).all()
-        assert ((reward == 0) | ~ended).all()  # an ended episode earns nothing more
-        ended = terminated | truncated
-    assert ended.all()  # truncated at episode_length at the latest
-    assert np.array_equal(info["is_success"], terminated)
-    for key in ("reward_sparse", "reward_dense", "lpips_to_goal", "done_probability", "clipped_actions"):
+        assert not terminated.any() and truncated.all() == (step == 5)  # Algorithm 1: the fixed horizon
+        success |= info["done_probability"] >= env.config.theta
+        assert np.array_equal(info["is_success"], success)  # done crossed theta at any step
+    for key in ("reward_sparse", "reward_dense", "distance_to_goal", "done_probability", "clipped_actions"):
         assert info[key].shape == (3,)
     assert env.render()[0].shape == (2 * IMAGE_SIZE, 2 * IMAGE_SIZE, 3)
     assert env.call("_max_episode_steps") == (6, 6, 6) and len(env.call("task_description")) == 3
@@ -117,3 +117,54 @@ def test_reward_is_higher_at_the_goal():
     done = reward(other, goal, torch.tensor([0.95, 0.5, 0.9, 0.0]))
     assert done.sparse.tolist() == [10.0, 0.0, 10.0, 0.0]
     torch.testing.assert_close(done.reward, 0.5 * done.sparse + 0.5 * done.dense)
+
+
+@pytest.mark.parametrize("terminate_on_success", [False, True])
+def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, terminate_on_success):
+    """The default reward along a real successful episode (done where the recording shows success) against the
+    same start standing still: reaching the goal must pay more, whether success ends the episode or not."""
+    _, root = demo_dataset
+    config = env_config(goal_source="dataset_last_frame", text_world_model=None, episode_length=None,
+                        terminate_on_success=terminate_on_success)
+    env = RoboscapeWorldModelEnv(config, num_envs=1)
+    data = open_dataset("test/demos", root)
+    episode = next(e for e in map(lambda i: read_episode(data, i), range(data.meta.total_episodes))
+                   if e.done_label.max() > 0 and e.info["task_family"] == "push")  # fmt: skip
+    start = next(s for s in env.starts if s.episode_index == episode.index)
+    facts = [episode_facts(data, i) for i in range(data.meta.total_episodes)]
+    assert start.horizon == max(data.meta.episodes[i]["length"] for i, f in enumerate(facts)
+                                if f["task_family"] == "push" and f["success"])  # the longest successful push
+    tokens = env._encode({cam: episode.images[cam] for cam in env.cameras})
+    reached, reached_success = env.replay(episode.index, tokens, torch.from_numpy(episode.done_label))
+    still, still_success = env.replay(episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
+    assert reached_success and not still_success
+    assert len(reached) == len(still) == start.horizon
+    assert reached.sum() > still.sum()
+
+
+def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):
+    """The world-model env reports its dataset's action range and clips to it when asked; the MLP policy's actions
+    stay inside it, and it lies inside the simulator's [-1, 1]."""
+    from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+
+    env = RoboscapeWorldModelEnv(env_config(clip_actions=True), num_envs=2)
+    low, high = env.action_range
+    data = open_dataset("test/demos", demo_dataset[1])
+    actions = np.asarray(data.hf_dataset["action"])
+    np.testing.assert_allclose(low, actions.min(0), atol=1e-6)
+    np.testing.assert_allclose(high, actions.max(0), atol=1e-6)
+    assert (low >= -1).all() and (high <= 1).all()
+
+    policy, pre, post = load_policy(mlp_checkpoint, "cpu")
+    io = PolicyIO(pre, post)
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        action = io.env_action(policy.sample_action(io.batch(obs["pixels"], env.tasks())).action)
+        assert ((action >= low - 1e-5) & (action <= high + 1e-5)).all()
+        obs, *_ = env.step(action)
+
+    def next_frame(action):
+        env.reset(seed=0)
+        return env.step(np.broadcast_to(action, (2, 7)))[0]["pixels"]["wrist"]
+
+    np.testing.assert_array_equal(next_frame(np.ones(7, np.float32)), next_frame(high))  # clipped to the range
