@@ -74,7 +74,9 @@ def resolve_device(value: str) -> str:
     return ("cuda" if torch.cuda.is_available() else "cpu") if value == "auto" else value
 
 
-def resolve_mixed_precision(value: str) -> str:
+def resolve_mixed_precision(value: str | bool) -> str:
+    if str(value).lower() == "false":  # the command line's YAML reads `--mixed_precision=no` as false
+        return "no"
     if value != "auto":
         return value
     return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"

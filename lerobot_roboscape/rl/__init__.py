@@ -1,5 +1,5 @@
 """Reinforcement learning of policies in the roboscape envs."""
 
-from lerobot_roboscape.rl.actor_critic import ActionEvaluation, ActorCritic, PolicySample
+from lerobot_roboscape.rl.actor_critic import ActionEvaluation, ActorCritic, PolicySample, scale_gradient
 
-__all__ = ["ActionEvaluation", "ActorCritic", "PolicySample"]
+__all__ = ["ActionEvaluation", "ActorCritic", "PolicySample", "scale_gradient"]

@@ -11,6 +11,15 @@ from typing import NamedTuple, Protocol, runtime_checkable
 from torch import Tensor
 
 
+def scale_gradient(x: Tensor, scale: float) -> Tensor:
+    """`x` unchanged forward; backward passes `scale` times its gradient (0: none). A value head reads its features
+    through this, so that the critic's loss, large while it catches up after SFT, cannot wash out the features the
+    policy learned by SFT."""
+    if scale == 0:
+        return x.detach()
+    return x if scale == 1 else x.detach() + scale * (x - x.detach())
+
+
 class PolicySample(NamedTuple):
     action: Tensor  # (B, action_dim) normalised action, for the postprocessor
     raw_action: Tensor  # (B, ...) passed back to evaluate_actions

@@ -1,9 +1,11 @@
 """PPO for LeRobot policies in the roboscape envs (paper Algorithm 1), on Accelerate, read top to bottom:
-config -> GAE and the losses -> rollout -> update -> the training loop with checkpoints.
+config -> GAE, reward scaling and the losses -> rollout -> update -> the training loop with checkpoints.
 
-One iteration runs one episode in each of the batched envs (all start together: N scenes at once), scores it
-with GAE, and updates the policy for a few epochs of minibatches. A process of `accelerate launch` steps its own
-share of the envs; Accelerate averages the gradients.
+One iteration runs one episode of fixed horizon in each of the batched envs (all start together: N scenes at
+once), scales its rewards by the running spread of the discounted return, scores it with GAE, and updates the
+policy for a few epochs of minibatches. The first `critic_warmup_iterations` train the value head only, so the
+critic of a freshly SFT'd policy catches up before its advantages steer the policy. A process of
+`accelerate launch` steps its own share of the envs; Accelerate averages the gradients.
 """
 
 import json
@@ -34,9 +36,9 @@ logger = logging.getLogger(__name__)
 # Per policy type: RL4VLA's settings for OpenVLA; ours (tuned on the tiny tasks) for the MLP.
 PPO_DEFAULTS = {
     "openvla": dict(policy_lr=1e-4, value_lr=3e-3, update_epochs=1, minibatch_size=8, grad_accum_steps=20,
-                    max_grad_norm=10.0, huber_delta=10.0, vf_coef=1.0),
+                    max_grad_norm=10.0, huber_delta=10.0, vf_coef=1.0, critic_warmup_iterations=5),
     "roboscape_mlp": dict(policy_lr=3e-4, value_lr=1e-3, update_epochs=4, minibatch_size=64, grad_accum_steps=1,
-                          max_grad_norm=0.5, huber_delta=None, vf_coef=0.5),
+                          max_grad_norm=0.5, huber_delta=None, vf_coef=0.5, critic_warmup_iterations=2),
 }  # fmt: skip
 
 
@@ -51,15 +53,20 @@ class PPOConfig:
     gamma: discount.
     gae_lambda: GAE lambda.
     clip_coef: policy ratio clipping.
-    value_clip_coef: value clipping around the rollout's values (null: none).
+    value_clip_coef: value clipping around the rollout's values (null: none, the default). A critic that starts
+        far from its targets (a fresh value head after SFT) would move only this far per iteration: clipping keeps
+        it frozen, and it did not help PPO in Andrychowicz et al. 2021 ("What matters in on-policy RL").
     ent_coef: entropy bonus.
     norm_adv: normalise advantages over the iteration's samples.
+    normalize_reward: divide rewards by the running standard deviation of the discounted return (as gymnasium's
+        NormalizeReward in CleanRL), so the critic's targets stay near unit scale whatever the reward's weights.
+    critic_warmup_iterations: first iterations that train the value head only; null: the policy type's default.
     policy_lr: learning rate of the policy's parameters (LoRA for OpenVLA); null: the policy type's default.
     value_lr: learning rate of the value head; null: default.
     update_epochs: passes over the iteration's samples; null: default.
     minibatch_size: samples per gradient computation; null: default.
     grad_accum_steps: minibatches per optimiser step; null: default.
-    max_grad_norm: gradient-norm clipping; null: default.
+    max_grad_norm: gradient-norm clipping, of the policy's and the value head's gradients separately; null: default.
     huber_delta: Huber value loss with this delta instead of squared error; null: default (0 forces squared).
     vf_coef: value loss coefficient; null: default.
     device: "auto" (cuda when present), "cpu" or "cuda"; Accelerate picks the GPU of each process.
@@ -79,9 +86,11 @@ class PPOConfig:
     gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_coef: float = 0.2
-    value_clip_coef: float | None = 0.2
+    value_clip_coef: float | None = None
     ent_coef: float = 0.0
     norm_adv: bool = True
+    normalize_reward: bool = True
+    critic_warmup_iterations: int | None = None
     policy_lr: float | None = None
     value_lr: float | None = None
     update_epochs: int | None = None
@@ -117,24 +126,56 @@ class PPOConfig:
         return self
 
 
-# GAE and the PPO losses.
+# GAE, reward scaling and the PPO losses.
 
 
-def compute_gae(rewards: Tensor, values: Tensor, terminated: Tensor, last_value: Tensor, gamma: float,
-                gae_lambda: float) -> tuple[Tensor, Tensor]:
-    """Advantages and returns (T, B). An episode that ends by termination bootstraps nothing; one still running
-    at the last step (truncated by the time limit) bootstraps from `last_value` (B,). Steps after an episode's
-    end never reach its earlier steps, since termination cuts the recursion."""
+def compute_gae(rewards: Tensor, values: Tensor, terminated: Tensor, truncated: Tensor, last_value: Tensor,
+                gamma: float, gae_lambda: float) -> tuple[Tensor, Tensor]:
+    """Advantages and returns (T, B). An episode that ends by termination bootstraps nothing; one truncated by its
+    horizon bootstraps from the value of the observation after its last step (`values[t + 1]`, or `last_value`
+    (B,) after the rollout's last step). Either way the recursion stops there, so the steps after an episode's end
+    never reach its earlier steps."""
     advantages = torch.zeros_like(rewards)
     next_advantage = torch.zeros_like(last_value)
     next_value = last_value
     for t in reversed(range(len(rewards))):
         nonterminal = 1.0 - terminated[t].float()
+        continues = nonterminal * (1.0 - truncated[t].float())
         delta = rewards[t] + gamma * next_value * nonterminal - values[t]
-        next_advantage = delta + gamma * gae_lambda * nonterminal * next_advantage
+        next_advantage = delta + gamma * gae_lambda * continues * next_advantage
         advantages[t] = next_advantage
         next_value = values[t]
     return advantages, advantages + values
+
+
+class RunningReturnStats:
+    """Running mean and variance of the discounted return (Chan et al.'s parallel update, as gymnasium's
+    NormalizeReward). Its state is checkpointed, so a resumed run scales rewards as an uninterrupted one. Under
+    `accelerate launch` each process keeps its own, from its share of the envs (the checkpoint holds the main
+    process's)."""
+
+    def __init__(self, mean: float = 0.0, var: float = 1.0, count: float = 1e-4):
+        self.mean, self.var, self.count = mean, var, count
+
+    def update(self, values: np.ndarray) -> None:
+        batch_mean, batch_var, batch_count = float(values.mean()), float(values.var()), len(values)
+        delta, total = batch_mean - self.mean, self.count + batch_count
+        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
+        self.mean, self.var, self.count = self.mean + delta * batch_count / total, m2 / total, total
+
+    def scale_rewards(self, rewards: Tensor, alive: Tensor, gamma: float) -> Tensor:
+        """Update with the discounted returns accumulated along this rollout (T, B), then divide its rewards by
+        their standard deviation."""
+        returns = torch.zeros_like(rewards, dtype=torch.float64)
+        running = torch.zeros_like(returns[0])
+        for t in range(len(rewards)):
+            running = gamma * running + rewards[t]
+            returns[t] = running
+        self.update(returns[alive].cpu().numpy())
+        return rewards / math.sqrt(self.var + 1e-8)
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean, "var": self.var, "count": self.count}
 
 
 class PPOLosses(NamedTuple):
@@ -179,6 +220,7 @@ class Rollout(NamedTuple):
     values: Tensor  # (T, B)
     rewards: Tensor  # (T, B)
     terminated: Tensor  # (T, B) episode ended by termination at this step
+    truncated: Tensor  # (T, B) episode ended by its horizon at this step
     alive: Tensor  # (T, B) the episode was running at this step
     last_value: Tensor  # (B,) value after the last step
     returns: np.ndarray  # (B,) episode returns
@@ -192,7 +234,8 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
     tasks = list(env.call("task"))
     steps, n = env.call("_max_episode_steps")[0], env.num_envs
     pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in observation["pixels"].items()}
-    columns = {name: [] for name in ("raw_actions", "log_probs", "values", "rewards", "terminated", "alive")}
+    columns = {name: [] for name in ("raw_actions", "log_probs", "values", "rewards", "terminated", "truncated",
+                                     "alive")}
     alive = np.ones(n, dtype=bool)
     returns, successes, frames = np.zeros(n), np.zeros(n, dtype=bool), []
     for t in range(steps):
@@ -206,7 +249,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
         successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & alive
         for name, value in (("raw_actions", sample.raw_action), ("log_probs", sample.log_prob),
                             ("values", sample.value), ("rewards", reward), ("terminated", terminated & alive),
-                            ("alive", alive.copy())):  # fmt: skip
+                            ("truncated", truncated & alive), ("alive", alive.copy())):  # fmt: skip
             columns[name].append(torch.as_tensor(value))
         alive &= ~(terminated | truncated)
         if not alive.any():
@@ -235,15 +278,18 @@ class ActionScorer(nn.Module):
 
 
 def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: PolicyIO, rollout: Rollout,
-           generator: torch.Generator) -> dict[str, float]:
-    advantages, returns = compute_gae(rollout.rewards, rollout.values, rollout.terminated, rollout.last_value,
-                                      cfg.gamma, cfg.gae_lambda)  # fmt: skip
+           generator: torch.Generator, return_stats: RunningReturnStats, critic_only: bool) -> dict[str, float]:
+    rewards = rollout.rewards
+    if cfg.normalize_reward:
+        rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
+    advantages, returns = compute_gae(rewards, rollout.values, rollout.terminated, rollout.truncated,
+                                      rollout.last_value, cfg.gamma, cfg.gae_lambda)
     t_index, b_index = rollout.alive.nonzero(as_tuple=True)  # samples: the steps episodes were running
     b_advantages = advantages[t_index, b_index]
     if cfg.norm_adv and len(b_advantages) > 1:
         b_advantages = (b_advantages - b_advantages.mean()) / (b_advantages.std() + 1e-8)
     stats, n_samples = [], len(t_index)
-    parameters = [p for group in optimizer.param_groups for p in group["params"]]
+    policy_group, value_group = optimizer.param_groups  # see make_optimizer
     for _ in range(cfg.update_epochs):
         order = torch.randperm(n_samples, generator=generator).to(t_index.device)
         minibatches = order.split(cfg.minibatch_size)
@@ -256,32 +302,44 @@ def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: Poli
                 losses = ppo_losses(evaluation.log_prob, rollout.log_probs[t, b], b_advantages[minibatch],
                                     evaluation.value, rollout.values[t, b], returns[t, b], evaluation.entropy,
                                     cfg.clip_coef, cfg.value_clip_coef, cfg.huber_delta)  # fmt: skip
-                loss = losses.policy - cfg.ent_coef * losses.entropy + cfg.vf_coef * losses.value
+                loss = cfg.vf_coef * losses.value
+                if not critic_only:
+                    loss = loss + losses.policy - cfg.ent_coef * losses.entropy
             accelerator.backward(loss / cfg.grad_accum_steps)
             if (k + 1) % cfg.grad_accum_steps == 0 or k + 1 == len(minibatches):
-                grad_norm = accelerator.clip_grad_norm_(parameters, cfg.max_grad_norm)
+                if critic_only:  # a shared trunk (OpenVLA's LLM) also got value gradients: drop them
+                    for p in policy_group["params"]:
+                        p.grad = None
+                # Clipped apart: the value head's early, large gradients must not shrink the policy's step.
+                grad_norms = {name: float(accelerator.clip_grad_norm_(group["params"], cfg.max_grad_norm))
+                              for name, group in (("policy", policy_group), ("value", value_group))
+                              if any(p.grad is not None for p in group["params"])}  # fmt: skip
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-                stats.append({"grad_norm": float(grad_norm)})
+                stats.append({f"grad_norm/{name}": norm for name, norm in grad_norms.items()})
             stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
     summary = {key: float(np.mean([s[key] for s in stats if key in s])) for key in {k for s in stats for k in s}}
     explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
-    return {**summary, "losses/explained_variance": float(explained), "charts/samples": n_samples}
+    return {**summary, "losses/explained_variance": float(explained), "charts/samples": n_samples,
+            "charts/critic_only": float(critic_only), "charts/return_std": math.sqrt(return_stats.var)}
 
 
 # Training loop with checkpoints.
 
 
 def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
+    """AdamW with two groups, in this order: the policy's parameters, then the value head's."""
     value_head = [p for name, p in policy.named_parameters() if p.requires_grad and name.startswith("value_head.")]
     rest = [p for name, p in policy.named_parameters() if p.requires_grad and not name.startswith("value_head.")]
     return torch.optim.AdamW([{"params": rest, "lr": cfg.policy_lr}, {"params": value_head, "lr": cfg.value_lr}],
                              eps=1e-5, weight_decay=0.0)  # fmt: skip
 
 
-def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, optimizer, cfg: PPOConfig) -> Path:
-    """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state},
-    written to a temporary folder and moved into place; `checkpoints/last` names the newest."""
+def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, optimizer, cfg: PPOConfig,
+                    return_stats: RunningReturnStats, reward: str) -> Path:
+    """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state,
+    ppo_config.json, reward.txt (the reward it was trained on, its similarity resolved)}, written to a temporary
+    folder and moved into place; `checkpoints/last` names the newest."""
     root = output_dir / CHECKPOINTS
     name = f"{iteration:08d}"
     tmp = _make_tmp_dir(root, name)
@@ -290,9 +348,12 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
     io.postprocessor.save_pretrained(tmp / FINAL)
     (tmp / "training_state").mkdir()
     save_optimizer_state(optimizer, tmp / "training_state")
-    (tmp / "training_state" / "iteration.json").write_text(json.dumps({"iteration": iteration}))
+    # json writes floats by repr, which reads back bit for bit.
+    state = {"iteration": iteration, "return_stats": return_stats.state_dict()}
+    (tmp / "training_state" / "iteration.json").write_text(json.dumps(state))
     with draccus.config_type("json"):
         draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
+    (tmp / "reward.txt").write_text(reward + "\n")
     shutil.rmtree(root / name, ignore_errors=True)
     os.replace(tmp, root / name)
     pointer = root / ".last.tmp"
@@ -307,10 +368,11 @@ def train_ppo(cfg: PPOConfig) -> Path:
                               cpu=cfg.device == "cpu", log_with=["tensorboard"] + (["wandb"] if cfg.wandb else []),
                               project_dir=cfg.output_dir)  # fmt: skip
     device = str(accelerator.device)
-    start_iteration, start_path = 0, cfg.policy_path
+    start_iteration, start_path, return_stats = 0, cfg.policy_path, RunningReturnStats()
     checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
     if checkpoint is not None:
-        start_iteration = json.loads((checkpoint / "training_state" / "iteration.json").read_text())["iteration"]
+        state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
+        start_iteration, return_stats = state["iteration"], RunningReturnStats(**state["return_stats"])
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
         raise FileExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
@@ -327,7 +389,10 @@ def train_ppo(cfg: PPOConfig) -> Path:
     scorer, optimizer = accelerator.prepare(ActionScorer(policy), optimizer)
 
     envs_here = math.ceil(cfg.num_envs / accelerator.num_processes)
+    torch.manual_seed(cfg.seed)  # whatever an env draws at construction, the same in every run
     env = cfg.env.create_envs(envs_here)[cfg.env.type][0]
+    reward = getattr(env, "reward_description", "the env's own")
+    logger.info("PPO reward: %s", reward)
     accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})
     progress = tqdm(range(start_iteration, cfg.iterations), initial=start_iteration, total=cfg.iterations,
                     desc="PPO", disable=not accelerator.is_main_process)  # fmt: skip
@@ -342,7 +407,8 @@ def train_ppo(cfg: PPOConfig) -> Path:
         rollout = collect_rollout(env, policy, io, seed=stream % 2**31, record=record)
         rollout_seconds = time.perf_counter() - started
         policy.train()  # dropout is 0 in both policies; train mode keeps OpenVLA's gradient checkpointing on
-        metrics = update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(stream))
+        metrics = update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(stream),
+                         return_stats, critic_only=iteration < cfg.critic_warmup_iterations)
         episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
         successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
         seconds = time.perf_counter() - started
@@ -359,7 +425,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
         done = iteration + 1 == cfg.iterations
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:
             final = save_checkpoint(cfg.output_dir, iteration + 1, accelerator.unwrap_model(scorer).policy, io,
-                                    optimizer, cfg) / FINAL  # fmt: skip
+                                    optimizer, cfg, return_stats, reward) / FINAL  # fmt: skip
         accelerator.wait_for_everyone()
     accelerator.end_training()
     env.close()

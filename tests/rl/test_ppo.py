@@ -9,24 +9,30 @@ from safetensors.torch import load_file
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.rl.ppo import PPOConfig, compute_gae, ppo_losses, train_ppo
+from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
 
 def test_gae_against_a_hand_computed_case():
-    # Two envs, three steps. Env 0 terminates at step 1 (its step 2 is after the end); env 1 runs to the time
-    # limit and bootstraps from the last value.
-    rewards = torch.tensor([[1.0, 0.0], [2.0, 1.0], [0.0, 1.0]])
-    values = torch.tensor([[0.5, 0.2], [1.0, 0.4], [9.0, 0.6]])
-    terminated = torch.tensor([[False, False], [True, False], [False, False]])
-    last_value = torch.tensor([7.0, 0.8])
+    # Three envs, three steps. Env 0 terminates at step 1 (its step 2 is after the end); env 1 runs to the time
+    # limit and bootstraps from the last value; env 2 reaches its (shorter) horizon at step 1 and bootstraps from
+    # the value of the observation after it, values[2].
+    rewards = torch.tensor([[1.0, 0.0, 1.0], [2.0, 1.0, 1.0], [0.0, 1.0, 5.0]])
+    values = torch.tensor([[0.5, 0.2, 1.0], [1.0, 0.4, 2.0], [9.0, 0.6, 3.0]])
+    terminated = torch.tensor([[False, False, False], [True, False, False], [False, False, False]])
+    truncated = torch.tensor([[False, False, False], [False, False, True], [False, False, False]])
+    last_value = torch.tensor([7.0, 0.8, 4.0])
     gamma, lam = 0.9, 0.8
-    advantages, returns = compute_gae(rewards, values, terminated, last_value, gamma, lam)
+    advantages, returns = compute_gae(rewards, values, terminated, truncated, last_value, gamma, lam)
     # env 0: delta1 = 2 - 1 = 1 (terminal: no bootstrap); delta0 = 1 + 0.9*1.0 - 0.5 = 1.4
     #        A1 = 1, A0 = 1.4 + 0.9*0.8*1 = 2.12
     # env 1: delta2 = 1 + 0.9*0.8 - 0.6 = 1.12; delta1 = 1 + 0.9*0.6 - 0.4 = 1.14; delta0 = 0 + 0.9*0.4 - 0.2 = 0.16
     #        A2 = 1.12, A1 = 1.14 + 0.72*1.12 = 1.9464, A0 = 0.16 + 0.72*1.9464 = 1.561408
     torch.testing.assert_close(advantages[:2, 0], torch.tensor([2.12, 1.0]))
     torch.testing.assert_close(advantages[:, 1], torch.tensor([1.561408, 1.9464, 1.12]))
+    # env 2: delta1 = 1 + 0.9*3 - 2 = 1.7 (truncated: bootstrap, and the recursion stops: step 2 is after the end)
+    #        delta0 = 1 + 0.9*2 - 1 = 1.8; A0 = 1.8 + 0.72*1.7 = 3.024
+    torch.testing.assert_close(advantages[:2, 2], torch.tensor([3.024, 1.7]))
     torch.testing.assert_close(returns, advantages + values)
 
 
@@ -74,21 +80,32 @@ def ppo_config(policy_path, output_dir, **overrides) -> PPOConfig:
     return PPOConfig(**{**kwargs, **overrides})
 
 
-def returns_logged(output_dir) -> list[float]:
+def logged(output_dir, tag: str = "charts/episode_return") -> list[float]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     events = EventAccumulator(str(next(output_dir.glob("ppo/events*")).parent))
     events.Reload()
-    return [event.value for event in events.Scalars("charts/episode_return")]
+    return [event.value for event in events.Scalars(tag)]
 
 
 def test_ppo_improves_the_return_on_a_certain_task(fresh_mlp, tmp_path):
     final = train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", iterations=15, video_freq=10))
-    returns = returns_logged(tmp_path / "ppo")
+    returns = logged(tmp_path / "ppo")
     assert len(returns) == 15
     assert sum(returns[-3:]) / 3 > sum(returns[:3]) / 3 + 0.5  # out of a maximum of 4
     assert (final / "policy_postprocessor.json").exists() and (final / "model.safetensors").exists()
     assert list((tmp_path / "ppo" / "videos").glob("*.mp4"))
+
+
+@pytest.mark.parametrize("terminate_on_success", [False, True])
+def test_ppo_learns_success_that_the_shaping_reward_alone_does_not_pay_for(fresh_mlp, tmp_path, terminate_on_success):
+    # The shaping reward is positive at every step, success comes only from reaching the goal. Had success ended
+    # the episode without a bonus, it would be worth less than wandering, and the success rate would not rise.
+    env = GoalEnvConfig(terminate_on_success=terminate_on_success)
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", env=env, iterations=10, critic_warmup_iterations=1))
+    success = logged(tmp_path / "ppo", "charts/success")
+    assert success[0] == 0.0  # a poor start: the random policy never reaches the goal
+    assert sum(success[-3:]) / 3 >= 0.5
 
 
 def test_resume_equals_uninterrupted_training(fresh_mlp, tmp_path):

@@ -32,6 +32,8 @@ class OpenVLAConfig(PreTrainedConfig):
         dtype: Weights of the frozen base: "bfloat16", "float32", or "auto" (bfloat16 on GPUs that support it).
         gradient_checkpointing: Recompute activations in the backward pass (needed at 7B scale).
         value_head_dims: Hidden sizes of the value MLP on the last prompt token's hidden state.
+        value_grad_scale: Share of the value loss's gradient that reaches the LoRA adapter through that hidden
+            state (1: RL4VLA's shared trunk; 0: the critic reads the features without training them).
         temperature: Softmax temperature of PPO's action sampling (and of its log-probs).
         optimizer_lr: Learning rate of the SFT optimiser preset.
     """
@@ -63,6 +65,7 @@ class OpenVLAConfig(PreTrainedConfig):
 
     # RL (RL4VLA).
     value_head_dims: tuple[int, ...] = (512, 128)
+    value_grad_scale: float = 1.0
     temperature: float = 1.0
 
     # SFT optimiser preset.
@@ -77,6 +80,8 @@ class OpenVLAConfig(PreTrainedConfig):
             raise ValueError(f"lora_r must be positive, got {self.lora_r!r}")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be positive, got {self.temperature!r}")
+        if not 0 <= self.value_grad_scale <= 1:
+            raise ValueError(f"value_grad_scale must be in [0, 1], got {self.value_grad_scale!r}")
 
     def validate_features(self) -> None:
         cameras = sorted(key for key, ft in self.input_features.items() if ft.type is FeatureType.VISUAL)

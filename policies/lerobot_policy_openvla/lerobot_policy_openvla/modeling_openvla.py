@@ -19,7 +19,7 @@ from torch.distributions import Categorical
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
 from lerobot_policy_openvla.checkpoint import SPIECE_SPACE, build_vla, read_checkpoint
 from lerobot_policy_openvla.configuration_openvla import OpenVLAConfig
-from lerobot_roboscape.rl import ActionEvaluation, PolicySample
+from lerobot_roboscape.rl import ActionEvaluation, PolicySample, scale_gradient
 
 ACTION_DIM = 7
 SAFETENSORS_FILE = "model.safetensors"
@@ -162,7 +162,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
         return logits[..., first : first + self.action_tokenizer.n_bins].float() / self.config.temperature
 
     def value(self, hidden_BC: Tensor) -> Tensor:
-        return self.value_head(hidden_BC.float())
+        return self.value_head(scale_gradient(hidden_BC.float(), self.config.value_grad_scale))
 
     def predict_suffix(self, batch: dict, suffix_ids: Tensor) -> tuple[Tensor, Tensor]:
         """Teacher-forced pass over prompt + `suffix_ids` (B, K): the logits predicting each suffix token

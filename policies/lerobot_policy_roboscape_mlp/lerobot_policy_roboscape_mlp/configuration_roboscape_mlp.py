@@ -22,6 +22,9 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         hidden_dim: Width of the MLP trunk.
         n_hidden_layers: Depth of the MLP trunk.
         init_log_std: Initial log standard deviation of the Gaussian head, in normalised action units.
+        value_hidden_dim: Width of the value head's hidden layer.
+        value_grad_scale: Share of the value loss's gradient that reaches the shared encoder and trunk (0: none,
+            the critic only reads the features the policy learned; 1: fully shared, as in CleanRL's Agent).
         optimizer_lr: Learning rate of the SFT optimiser preset.
         optimizer_weight_decay: Weight decay of the SFT optimiser preset.
     """
@@ -45,6 +48,10 @@ class RoboscapeMLPConfig(PreTrainedConfig):
     # Action distribution.
     init_log_std: float = -1.5
 
+    # Value head (PPO's critic).
+    value_hidden_dim: int = 256
+    value_grad_scale: float = 0.0
+
     # SFT optimiser preset.
     optimizer_lr: float = 3e-4
     optimizer_weight_decay: float = 1e-4
@@ -53,7 +60,9 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         super().__post_init__()
         if len(self.conv_channels) != 3:
             raise ValueError(f"conv_channels must have 3 entries, got {self.conv_channels!r}")
-        for name in ("image_feature_dim", "instruction_buckets", "instruction_dim", "hidden_dim"):
+        if not 0 <= self.value_grad_scale <= 1:
+            raise ValueError(f"value_grad_scale must be in [0, 1], got {self.value_grad_scale!r}")
+        for name in ("image_feature_dim", "instruction_buckets", "instruction_dim", "hidden_dim", "value_hidden_dim"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
 

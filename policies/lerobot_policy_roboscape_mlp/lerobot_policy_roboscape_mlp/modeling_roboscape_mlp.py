@@ -1,7 +1,8 @@
 """The MLP baseline: images + instruction -> Gaussian over the normalised 7-D action, plus a state value.
 
 SFT (`lerobot-train`) fits the Gaussian's mean to the demonstrations; PPO samples from the Gaussian and trains
-the whole network, value head included (`lerobot_roboscape.rl.ActorCritic`).
+the whole network, value head included (`lerobot_roboscape.rl.ActorCritic`). The value head reads the trunk's
+features through `scale_gradient` (by default it does not train them).
 """
 
 import re
@@ -15,7 +16,7 @@ from torch import Tensor, nn
 from torch.distributions import Normal
 
 from lerobot_policy_roboscape_mlp.configuration_roboscape_mlp import RoboscapeMLPConfig
-from lerobot_roboscape.rl import ActionEvaluation, PolicySample
+from lerobot_roboscape.rl import ActionEvaluation, PolicySample, scale_gradient
 
 
 class RoboscapeMLPImageEncoder(nn.Module):
@@ -78,7 +79,8 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         self.trunk = nn.Sequential(*layers)
         self.action_mean = nn.Linear(width, action_dim)
         self.action_log_std = nn.Parameter(torch.full((action_dim,), config.init_log_std))
-        self.value_head = nn.Linear(width, 1)
+        self.value_head = nn.Sequential(nn.Linear(width, config.value_hidden_dim), nn.Tanh(),
+                                        nn.Linear(config.value_hidden_dim, 1))  # fmt: skip
 
     # LeRobot's policy API.
 
@@ -101,7 +103,7 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """The Gaussian's mean (B, action_dim): deterministic, for evaluation."""
-        return self.action_mean(self.features(batch))
+        return self.action_mean(self.features(batch)).clamp(-1, 1)
 
     # What PPO needs (lerobot_roboscape.rl.ActorCritic).
 
@@ -110,7 +112,9 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         distribution = self.distribution(features)
         action = distribution.sample()
         log_prob = distribution.log_prob(action).sum(-1)
-        return PolicySample(action, action, log_prob, self.value_head(features).squeeze(-1))
+        # [-1, 1] is the demonstrations' action range under MIN_MAX normalisation: the env gets the sample clipped
+        # to it, PPO scores the unclipped one (as CleanRL).
+        return PolicySample(action.clamp(-1, 1), action, log_prob, self.value(features))
 
     def evaluate_actions(self, batch: dict, raw_action: Tensor) -> ActionEvaluation:
         features = self.features(batch)
@@ -118,13 +122,16 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         return ActionEvaluation(
             log_prob=distribution.log_prob(raw_action).sum(-1),
             entropy=distribution.entropy().sum(-1),
-            value=self.value_head(features).squeeze(-1),
+            value=self.value(features),
         )
 
     def predict_value(self, batch: dict) -> Tensor:
-        return self.value_head(self.features(batch)).squeeze(-1)
+        return self.value(self.features(batch))
 
     # Internals.
+
+    def value(self, features: Tensor) -> Tensor:
+        return self.value_head(scale_gradient(features, self.config.value_grad_scale)).squeeze(-1)
 
     def distribution(self, features: Tensor) -> Normal:
         mean = self.action_mean(features)
