@@ -7,7 +7,7 @@ Tiny, on CPU, from a `roboscape-demo` run (minutes):
     python scripts/reproduce_tables.py --dataset_repo_id=local/roboscape_demos \
         --dataset_root=outputs/demo/datasets/roboscape_demos --tokenizer=outputs/demo/tokenizer/pretrained_model \
         --action_world_model=outputs/demo/world_model_action/pretrained_model \
-        --text_world_model=outputs/demo/world_model_text/pretrained_model --allow_random_lpips=true \
+        --text_world_model=outputs/demo/world_model_text/pretrained_model \
         --per_task=false --sft_steps=600 --ppo_iterations=3 --num_envs=8 --episode_length=40 \
         --eval_episodes=2 --eval_batch_size=8 --eval_episode_length=60 --output_dir=outputs/tables_tiny
 
@@ -16,7 +16,11 @@ Paper-like, on GPUs (paper presets of the world models, both policies, 50 evalua
     python scripts/reproduce_tables.py --dataset_repo_id=me/roboscape --tokenizer=me/roboscape-tokenizer \
         --action_world_model=me/roboscape-wm-action --text_world_model=me/roboscape-wm-text \
         --policies='[roboscape_mlp, openvla]' --image_size=128 --sft_steps=20000 --ppo_iterations=500 \
-        --num_envs=64 --episode_length=80 --eval_episodes=50 --output_dir=outputs/tables
+        --num_envs=64 --eval_episodes=50 --output_dir=outputs/tables
+
+PPO runs each task family's fixed horizon (its longest successful demonstration) unless --episode_length is given;
+the world-model env's dense reward uses LPIPS when its trunk weights are in the torch hub cache, else the
+tokenizer-feature similarity (see the README).
 """
 
 import logging

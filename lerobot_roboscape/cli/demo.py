@@ -34,7 +34,7 @@ from lerobot_roboscape.cli.convert import ConvertConfig, convert
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.evaluation.tables import TablesConfig, lerobot_sft, run_lerobot, run_tables
+from lerobot_roboscape.evaluation.tables import TablesConfig, lerobot_sft, run_lerobot, run_tables, sft_episodes
 from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
@@ -246,15 +246,16 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 
     stage("SFT with lerobot-train: the MLP policy" + (" and OpenVLA (LoRA)" if cfg.openvla_steps else ""))
     device_flag = [f"--policy.device={cfg.device}"] if cfg.device != "auto" else []
+    successes = sft_episodes("local/roboscape_demos", str(demos))
     sft = {"roboscape_mlp": lerobot_sft(out / "sft_mlp", "local/roboscape_demos", str(demos),
                                         ["--policy.type=roboscape_mlp", *device_flag], cfg.mlp_steps, batch_size=16,
-                                        num_workers=cfg.loader_workers)}
+                                        num_workers=cfg.loader_workers, episodes=successes)}
     openvla_spec = f"openvla --policy.base_model={cfg.openvla_base}"
     if cfg.openvla_steps:
         sft["openvla"] = lerobot_sft(out / "sft_openvla", "local/roboscape_demos", str(demos),
                                      [*("--policy.type=openvla", f"--policy.base_model={cfg.openvla_base}"),
                                       *device_flag], cfg.openvla_steps, batch_size=8,
-                                     num_workers=cfg.loader_workers)  # fmt: skip
+                                     num_workers=cfg.loader_workers, episodes=successes)  # fmt: skip
     for name, path in sft.items():
         artifacts[f"{name} after SFT"] = path
 
@@ -269,7 +270,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
         dataset_repo_id="local/roboscape_demos", dataset_root=str(demos), tokenizer=str(tokenizer),
         action_world_model=str(models["action"]), text_world_model=str(models["text"]),
         policies=["roboscape_mlp"] + ([openvla_spec] if cfg.openvla_steps else []), families=cfg.families,
-        per_task=False, ppo_iterations=cfg.ppo_iterations, num_envs=cfg.ppo_envs,
+        per_task=False, ppo_iterations=cfg.ppo_iterations, critic_warmup_iterations=1, num_envs=cfg.ppo_envs,
         episode_length=cfg.ppo_episode_length, max_goal_steps=cfg.max_goal_steps,
         eval_episodes=cfg.table_episodes,
         eval_batch_size=len(cfg.families) * cfg.table_episodes, eval_episode_length=cfg.eval_episode_length,

@@ -27,7 +27,10 @@ class EvalConfig:
     splits: "ind" and/or "ood".
     episodes: episodes per (split, family).
     batch_size: parallel episodes (families are dealt to them in turn).
-    episode_length: steps before an episode counts as failed.
+    episode_length: steps before an episode counts as failed; null: per task family, its registered time limit
+        (or the longest successful demonstration in `dataset_root`, when given).
+    dataset_repo_id: demonstrations whose episode lengths set the per-family horizons (optional).
+    dataset_root: their local directory.
     image_size: camera image side (0: the policy's).
     seed: seed of the initial states; the datasets' episodes use small seeds, so the default is far from them.
     videos: episodes recorded per split (the first batch's).
@@ -40,7 +43,9 @@ class EvalConfig:
     splits: list[str] = field(default_factory=lambda: ["ind", "ood"])
     episodes: int = 20
     batch_size: int = 8
-    episode_length: int = 160
+    episode_length: int | None = None
+    dataset_repo_id: str | None = None
+    dataset_root: str | None = None
     image_size: int = 0
     seed: int = 100_000
     videos: int = 2
@@ -102,10 +107,13 @@ def evaluate_success(cfg: EvalConfig) -> dict:
         feature.shape[-1] for feature in policy.config.input_features.values() if len(feature.shape) == 3
     )
     families = list(cfg.families) or list(TASK_FAMILIES)
-    results = {"policy": cfg.policy_path, "episode_length": cfg.episode_length, "splits": {}}
+    results = {"policy": cfg.policy_path, "episode_length": cfg.episode_length or "per family", "splits": {}}
     for split in cfg.splits:
+        # Success at any step is what counts, so an episode can stop at its first success.
         env_cfg = RoboscapeManiSkillEnvConfig(families=families, split=split, image_size=image_size,
-                                              episode_length=cfg.episode_length, seed=cfg.seed)  # fmt: skip
+                                              episode_length=cfg.episode_length, terminate_on_success=True,
+                                              dataset_repo_id=cfg.dataset_repo_id, dataset_root=cfg.dataset_root,
+                                              seed=cfg.seed)  # fmt: skip
         check_policy_fits_env(policy, env_cfg, cfg.policy_path)
         env = RoboscapeManiSkillEnv(env_cfg, num_envs=min(cfg.batch_size, cfg.episodes * len(families)))
         outcomes = {family: [] for family in families}

@@ -12,6 +12,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
@@ -39,12 +40,13 @@ class TablesConfig:
     sft_steps: lerobot-train steps.
     sft_batch_size: lerobot-train batch size.
     ppo_iterations: PPO iterations per run.
+    critic_warmup_iterations: PPO's first iterations that train the critic only; null: the policy type's default.
     num_envs: parallel episodes in PPO.
-    episode_length: PPO episode length.
+    episode_length: PPO's fixed horizon; null: per task family, its longest successful demonstration.
     max_goal_steps: frames the text world model may generate while looking for a goal.
     eval_episodes: evaluation episodes per (split, family).
     eval_batch_size: parallel evaluation episodes.
-    eval_episode_length: evaluation episode length.
+    eval_episode_length: evaluation episode length; null: per task family, as episode_length.
     image_size: camera image side.
     allow_random_lpips: let the world-model env use a random LPIPS trunk (tests, offline demo).
     output_dir: everything, plus tables.md, tables.json and tables.png.
@@ -62,12 +64,13 @@ class TablesConfig:
     sft_steps: int = 5000
     sft_batch_size: int = 32
     ppo_iterations: int = 100
+    critic_warmup_iterations: int | None = None
     num_envs: int = 16
-    episode_length: int = 80
+    episode_length: int | None = None
     eval_episodes: int = 50
     eval_batch_size: int = 16
     max_goal_steps: int = 100
-    eval_episode_length: int = 160
+    eval_episode_length: int | None = None
     image_size: int = 64
     allow_random_lpips: bool = False
     output_dir: Path = Path("outputs/tables")
@@ -84,13 +87,22 @@ def run_lerobot(script: str, args: list[str]) -> None:
         raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
 
 
+def sft_episodes(dataset_repo_id: str, dataset_root: str | None) -> list[int]:
+    """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model)."""
+    episodes = successful_episodes(open_dataset(dataset_repo_id, dataset_root))
+    if not episodes:
+        raise ValueError(f"no successful episode in dataset {dataset_root or dataset_repo_id} to imitate")
+    return episodes
+
+
 def lerobot_sft(output_dir: Path, dataset_repo_id: str, dataset_root: str | None, policy_args: list[str],
-                steps: int, batch_size: int, num_workers: int = 2) -> Path:
-    """SFT with `lerobot-train`; returns the final pretrained_model directory."""
+                steps: int, batch_size: int, num_workers: int = 2, episodes: list[int] | None = None) -> Path:
+    """SFT with `lerobot-train` on `episodes` (None: all); returns the final pretrained_model directory."""
     shutil.rmtree(output_dir, ignore_errors=True)
     root = [f"--dataset.root={dataset_root}"] if dataset_root else []
+    selection = [f"--dataset.episodes=[{','.join(map(str, episodes))}]"] if episodes is not None else []
     run_lerobot("lerobot_train", [
-        f"--dataset.repo_id={dataset_repo_id}", *root, *policy_args, "--policy.push_to_hub=false",
+        f"--dataset.repo_id={dataset_repo_id}", *root, *selection, *policy_args, "--policy.push_to_hub=false",
         f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}", f"--log_freq={max(steps // 5, 1)}",
         f"--num_workers={num_workers}", f"--output_dir={output_dir}",
     ])  # fmt: skip
@@ -105,7 +117,8 @@ def run_tables(cfg: TablesConfig, sft_checkpoints: dict[str, Path] | None = None
         name = policy_type
         sft = (sft_checkpoints or {}).get(policy_type) or lerobot_sft(
             cfg.output_dir / name / "sft", cfg.dataset_repo_id, cfg.dataset_root,
-            [f"--policy.type={policy_type}", *extra], cfg.sft_steps, cfg.sft_batch_size)  # fmt: skip
+            [f"--policy.type={policy_type}", *extra], cfg.sft_steps, cfg.sft_batch_size,
+            episodes=sft_episodes(cfg.dataset_repo_id, cfg.dataset_root))  # fmt: skip
         results[name] = {SFT: evaluate(cfg, sft, cfg.families, cfg.output_dir / name / "eval_sft")}
         groups = [[family] for family in cfg.families] if cfg.per_task else [list(cfg.families)]
         for method, env_type in ((RL_MANISKILL, "maniskill"), (RL_WORLD_MODEL, "world_model")):
@@ -115,6 +128,7 @@ def run_tables(cfg: TablesConfig, sft_checkpoints: dict[str, Path] | None = None
                 ppo = train_ppo(PPOConfig(policy_path=str(sft), env=make_env_config(cfg, env_type, group),
                                           output_dir=cfg.output_dir / name / f"ppo_{tag}", num_envs=cfg.num_envs,
                                           iterations=cfg.ppo_iterations, save_freq=cfg.ppo_iterations,
+                                          critic_warmup_iterations=cfg.critic_warmup_iterations,
                                           device=cfg.device))  # fmt: skip
                 evaluation = evaluate(cfg, ppo, group, cfg.output_dir / name / f"eval_{tag}")
                 for split in merged:
@@ -131,7 +145,8 @@ def run_tables(cfg: TablesConfig, sft_checkpoints: dict[str, Path] | None = None
 def make_env_config(cfg: TablesConfig, env_type: str, families: list[str]):
     if env_type == "maniskill":
         return RoboscapeManiSkillEnvConfig(families=families, split="ind", image_size=cfg.image_size,
-                                           episode_length=cfg.episode_length)  # fmt: skip
+                                           episode_length=cfg.episode_length, dataset_repo_id=cfg.dataset_repo_id,
+                                           dataset_root=cfg.dataset_root)  # fmt: skip
     return RoboscapeWorldModelEnvConfig(
         dataset_repo_id=cfg.dataset_repo_id, dataset_root=cfg.dataset_root, tokenizer=cfg.tokenizer,
         action_world_model=cfg.action_world_model, text_world_model=cfg.text_world_model, families=families,
@@ -144,7 +159,8 @@ def evaluate(cfg: TablesConfig, checkpoint: Path, families: list[str], output_di
     """{split: {family: success rate}} in the simulator."""
     results = evaluate_success(EvalConfig(
         policy_path=str(checkpoint), families=families, episodes=cfg.eval_episodes, batch_size=cfg.eval_batch_size,
-        episode_length=cfg.eval_episode_length, image_size=cfg.image_size, videos=1, output_dir=output_dir,
+        episode_length=cfg.eval_episode_length, dataset_repo_id=cfg.dataset_repo_id, dataset_root=cfg.dataset_root,
+        image_size=cfg.image_size, videos=1, output_dir=output_dir,
         device=cfg.device,
     ))  # fmt: skip
     return {split: {f: cells[f]["success_rate"] for f in families} for split, cells in results["splits"].items()}

@@ -120,13 +120,15 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
     config = read_json(pretrained_model / "config.json")
     _copy_model(pretrained_model, folder)
     ppo_path = pretrained_model.parent / "ppo_config.json"
-    training, method = {}, "sft"
+    training, method, reward = {}, "sft", None
     if ppo_path.is_file():
         ppo = read_json(ppo_path)
         shutil.copy2(ppo_path, folder / "ppo_config.json")
         training["roboscape-ppo"] = json.dumps(ppo, indent=2)
         method = ppo["env"]["type"]
         dataset_repo_id = dataset_repo_id or ppo["env"].get("dataset_repo_id")
+        if (reward_path := pretrained_model.parent / "reward.txt").is_file():
+            reward = reward_path.read_text().strip()
     if (pretrained_model / "train_config.json").is_file():
         train = read_json(pretrained_model / "train_config.json")
         training["lerobot-train"] = json.dumps(train, indent=2)
@@ -151,7 +153,7 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
         "policy.md", repo_id=repo_id, policy_type=config["type"], method=method, method_text=method_text,
         method_details=method_details, dataset_repo_id=dataset_repo_id, base_model=base_model,
         base_model_repo=base_model if base_model and looks_like_repo_id(base_model) else None,
-        results=results, training=training,
+        results=results, training=training, reward=reward,
     )  # fmt: skip
     card.save(folder / "README.md")
     return folder
