@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import torch
 
+from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
@@ -93,11 +94,23 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
     for name in ("reward_report.json", "reward_report.md", "reward_curves.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert set(report["summary"]) == {"world_model", "world_model_dense", "rule_based", "embedding", "proxy"}
-    lengths = {row["episode_index"]: row["length"] for row in token_cache.episodes}
+    # Returns are summed over each family's fixed horizon (its longest successful episode), the last frame holding.
+    facts = {row["episode_index"]: row for row in read_episode_info(root)}
+    rows = {row["episode_index"]: row for row in token_cache.episodes}
+    horizon = {}
+    for index, row in rows.items():
+        if facts[index]["success"]:
+            family = facts[index]["task_family"]
+            horizon[family] = max(horizon.get(family, 0), row["length"])
     for episode in report["episodes"]:
+        index = episode["episode_index"]
+        steps = horizon[facts[index]["task_family"]]
         for kind, values in episode["rewards"].items():
-            assert len(values) == lengths[episode["episode_index"]] - 1 and np.isfinite(values).all(), kind
-        # The rule-based curve is the dataset's own reward, shifted onto the frame it scores.
-        row = next(r for r in token_cache.episodes if r["episode_index"] == episode["episode_index"])
-        np.testing.assert_allclose(episode["rewards"]["rule_based"],
-                                   token_cache.rewards[row["start"] + 1 : row["start"] + row["length"]])
+            assert len(values) == steps and np.isfinite(values).all(), kind
+        # The rule-based curve is the dataset's own reward, shifted onto the frame it scores, then held.
+        row = rows[index]
+        recorded = token_cache.rewards[row["start"] + 1 : row["start"] + row["length"]]
+        rule_based = np.asarray(episode["rewards"]["rule_based"])
+        shown = min(steps, len(recorded))
+        np.testing.assert_allclose(rule_based[:shown], recorded[:shown])
+        np.testing.assert_allclose(rule_based[shown:], recorded[-1])

@@ -48,20 +48,23 @@ def assert_same(a: dict, b: dict) -> None:
 
 
 def test_seeded_runs_are_identical_and_a_killed_run_resumes_exactly(ppo_args, tmp_path):
-    run([*ppo_args, f"--output_dir={tmp_path / 'first'}"])
-    run([*ppo_args, f"--output_dir={tmp_path / 'second'}"])
-    reference = weights(tmp_path / "first")
-    assert_same(reference, weights(tmp_path / "second"))
-    assert not all(torch.equal(reference[k], weights(tmp_path / "first", 1)[k]) for k in reference)  # it trained
+    run([*ppo_args, f"--output_dir={tmp_path / 'reference'}"])
+    reference = weights(tmp_path / "reference")
+    assert not all(torch.equal(reference[k], weights(tmp_path / "reference", 1)[k]) for k in reference)  # it trained
 
+    # A second run with the same flags, killed during iteration 2: what it saved before equals the reference.
     killed = tmp_path / "killed"
     process = subprocess.Popen(command([*ppo_args, f"--output_dir={killed}"]), stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL)  # fmt: skip
     deadline = time.time() + 600
     while not (killed / "checkpoints" / "last").is_file() and process.poll() is None and time.time() < deadline:
         time.sleep(0.05)
-    os.kill(process.pid, signal.SIGKILL)  # during iteration 2, after checkpoint 1
+    os.kill(process.pid, signal.SIGKILL)
     process.wait()
     assert not (killed / "checkpoints" / f"{ITERATIONS:08d}").exists(), "the run finished before it was killed"
+    assert_same(weights(tmp_path / "reference", 1), weights(killed, 1))
+    assert (tmp_path / "reference" / "checkpoints" / "00000001" / "training_state" / "iteration.json").read_text() \
+        == (killed / "checkpoints" / "00000001" / "training_state" / "iteration.json").read_text()
+
     run([*ppo_args, f"--output_dir={killed}", "--resume=true"])
     assert_same(reference, weights(killed))
