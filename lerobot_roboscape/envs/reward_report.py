@@ -93,7 +93,10 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         returns = np.array([e["rewards"][kind].sum() for e in episodes])
         auc = None
         if 0 < success.sum() < len(success):
-            auc = float(binary_auroc(torch.from_numpy(returns).float(), torch.from_numpy(success.astype(np.int64))))
+            # binary_auroc squashes scores outside [0, 1] with a sigmoid, which ties every return above ~17 at 1.0
+            # (an AUC of 0.5): hand it the returns' ranks scaled into [0, 1], which keeps their order.
+            ranks = torch.from_numpy(returns).argsort().argsort().float() / max(len(returns) - 1, 1)
+            auc = float(binary_auroc(ranks, torch.from_numpy(success.astype(np.int64))))
         summary[kind] = {"roc_auc_of_return": auc, "mean_return_success": _mean(returns[success]),
                          "mean_return_failure": _mean(returns[~success])}
     report = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "summary": summary,
