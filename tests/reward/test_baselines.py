@@ -21,7 +21,7 @@ def reward_models(demo_dataset, trained_tokenizer, token_cache, world_models, tm
         cfg = draccus.parse(TrainRewardConfig, args=[
             f"--reward.kind={kind}", "--dataset.repo_id=test/demos", f"--dataset.root={root}",
             f"--tokenizer={trained_tokenizer}", f"--action_world_model={world_models['action']}",
-            f"--token_cache={token_cache.root}", f"--output_dir={out}", "--train.steps=250", "--train.save_freq=250",
+            f"--token_cache={token_cache.root}", f"--output_dir={out}", "--train.steps=500", "--train.save_freq=500",
             "--train.batch_size=4", "--train.warmup_steps=5", "--train.log_freq=1", "--train.lr=3e-3",
         ])  # fmt: skip
         train_reward_model(cfg)
