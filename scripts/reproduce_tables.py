@@ -1,41 +1,61 @@
 """Reproduce the layout of the paper's Table 1 (policy x training method x IND/OOD x task family: SFT, RL in
-ManiSkill, RL in the world model) or, with --per_task=false, Table 2 (one multi-task RL run), at the scale the
-flags choose. Prints the table and writes tables.md, tables.json and the bar chart tables.png.
+ManiSkill in one scene and in every training scene, RL in the world model) from models you already have, with the
+pipeline's stages (one multi-task RL run per env; `--families=[push]` for a per-family run). Prints the table and
+writes tables.md, tables.json and the bar chart tables.png into --output_dir/tables.
 
-Tiny, on CPU, from a `roboscape-demo` run (minutes):
+From a `roboscape-demo` run (its dataset and models), tiny, on CPU:
 
-    python scripts/reproduce_tables.py --dataset_repo_id=local/roboscape_demos \
-        --dataset_root=outputs/demo/datasets/roboscape_demos --tokenizer=outputs/demo/tokenizer/pretrained_model \
-        --action_world_model=outputs/demo/world_model_action/pretrained_model \
-        --text_world_model=outputs/demo/world_model_text/pretrained_model \
-        --per_task=false --sft_steps=600 --ppo_iterations=3 --num_envs=8 --episode_length=40 \
-        --eval_episodes=2 --eval_batch_size=8 --eval_episode_length=60 --output_dir=outputs/tables_tiny
+    python scripts/reproduce_tables.py --dataset_root=outputs/demo/datasets/roboscape_demos \
+        --models=outputs/demo --output_dir=outputs/tables_tiny --pipeline.scale=tiny --pipeline.mlp_steps=600
 
-Paper-like, on GPUs (paper presets of the world models, both policies, 50 evaluation episodes per cell):
-
-    python scripts/reproduce_tables.py --dataset_repo_id=me/roboscape --tokenizer=me/roboscape-tokenizer \
-        --action_world_model=me/roboscape-wm-action --text_world_model=me/roboscape-wm-text \
-        --policies='[roboscape_mlp, openvla]' --image_size=128 --sft_steps=20000 --ppo_iterations=500 \
-        --num_envs=64 --eval_episodes=50 --output_dir=outputs/tables
-
-PPO runs each task family's fixed horizon (its longest successful demonstration) unless --episode_length is given;
-the world-model env's dense reward uses LPIPS when its trunk weights are in the torch hub cache, else the
-tokenizer-feature similarity (see the README).
+Paper-like, on GPUs: `--pipeline.scale=paper` and the paper's models (`--models` holds tokenizer/,
+world_model_action/ and world_model_text/ as the pipeline writes them).
 """
 
 import logging
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import draccus
+from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.evaluation.tables import TablesConfig, run_tables
+from lerobot_roboscape.evaluation.tables import write_table
+from lerobot_roboscape.pipeline import stages
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.training import FINAL
+
+
+@dataclass
+class TablesConfig:
+    """Args:
+    dataset_repo_id: the demonstrations (SFT, and the world-model env's initial frames).
+    dataset_root: their local root.
+    models: a folder holding tokenizer/, world_model_action/ and world_model_text/ (as roboscape-demo writes).
+    output_dir: where SFT, PPO, evaluations and the tables go.
+    pipeline: sizes of the stages (--pipeline.scale, --pipeline.mlp_steps, --pipeline.ppo_minutes, ...).
+    """
+
+    dataset_repo_id: str = "local/roboscape_demos"
+    dataset_root: str | None = None
+    models: Path = Path("outputs/demo")
+    output_dir: Path = Path("outputs/tables")
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
 
 
 def main():
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     cfg = draccus.parse(TablesConfig)
-    run_tables(cfg)
-    print((cfg.output_dir / "tables.md").read_text())
-    print(f"Bar chart: {(cfg.output_dir / 'tables.png').resolve()}")
+    p, out = cfg.pipeline, Path(cfg.output_dir).resolve()
+    dataset = DatasetConfig(repo_id=cfg.dataset_repo_id, root=cfg.dataset_root)
+    data = stages.Datasets(train=dataset, heldout=dataset, trajectory_file=Path())
+    tokenizer = Path(cfg.models) / "tokenizer" / FINAL
+    models = {c: Path(cfg.models) / f"world_model_{c}" / FINAL for c in ("action", "text")}
+    sft = stages.sft(p, out, data)
+    rl = stages.rl(p, out, data, stages.world_model_env(p, data, tokenizer, models), sft)
+    table = stages.simulator_eval(p, out, data, {n: {stages.SFT: sft[n]} | runs for n, runs in rl.items()})
+    write_table(table, p.families, out / "tables")
+    print((out / "tables" / "tables.md").read_text())
+    print(f"Bar chart: {out / 'tables' / 'tables.png'}")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""`roboscape-demo` at its smallest, end to end: every artifact it names exists and loads."""
+"""`roboscape-demo` at its smallest, end to end: every artifact it names exists and loads, and a rerun skips the
+completed stages."""
 
 import json
 
@@ -7,15 +8,17 @@ import numpy as np
 from huggingface_hub import ModelCard
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.cli.demo import DemoConfig, run_demo
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.run import run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
 
 
 def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
-    artifacts = run_demo(draccus.parse(DemoConfig, args=["--scale=smoke", f"--output_dir={out}"]))
+    args = ["--scale=smoke", f"--output_dir={out}", f"--report_dir={tmp_path / 'report'}"]
+    artifacts = run_pipeline(draccus.parse(PipelineConfig, args=args))
     summary = capsys.readouterr().out.split("=== results")[1]
 
     for name, path in artifacts.items():
@@ -23,7 +26,7 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
         assert f"{name} " in summary and str(path) in summary  # named, with what it loaded as
     hub = out / "hub"
     assert {"dataset repo", "world models repo", "roboscape_mlp sft repo", "roboscape_mlp ppo_maniskill repo",
-            "roboscape_mlp ppo_world_model repo", "small Table 1", "fidelity report",
+            "roboscape_mlp ppo_world_model repo", "Table 1", "fidelity report", "reward report", "experiment report",
             "roboscape_mlp lerobot-eval in roboscape_wm"} <= set(artifacts)
 
     # The pushed dataset and world models drive a roboscape_wm env on their own.
@@ -49,3 +52,12 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
 
     tables = json.loads((out / "tables" / "tables.json").read_text())["roboscape_mlp"]
     assert len(tables) == 3 and all(set(cells) == {"ind", "ood"} for cells in tables.values())
+    results = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert results["table"]["roboscape_mlp"] == tables and results["targets"]
+    assert (tmp_path / "report" / "tokenizer_reconstruction.png").is_file()
+
+    # A rerun with the same settings skips every completed stage: nothing is trained again.
+    tokenizer_weights = (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns
+    run_pipeline(draccus.parse(PipelineConfig, args=args))
+    assert (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns == tokenizer_weights
+    assert "done in 0s" in capsys.readouterr().out

@@ -32,6 +32,7 @@ from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, ch
 from lerobot_roboscape.training import CHECKPOINTS, FINAL, _make_tmp_dir, last_checkpoint, resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
+HISTORY = "history.jsonl"
 
 # Per policy type: RL4VLA's settings for OpenVLA; ours (tuned on the tiny tasks) for the MLP.
 PPO_DEFAULTS = {
@@ -50,6 +51,8 @@ class PPOConfig:
     output_dir: checkpoints (output_dir/checkpoints/NNNNNNNN/pretrained_model), logs and videos.
     num_envs: parallel episodes per iteration, over all processes.
     iterations: PPO iterations (one episode per env each).
+    time_budget_s: stop after the iteration that brings the run's time (rollouts and updates, over resumes) to
+        this many seconds, if that comes before `iterations`: compares RL in two envs at equal wall-clock.
     gamma: discount.
     gae_lambda: GAE lambda.
     clip_coef: policy ratio clipping.
@@ -83,6 +86,7 @@ class PPOConfig:
     output_dir: Path = Path("outputs/ppo")
     num_envs: int = 16
     iterations: int = 100
+    time_budget_s: float | None = None
     gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_coef: float = 0.2
@@ -336,7 +340,7 @@ def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
 
 
 def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, optimizer, cfg: PPOConfig,
-                    return_stats: RunningReturnStats, reward: str) -> Path:
+                    return_stats: RunningReturnStats, reward: str, seconds: float) -> Path:
     """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state,
     ppo_config.json, reward.txt (the reward it was trained on, its similarity resolved)}, written to a temporary
     folder and moved into place; `checkpoints/last` names the newest."""
@@ -349,7 +353,7 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
     (tmp / "training_state").mkdir()
     save_optimizer_state(optimizer, tmp / "training_state")
     # json writes floats by repr, which reads back bit for bit.
-    state = {"iteration": iteration, "return_stats": return_stats.state_dict()}
+    state = {"iteration": iteration, "seconds": seconds, "return_stats": return_stats.state_dict()}
     (tmp / "training_state" / "iteration.json").write_text(json.dumps(state))
     with draccus.config_type("json"):
         draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
@@ -368,11 +372,12 @@ def train_ppo(cfg: PPOConfig) -> Path:
                               cpu=cfg.device == "cpu", log_with=["tensorboard"] + (["wandb"] if cfg.wandb else []),
                               project_dir=cfg.output_dir)  # fmt: skip
     device = str(accelerator.device)
-    start_iteration, start_path, return_stats = 0, cfg.policy_path, RunningReturnStats()
+    start_iteration, start_path, return_stats, elapsed = 0, cfg.policy_path, RunningReturnStats(), 0.0
     checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
     if checkpoint is not None:
         state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
         start_iteration, return_stats = state["iteration"], RunningReturnStats(**state["return_stats"])
+        elapsed = state.get("seconds", 0.0)
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
         raise FileExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
@@ -394,6 +399,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
     reward = getattr(env, "reward_description", "the env's own")
     logger.info("PPO reward: %s", reward)
     accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})
+    history = History(cfg.output_dir / HISTORY, start_iteration) if accelerator.is_main_process else None
     progress = tqdm(range(start_iteration, cfg.iterations), initial=start_iteration, total=cfg.iterations,
                     desc="PPO", disable=not accelerator.is_main_process)  # fmt: skip
     final = None
@@ -416,20 +422,50 @@ def train_ppo(cfg: PPOConfig) -> Path:
                     "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
                     "charts/episodes_per_s": len(episodes) / seconds,
                     "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds}  # fmt: skip
+        elapsed += seconds
         accelerator.log(metrics, step=iteration + 1)
+        if history is not None:
+            history.append({"iteration": iteration + 1, "seconds": elapsed} | metrics)
         progress.set_postfix(ret=f"{episodes.mean():.2f}", success=f"{successes.mean():.0%}",
                              episodes_per_s=f"{len(episodes) / seconds:.2f}")  # fmt: skip
         if record:
             write_video(cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4", rollout.frames,
                         env.metadata.get("render_fps", 20))  # fmt: skip
-        done = iteration + 1 == cfg.iterations
+        out_of_time = cfg.time_budget_s is not None and elapsed >= cfg.time_budget_s
+        done = iteration + 1 == cfg.iterations or out_of_time
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:
             final = save_checkpoint(cfg.output_dir, iteration + 1, accelerator.unwrap_model(scorer).policy, io,
-                                    optimizer, cfg, return_stats, reward) / FINAL  # fmt: skip
+                                    optimizer, cfg, return_stats, reward, elapsed) / FINAL  # fmt: skip
         accelerator.wait_for_everyone()
+        if out_of_time:
+            logger.info("time budget of %.0f s spent after %d iterations", cfg.time_budget_s, iteration + 1)
+            break
     accelerator.end_training()
     env.close()
     return final if final is not None else last_checkpoint(cfg.output_dir) / FINAL
+
+
+class History:
+    """output_dir/history.jsonl: one line of metrics per iteration, for curves without TensorBoard. A resumed run
+    drops the lines past its checkpoint, which it trains again."""
+
+    def __init__(self, path: Path, start_iteration: int):
+        self.path = path
+        kept = []
+        if path.is_file():
+            kept = [line for line in path.read_text().splitlines()
+                    if line and json.loads(line)["iteration"] <= start_iteration]  # fmt: skip
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("".join(line + "\n" for line in kept))
+
+    def append(self, row: dict) -> None:
+        with self.path.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+def read_history(output_dir: Path) -> list[dict]:
+    path = Path(output_dir) / HISTORY
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:

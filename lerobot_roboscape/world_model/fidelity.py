@@ -109,6 +109,28 @@ def _false_positives(episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: l
     }
 
 
+@torch.no_grad()
+def _whole_episode_done(model: STWorldModel, episodes: list[tuple], rows: list[dict], prompt: int,
+                        batch_size: int = 16) -> dict:
+    """Success as the world model imagines it: each episode generated open loop from its prompt frames and its
+    recorded actions to its end (as in a rollout of `roboscape_wm`); its score is the highest done probability.
+    ROC-AUC of that score against the recorded success (None with one kind of episode only)."""
+    scores = []
+    for start in range(0, len(episodes), batch_size):
+        chunk = episodes[start : start + batch_size]
+        length = max(len(actions) for _, actions in chunk)  # frames; shorter episodes repeat their last action
+        actions = torch.stack([torch.cat([a, a[-1:].expand(length - len(a), -1)]) for _, a in chunk])
+        _, done = model.generate(torch.stack([p for p, _ in chunk]), length - prompt,
+                                 actions=actions[:, : length - 1])
+        scores += [float(d[: len(a) - prompt].max()) for d, (_, a) in zip(done, chunk, strict=True)]
+    labels = np.array([row["recorded_success"] for row in rows])
+    auc = None
+    if 0 < labels.sum() < len(labels):
+        ranks = torch.tensor(scores).argsort().argsort().float() / max(len(scores) - 1, 1)  # see reward_report
+        auc = float(binary_auroc(ranks, torch.from_numpy(labels.astype(np.int64))))
+    return {"roc_auc": auc, "episodes": len(scores), "successful": int(labels.sum()), "max_done": scores}
+
+
 def _side_by_side(real, pred, prompt: int) -> np.ndarray:
     """(T, n_cameras, 3, H, W) real and predicted -> (T, n_cameras * H, 2 * W, 3) uint8: real left, predicted right.
     Prompt frames show the real frame on both sides."""
@@ -131,7 +153,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
 
     per_step = {f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction")
                 for m in METRICS}
-    tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos = [], [], [], [], [], []
+    tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos, whole = [], [], [], [], [], [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
         episode = read_episode(dataset, index)
         tokens = tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(device)
@@ -164,6 +186,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                              "recorded_success": recorded, "predicted_success": bool(tf.max() >= cfg.done_threshold)})
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
+        whole.append((tokens[:prompt], actions))
     if not episodes_out:
         raise ValueError(f"no episode of {dataset.root} is longer than the {prompt} prompt frames")
 
@@ -179,6 +202,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
             np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])
         ),
         "done_false_positive": _false_positives(episodes_out, tf_prob, ol_prob, cfg.done_threshold),
+        "done_whole_episode_open_loop": _whole_episode_done(model, whole, episodes_out, prompt),
         "episodes": episodes_out,
     }
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
@@ -213,6 +237,9 @@ def markdown_table(report: dict) -> str:
         lines.append(f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
                      f"({d['positive_frames']}/{d['frames']} done frames)")
     lines.append(f"\nepisode success predicted correctly: {report['episode_success_accuracy']:.3f}")
+    whole = report["done_whole_episode_open_loop"]
+    lines.append(f"\nwhole episodes generated open loop from their actions: ROC-AUC {fmt(whole['roc_auc'])} of the "
+                 f"highest done probability against success ({whole['successful']}/{whole['episodes']} successful)")
     fp = report["done_false_positive"]
     if fp is None:
         lines.append("\ndone false positives: no failed episode among those evaluated")

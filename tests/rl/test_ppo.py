@@ -8,7 +8,7 @@ from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 from safetensors.torch import load_file
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-from lerobot_roboscape.rl.ppo import PPOConfig, compute_gae, ppo_losses, train_ppo
+from lerobot_roboscape.rl.ppo import PPOConfig, compute_gae, ppo_losses, read_history, train_ppo
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -118,6 +118,15 @@ def test_resume_equals_uninterrupted_training(fresh_mlp, tmp_path):
     assert all(torch.equal(expected[key], got[key]) for key in expected)
     with pytest.raises(FileExistsError, match="--resume=true"):
         train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=8))
+
+
+def test_time_budget_stops_the_run_and_history_records_each_iteration(fresh_mlp, tmp_path):
+    final = train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", iterations=12, time_budget_s=1e-6))
+    state = json.loads((final.parent / "training_state" / "iteration.json").read_text())
+    assert state["iteration"] == 1 and state["seconds"] > 0  # the first iteration spends the budget; it is saved
+    history = read_history(tmp_path / "ppo")
+    assert [row["iteration"] for row in history] == [1] and history[0]["seconds"] == state["seconds"]
+    assert "charts/success" in history[0]
 
 
 def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_path):

@@ -1,0 +1,142 @@
+"""What one run of the pipeline does, at each scale: the config of `roboscape-demo` and `roboscape-experiment`."""
+
+from dataclasses import dataclass
+
+from lerobot_roboscape.tasks import TASK_FAMILIES
+
+ALL = list(TASK_FAMILIES)
+
+# What each scale sets; a flag given on the command line wins.
+# - "smoke": every stage at its smallest (the end-to-end test).
+# - "tiny": the embedded default (2 CPU cores, under 20 min): shows every stage working, judges none.
+# - "bench": the paper's experiment at the largest size that fits 2 CPU cores in about 2 hours, sized from
+#   measurements (docs/results/bench/report.md): push and pick&place, all 64 IND scenes, a 16x16 token grid.
+# - "paper": the paper's setting (GPUs, days: 80 scenes, 128 px, paper presets, OpenVLA-7B with LoRA).
+SCALES = {
+    "smoke": dict(
+        families=["push"], scenes=1, episodes_per_scene=1, heldout_scenes=0, image_size=64, workers=1,
+        tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=4, tokenizer_batch_size=8, wm_steps=4,
+        text_wm_steps=4, wm_batch_size=4, reward_model_steps=0, mlp_steps=4, sft_batch_size=16, openvla_steps=0,
+        openvla_base="tiny", eval_episodes=1, eval_episode_length=4, ppo_iterations=1, ppo_minutes=None,
+        ppo_envs=2, ppo_episode_length=4, ppo_one_scene=False, table_episodes=1, table_episode_length=4,
+        max_goal_steps=4, loader_workers=0, device="cpu",
+    ),
+    "tiny": dict(
+        families=["pick_place", "push"], scenes=2, episodes_per_scene=2, heldout_scenes=0, image_size=64, workers=2,
+        tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=200, tokenizer_batch_size=8, wm_steps=200,
+        text_wm_steps=100, wm_batch_size=4, reward_model_steps=0, mlp_steps=400, sft_batch_size=16,
+        openvla_steps=0, openvla_base="tiny", eval_episodes=2, eval_episode_length=60, ppo_iterations=2,
+        ppo_minutes=None, ppo_envs=6, ppo_episode_length=30, ppo_one_scene=False, table_episodes=1,
+        table_episode_length=60, max_goal_steps=40, loader_workers=2, device="cpu",
+    ),
+    "bench": dict(
+        families=["pick_place", "push"], scenes=None, episodes_per_scene=2, heldout_scenes=8, image_size=64,
+        workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1500, tokenizer_batch_size=8,
+        wm_steps=600, text_wm_steps=300, wm_batch_size=4, reward_model_steps=300, mlp_steps=3000,
+        sft_batch_size=32, openvla_steps=0, openvla_base="tiny", eval_episodes=4, eval_episode_length=60,
+        ppo_iterations=1000, ppo_minutes=8.0, ppo_envs=16, ppo_episode_length=None, ppo_one_scene=True,
+        table_episodes=12, table_episode_length=None, max_goal_steps=40, loader_workers=2, device="auto",
+    ),
+    "paper": dict(
+        families=ALL, scenes=None, episodes_per_scene=25, heldout_scenes=16, image_size=128, workers=16,
+        tokenizer_preset="paper", wm_preset="paper", tokenizer_steps=100_000, tokenizer_batch_size=32,
+        wm_steps=200_000, text_wm_steps=100_000, wm_batch_size=32, reward_model_steps=5000, mlp_steps=20_000,
+        sft_batch_size=32, openvla_steps=20_000, openvla_base="openvla/openvla-7b", eval_episodes=50,
+        eval_episode_length=160, ppo_iterations=200, ppo_minutes=None, ppo_envs=64, ppo_episode_length=None,
+        ppo_one_scene=True, table_episodes=50, table_episode_length=None, max_goal_steps=100, loader_workers=8,
+        device="auto",
+    ),
+}  # fmt: skip
+
+
+@dataclass
+class PipelineConfig:
+    """Args:
+    scale: "tiny" (default), "smoke", "bench" or "paper": sets every field left unset below.
+    output_dir: where every artifact goes. A rerun skips each stage whose outputs are complete and were made with
+        the same settings (so a killed run resumes); --fresh=true starts over.
+    fresh: retrain everything, ignoring what output_dir holds.
+    report_dir: also write the experiment's report (report.md, results.json, figures) here.
+    families: task families to collect and evaluate.
+    scenes: IND scenes per family (null: all).
+    episodes_per_scene: planner episodes per (family, IND scene), a quarter of them deliberately failed.
+    heldout_scenes: OOD scenes of the held-out collection (successful and failed episodes) that the fidelity and
+        reward reports are measured on; 0: one recorded and converted IND episode instead.
+    image_size: camera resolution.
+    workers: ManiSkill worker processes (collection, and evaluations run side by side).
+    tokenizer_preset: "tiny", "bench" or "paper".
+    wm_preset: "tiny", "bench" or "paper" (the world models').
+    tokenizer_steps: training steps of the tokenizer.
+    tokenizer_batch_size: frames per tokenizer training step.
+    wm_steps: training steps of the action world model.
+    text_wm_steps: training steps of the text world model.
+    wm_batch_size: clips per world-model training step.
+    reward_model_steps: training steps of each baseline reward model (embedding, proxy); 0 skips them.
+    mlp_steps: lerobot-train steps of the MLP policy.
+    sft_batch_size: lerobot-train batch size of the MLP policy.
+    openvla_steps: lerobot-train steps of OpenVLA (LoRA); 0 skips it. With OpenVLA, the table has its rows too.
+    openvla_base: OpenVLA base model: "tiny" (random, CPU) or a checkpoint such as openvla/openvla-7b.
+    eval_episodes: episodes of the lerobot-eval run in roboscape_wm.
+    eval_episode_length: steps per lerobot-eval episode.
+    ppo_iterations: PPO iterations in each env (one episode per parallel env each), at most.
+    ppo_minutes: wall-clock budget of each PPO run (null: none), so that RL in the world model and in the
+        simulator get the same time.
+    ppo_envs: parallel episodes of PPO.
+    ppo_episode_length: steps per PPO episode; null: per task family, its longest successful demonstration.
+    ppo_one_scene: also run PPO in the simulator in one scene per family, as the paper's baseline did.
+    table_episodes: simulator episodes per (split, family) behind each cell of Table 1.
+    table_episode_length: steps of those episodes; null: as ppo_episode_length.
+    max_goal_steps: frames the text world model may generate while looking for a goal.
+    loader_workers: data-loading processes of lerobot-train (0 saves their start-up on tiny runs).
+    device: "cpu", "cuda" or "auto".
+    push_to_hub: upload every artifact to the Hub (needs `hf auth login`); otherwise write the repos to
+        output_dir/hub.
+    hub_namespace: the Hub user or organisation of the repos.
+    """
+
+    scale: str = "tiny"
+    output_dir: str = "outputs/demo"
+    fresh: bool = False
+    report_dir: str | None = None
+    families: list[str] | None = None
+    scenes: int | None = None
+    episodes_per_scene: int | None = None
+    heldout_scenes: int | None = None
+    image_size: int | None = None
+    workers: int | None = None
+    tokenizer_preset: str | None = None
+    wm_preset: str | None = None
+    tokenizer_steps: int | None = None
+    tokenizer_batch_size: int | None = None
+    wm_steps: int | None = None
+    text_wm_steps: int | None = None
+    wm_batch_size: int | None = None
+    reward_model_steps: int | None = None
+    mlp_steps: int | None = None
+    sft_batch_size: int | None = None
+    openvla_steps: int | None = None
+    openvla_base: str | None = None
+    eval_episodes: int | None = None
+    eval_episode_length: int | None = None
+    ppo_iterations: int | None = None
+    ppo_minutes: float | None = None
+    ppo_envs: int | None = None
+    ppo_episode_length: int | None = None
+    ppo_one_scene: bool | None = None
+    table_episodes: int | None = None
+    table_episode_length: int | None = None
+    max_goal_steps: int | None = None
+    loader_workers: int | None = None
+    device: str | None = None
+    push_to_hub: bool = False
+    hub_namespace: str = "local"
+
+    def __post_init__(self):
+        if self.scale not in SCALES:
+            raise ValueError(f"--scale must be one of {list(SCALES)}, got {self.scale!r}")
+        for name, value in SCALES[self.scale].items():
+            if getattr(self, name) is None:
+                setattr(self, name, list(value) if isinstance(value, list) else value)
+        unknown = [f for f in self.families if f not in TASK_FAMILIES]
+        if unknown:
+            raise ValueError(f"unknown task families {unknown}; choose from {list(TASK_FAMILIES)}")

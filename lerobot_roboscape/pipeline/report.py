@@ -1,0 +1,243 @@
+"""The experiment's report: every target of the bench experiment with its measured value, the Table 1 of the run,
+the time of each stage and the figures a user judges the stages by (report.md, results.json and small PNGs)."""
+
+import json
+import os
+import platform
+import shutil
+from datetime import date
+from pathlib import Path
+
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
+import torch
+
+from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read_episode
+from lerobot_roboscape.evaluation.tables import format_table
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.stages import (
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    SFT,
+    method_tag,
+    stage_seconds,
+)
+from lerobot_roboscape.rl.ppo import read_history
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.training import FINAL
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+# The bench experiment's targets (issue: "a bench scale at which every stage does its job").
+TOKENIZER_PSNR_DB = 26.0
+WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the first WM_STEPS steps, below the tokenizer's reconstruction
+WM_STEPS = 8
+DONE_ROC_AUC = 0.9
+REWARD_ROC_AUC = 0.8
+SFT_IND_SUCCESS = 0.3
+
+# Stage folders under output_dir, by the stage that makes them (for the time table).
+STAGE_FOLDERS = {
+    "collect (demonstrations, held-out, trajectory file)": ["datasets/roboscape_demos", "datasets/roboscape_heldout",
+                                                           "datasets/maniskill_converted"],
+    "tokenizer": ["tokenizer"],
+    "action world model (with the token cache)": ["world_model_action"],
+    "text world model": ["world_model_text"],
+    "fidelity report": ["fidelity"],
+    "reward models and reward report": ["reward_embedding", "reward_proxy", "reward_report"],
+    "SFT (lerobot-train)": ["sft_mlp", "sft_openvla"],
+}
+
+
+def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) -> Path:
+    """Write report.md, results.json and the figures into out/report (and report_dir); returns report.md."""
+    folder = out / "report"
+    folder.mkdir(parents=True, exist_ok=True)
+    fidelity = json.loads((out / "fidelity" / "fidelity.json").read_text())
+    rewards = json.loads((out / "reward_report" / "reward_report.json").read_text())
+    table = json.loads((out / "tables" / "tables.json").read_text())
+    targets = measure_targets(fidelity, rewards, table, cfg.families)
+    times = stage_times(cfg, out)
+    results = {"scale": cfg.scale, "families": cfg.families, "date": date.today().isoformat(),
+               "machine": machine(), "targets": targets, "table": table, "stage_seconds": times,
+               "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "done_whole_episode_open_loop")},
+               "reward": rewards["summary"], "similarity": rewards["similarity"]}  # fmt: skip
+    (folder / "results.json").write_text(json.dumps(results, indent=2))
+
+    tokenizer_figure(out, folder / "tokenizer_reconstruction.png")
+    world_model_figure(out / "fidelity" / "side_by_side.mp4", fidelity["prompt_frames"],
+                       folder / "world_model_open_loop.png")
+    ppo_curves(out, table, folder / "ppo_curves.png")
+    for source, name in ((out / "fidelity" / "fidelity.png", "fidelity.png"),
+                         (out / "reward_report" / "reward_curves.png", "reward_curves.png"),
+                         (out / "tables" / "tables.png", "tables.png")):  # fmt: skip
+        shutil.copy2(source, folder / name)
+    (folder / "report.md").write_text(markdown(cfg, results, table))
+    if report_dir:
+        shutil.copytree(folder, report_dir, dirs_exist_ok=True)
+    return folder / "report.md"
+
+
+def measure_targets(fidelity: dict, rewards: dict, table: dict, families: list[str]) -> dict:
+    """{target: {"value", "goal", "met"}} for each target of the bench experiment."""
+    per_step = fidelity["per_step"]
+    steps = min(WM_STEPS, len(per_step["prediction_psnr"]))
+    prediction = float(np.mean(per_step["prediction_psnr"][:steps]))
+    reconstruction = float(np.mean(per_step["reconstruction_psnr"][:steps]))
+    tokenizer_psnr = fidelity["mean"]["reconstruction_psnr"]
+    targets = {
+        "tokenizer held-out reconstruction PSNR (dB)": _target(tokenizer_psnr, f">= {TOKENIZER_PSNR_DB}",
+                                                             tokenizer_psnr >= TOKENIZER_PSNR_DB),
+        f"action WM open-loop PSNR, first {steps} steps (dB; tokenizer {reconstruction:.2f})": _target(
+            prediction, f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
+            prediction >= reconstruction - WM_PSNR_GAP_DB),
+    }
+    done = fidelity["done_whole_episode_open_loop"]["roc_auc"]
+    targets["done ROC-AUC, held-out episodes generated open loop"] = _target(
+        done, f">= {DONE_ROC_AUC}", done is not None and done >= DONE_ROC_AUC)
+    summary = rewards["summary"]
+    ours = summary["world_model"]["roc_auc_of_return"]
+    baselines = {k: summary[k]["roc_auc_of_return"] for k in ("embedding", "proxy") if k in summary}
+    beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
+    targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _target(
+        ours, f">= {REWARD_ROC_AUC} and above " + ", ".join(f"{k} ({_fmt(v)})" for k, v in baselines.items()),
+        ours is not None and ours >= REWARD_ROC_AUC and beats)
+    for policy, methods in table.items():
+        for family in families:
+            rate = methods[SFT]["ind"][family]["success_rate"]
+            targets[f"{policy} SFT IND success, {family}"] = _target(rate, f">= {SFT_IND_SUCCESS}",
+                                                                     rate >= SFT_IND_SUCCESS)
+        wm = methods.get(RL_WORLD_MODEL)
+        if wm is None:
+            continue
+        for split in ("ind", "ood"):
+            rate = wm[split]["all"]["success_rate"]
+            for other in (SFT, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
+                if other not in methods:
+                    continue
+                theirs = methods[other][split]["all"]["success_rate"]
+                better = rate > theirs if other == SFT else rate >= theirs
+                relation = ">" if other == SFT else ">="
+                targets[f"{policy} PPO in WM vs {other}, {split.upper()} (all families)"] = _target(
+                    rate, f"{relation} {theirs:.3f}", better)
+    return targets
+
+
+def _target(value, goal: str, met: bool) -> dict:
+    return {"value": None if value is None else round(float(value), 4), "goal": goal, "met": bool(met)}
+
+
+def _fmt(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
+    """Seconds of each stage's last run, from the stage.json its folders hold."""
+    times = {}
+    for stage, folders in STAGE_FOLDERS.items():
+        times[stage] = sum(stage_seconds(out / f) or 0.0 for f in folders)
+    for policy in ("roboscape_mlp", "openvla"):
+        for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
+            seconds = stage_seconds(out / "rl" / policy / method_tag(method))
+            if seconds is not None:
+                times[f"PPO {policy}: {method}"] = seconds
+    evals = [stage_seconds(p.parent) for p in (out / "eval").glob("*/*/*/stage.json")]
+    times[f"simulator evaluation ({cfg.workers} side by side)"] = sum(s for s in evals if s)
+    return {k: round(v, 1) for k, v in times.items() if v}
+
+
+def machine() -> str:
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
+    return f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()}), {gpu}"
+
+
+def tokenizer_figure(out: Path, path: Path, frames: int = 4) -> None:
+    """Held-out frames (top) and the tokenizer's reconstruction (bottom), every view, at 3x size."""
+    stage = json.loads((out / "fidelity" / "stage.json").read_text())["settings"]
+    dataset = open_dataset(stage["dataset"]["repo_id"], stage["dataset"]["root"])
+    tokenizer = VisualTokenizer.from_pretrained(str(out / "tokenizer" / FINAL)).eval()
+    rows = [[], []]
+    for index in episode_indices(dataset)[:frames]:
+        episode = read_episode(dataset, index)
+        t = len(episode.action) // 2  # mid-episode: the arm near the object
+        for images in episode.images.values():
+            real = torch.from_numpy(images[t]).permute(2, 0, 1)[None]
+            recon = tokenizer.decode(tokenizer.encode(real))[0]
+            rows[0].append(images[t])
+            rows[1].append((recon.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8))
+    grid = np.concatenate([np.concatenate(r, 1) for r in rows], 0)
+    iio.imwrite(path, np.kron(grid, np.ones((3, 3, 1), np.uint8)))
+
+
+def world_model_figure(video: Path, prompt: int, path: Path, steps: int = WM_STEPS) -> None:
+    """Frames of the fidelity video's first episode (real | predicted, every view), one column per open-loop step."""
+    frames = iio.imread(video, plugin="pyav")[prompt : prompt + steps]
+    iio.imwrite(path, np.kron(np.concatenate(list(frames), 1), np.ones((2, 2, 1), np.uint8)))
+
+
+def ppo_curves(out: Path, table: dict, path: Path) -> None:
+    """Training success and return of each PPO run against its wall-clock time."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
+    for policy in table:
+        for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
+            history = read_history(out / "rl" / policy / method_tag(method))
+            if not history:
+                continue
+            minutes = [row["seconds"] / 60 for row in history]
+            axes[0].plot(minutes, [row["charts/success"] for row in history], "-o", markersize=3,
+                         label=f"{policy}: {method}")
+            axes[1].plot(minutes, [row["charts/episode_return"] for row in history], "-o", markersize=3)
+    axes[0].set_ylabel("success in its own env")
+    axes[1].set_ylabel("episode return in its own env")
+    for ax in axes:
+        ax.set_xlabel("wall-clock (min)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
+    targets, times = results["targets"], results["stage_seconds"]
+    lines = [
+        f"# RoboScape-R at the {cfg.scale} scale", "",
+        f"{results['machine']}; {sum(times.values()) / 60:.0f} min of stage time in all; {results['date']}. "
+        f"Regenerate with `roboscape-demo --scale={cfg.scale} --output_dir={cfg.output_dir} "
+        f"--report_dir=docs/results/{cfg.scale}` (a rerun skips the stages already complete).", "",
+        "## Protocol", "",
+        "As the paper's section 8.1: task families " + ", ".join(cfg.families) + "; IND evaluates the training "
+        "scenes with new initial states, OOD the held-out scenes (unseen objects and unseen object-container "
+        "combinations). The world models and the MLP policy train on the demonstrations of the IND scenes "
+        f"({cfg.episodes_per_scene} per family and scene, a quarter of them deliberately failed; SFT imitates the "
+        "successful ones). The fidelity and reward reports use held-out episodes in "
+        f"{cfg.heldout_scenes} OOD scenes, half of them failed attempts. RL: PPO from the SFT checkpoint, one "
+        "multi-task run per env over the families; each run gets the same wall-clock budget "
+        f"({cfg.ppo_minutes} min) on the same machine. RL in ManiSkill runs twice: in one scene (the paper's "
+        "baseline: the simulator \"only initializes a single type of environment\", section 3.2) and in every "
+        f"training scene. Success: {cfg.table_episodes} simulator episodes per (split, family), episodes end at "
+        "success or at the family's horizon (its longest successful demonstration).", "",
+        "## Targets", "", "| target | measured | goal | met |", "|---|---:|---|:---:|",
+    ]  # fmt: skip
+    for name, t in targets.items():
+        lines.append(f"| {name} | {_fmt(t['value'])} | {t['goal']} | {'yes' if t['met'] else '**no**'} |")
+    lines += ["", "## Table 1", "", format_table(table, cfg.families, f"{cfg.scale} scale"),
+              "![Table 1](tables.png)", "", "## Tokenizer", "",
+              "Held-out frames (top) and their reconstruction (bottom), both views:", "",
+              "![tokenizer](tokenizer_reconstruction.png)", "", "## Action world model", "",
+              f"Open loop from {WM_STEPS} held-out steps' recorded actions (each column: real | predicted, both "
+              "views), and PSNR/SSIM per step against the tokenizer's own reconstruction:", "",
+              "![open loop](world_model_open_loop.png)", "", "![fidelity](fidelity.png)", "",
+              "## Reward", "", f"Dense reward's similarity: {results['similarity']}. ROC-AUC of the episode return "
+              "between successful and failed held-out episodes:", "",
+              "| reward | ROC-AUC | mean return, success | mean return, failure |", "|---|---:|---:|---:|"]  # fmt: skip
+    for kind, s in results["reward"].items():
+        lines.append(f"| {kind} | {_fmt(s['roc_auc_of_return'])} | {_fmt(s['mean_return_success'])} | "
+                     f"{_fmt(s['mean_return_failure'])} |")
+    lines += ["", "Rewards along held-out successful episodes (each scaled to [0, 1], as the paper's Fig. 3):", "",
+              "![reward curves](reward_curves.png)", "", "## PPO", "", "![PPO curves](ppo_curves.png)", "",
+              "## Time per stage", "", "| stage | minutes |", "|---|---:|"]  # fmt: skip
+    lines += [f"| {stage} | {seconds / 60:.1f} |" for stage, seconds in times.items()]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,455 @@
+"""The stages of the pipeline, one function each: each takes the run's config and what the stages before it made,
+and returns what it made. A stage writes into its own folder under output_dir and, once complete, a stage.json with
+the settings it ran with; a rerun with the same settings skips it (so a killed run resumes where it stopped)."""
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, replace
+from multiprocessing import get_context
+from pathlib import Path
+
+import av
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
+from lerobot.configs.default import DatasetConfig
+
+from lerobot_roboscape.cli.collect import CollectConfig, collect
+from lerobot_roboscape.cli.convert import ConvertConfig, convert
+from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
+from lerobot_roboscape.demos.record import record_maniskill_trajectories
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success, markdown_table
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.reward.baselines import RewardModelConfig
+from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConfig, train_reward_model
+from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.tasks import select_scenes
+from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
+from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training import FINAL, last_checkpoint
+from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+logger = logging.getLogger(__name__)
+STAGE_FILE = "stage.json"
+HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
+SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
+    "Supervised finetune", "RL w. ManiSkill (one scene)", "RL w. ManiSkill", "RL w. World Model")
+
+
+# ---- resuming ----------------------------------------------------------------------------------------------------
+
+
+def _jsonable(settings) -> dict:
+    return json.loads(json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__")
+                                 else str(v)))  # fmt: skip
+
+
+_began: dict[Path, float] = {}  # when each stage folder's current run started
+
+
+def is_done(folder: Path, settings, fresh: bool) -> bool:
+    """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped)."""
+    marker = Path(folder) / STAGE_FILE
+    if fresh or not marker.is_file():
+        return False
+    return json.loads(marker.read_text())["settings"] == _jsonable(settings)
+
+
+def start(folder: Path) -> Path:
+    """Clear what an unfinished or differently-configured run of the stage left in `folder`."""
+    shutil.rmtree(folder, ignore_errors=True)
+    _began[Path(folder)] = time.time()
+    return Path(folder)
+
+
+def prepare(folder: Path, settings, fresh: bool) -> bool:
+    """Make `folder` ready for a training stage; True when it holds an interrupted run with the same settings to
+    resume from (its checkpoints), False when it was cleared for a new run."""
+    folder, started = Path(folder), Path(folder) / "stage.started.json"
+    if not fresh and started.is_file() and json.loads(started.read_text()) == _jsonable(settings):
+        _began[folder] = time.time()
+        return True
+    start(folder).mkdir(parents=True)
+    started.write_text(json.dumps(_jsonable(settings), indent=2))
+    return False
+
+
+def mark_done(folder: Path, settings) -> None:
+    """Record the stage's settings and the seconds its (last) run took."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    seconds = time.time() - _began.pop(folder, time.time())
+    (folder / STAGE_FILE).write_text(json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2))
+
+
+def stage_seconds(folder: Path) -> float | None:
+    marker = Path(folder) / STAGE_FILE
+    return json.loads(marker.read_text())["seconds"] if marker.is_file() else None
+
+
+# ---- data --------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Datasets:
+    """train: the demonstrations (IND scenes; successful, suboptimal and failed attempts). heldout: episodes the
+    models never saw, for the fidelity and reward reports (OOD scenes, half failed; or one converted episode).
+    trajectory_file: the recorded ManiSkill .h5 that `roboscape-convert` read."""
+
+    train: DatasetConfig
+    heldout: DatasetConfig
+    trajectory_file: Path
+
+
+def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
+    folder = Path(cfg.root)
+    if not is_done(folder, cfg, fresh):
+        start(folder)
+        collect(replace(cfg, overwrite=True))
+        mark_done(folder, cfg)
+    return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
+
+
+def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
+    """Planner demonstrations in the IND scenes, a held-out collection in OOD scenes, and a recorded ManiSkill
+    trajectory file converted to a LeRobotDataset."""
+    train = _collect(CollectConfig(
+        repo_id="local/roboscape_demos", root=str(out / "datasets" / "roboscape_demos"), families=cfg.families,
+        split="ind", max_scenes=cfg.scenes, episodes_per_scene=cfg.episodes_per_scene, image_size=cfg.image_size,
+        workers=cfg.workers, keep_failed=True), cfg.fresh)  # fmt: skip
+    record = {"family": cfg.families[0], "scene": select_scenes("ind")[0].id, "image_size": cfg.image_size,
+              "seed": HELDOUT_SEED}  # fmt: skip
+    converted = out / "datasets" / "maniskill_converted"
+    h5_dir = out / "maniskill_trajectories"
+    if not is_done(converted, record, cfg.fresh):
+        start(h5_dir)
+        h5 = record_maniskill_trajectories(h5_dir, record["family"], record["scene"], episodes=1,
+                                           image_size=cfg.image_size, seed=HELDOUT_SEED)
+        start(converted)
+        convert(ConvertConfig(h5=str(h5), root=str(converted), repo_id="local/maniskill_converted", overwrite=True))
+        mark_done(converted, record)
+    h5 = next(h5_dir.glob("*.h5"))
+    heldout = DatasetConfig(repo_id="local/maniskill_converted", root=str(converted))
+    if cfg.heldout_scenes:
+        heldout = _collect(CollectConfig(
+            repo_id="local/roboscape_heldout", root=str(out / "datasets" / "roboscape_heldout"),
+            families=cfg.families, split="ood", max_scenes=cfg.heldout_scenes, episodes_per_scene=2,
+            failed_fraction=0.5, seed=HELDOUT_SEED, image_size=cfg.image_size, workers=cfg.workers,
+            keep_failed=True), cfg.fresh)  # fmt: skip
+    return Datasets(train, heldout, h5)
+
+
+# ---- models ------------------------------------------------------------------------------------------------------
+
+
+def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
+    """Train the image tokenizer; returns its pretrained_model directory."""
+    folder = out / "tokenizer"
+    train = TrainTokenizerConfig(
+        dataset=data.train, tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
+        train=TokenizerTrainingConfig(steps=cfg.tokenizer_steps, batch_size=cfg.tokenizer_batch_size,
+                                      save_freq=max(cfg.tokenizer_steps // 4, 1)),
+        output_dir=folder, num_workers=min(cfg.workers, 2), allow_random_lpips=True,
+    )  # fmt: skip
+    if not is_done(folder, train, cfg.fresh):
+        train_tokenizer(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
+        mark_done(folder, train)
+    return folder / FINAL
+
+
+def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:
+    """Train the action and the text world models (each with its done head); returns {control: directory}."""
+    models = {}
+    for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps)):
+        folder = out / f"world_model_{control}"
+        train = TrainWorldModelConfig(
+            dataset=data.train, tokenizer=str(tokenizer_path),
+            wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
+            train=WorldModelTrainingConfig(steps=steps, batch_size=cfg.wm_batch_size,
+                                           save_freq=max(steps // 4, 1)),
+            output_dir=folder, cache_dir=out / "token_cache", device=cfg.device,
+        )  # fmt: skip
+        if not is_done(folder, train, cfg.fresh):
+            train_world_model(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
+            mark_done(folder, train)
+        models[control] = folder / FINAL
+    return models
+
+
+def reward_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path,
+                  models: dict[str, Path]) -> dict[str, Path]:
+    """Train the paper's baseline rewards (embedding-based and proxy-based); {} when reward_model_steps is 0."""
+    trained = {}
+    for kind in ("embedding", "proxy") if cfg.reward_model_steps else ():
+        folder = out / f"reward_{kind}"
+        train = TrainRewardConfig(reward=RewardModelConfig(kind=kind), dataset=data.train,
+                                  tokenizer=str(tokenizer_path), action_world_model=str(models["action"]),
+                                  train=RewardTrainingConfig(steps=cfg.reward_model_steps),
+                                  output_dir=folder, cache_dir=out / "token_cache", device=cfg.device)  # fmt: skip
+        if not is_done(folder, train, cfg.fresh):
+            start(folder)
+            train_reward_model(train)
+            mark_done(folder, train)
+        trained[kind] = folder / FINAL
+    return trained
+
+
+def world_model_env(cfg: PipelineConfig, data: Datasets, tokenizer_path: Path,
+                    models: dict[str, Path]) -> RoboscapeWorldModelEnvConfig:
+    """The `roboscape_wm` env of these models, starting from the demonstrations' first frames."""
+    return RoboscapeWorldModelEnvConfig(
+        dataset_repo_id=data.train.repo_id, dataset_root=data.train.root, tokenizer=str(tokenizer_path),
+        action_world_model=str(models["action"]), text_world_model=str(models["text"]), families=cfg.families,
+        image_size=cfg.image_size, max_goal_steps=cfg.max_goal_steps, allow_random_lpips=True, device=cfg.device,
+    )  # fmt: skip
+
+
+# ---- reports on the models ---------------------------------------------------------------------------------------
+
+
+def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]) -> dict:
+    """The action world model's fidelity report on the held-out episodes (PSNR per open-loop step against the
+    tokenizer's own reconstruction, done scores); returns the report."""
+    folder = out / "fidelity"
+    report_cfg = FidelityConfig(dataset=data.heldout, tokenizer=str(tokenizer_path),
+                                world_model=str(models["action"]), output_dir=folder, max_episodes=32,
+                                allow_random_lpips=True, device=cfg.device)  # fmt: skip
+    if not is_done(folder, report_cfg, cfg.fresh):
+        start(folder)
+        evaluate_fidelity(report_cfg)
+        mark_done(folder, report_cfg)
+    return json.loads((folder / "fidelity.json").read_text())
+
+
+def reward_report(cfg: PipelineConfig, out: Path, data: Datasets, env: RoboscapeWorldModelEnvConfig,
+                  baselines: dict[str, Path]) -> dict:
+    """Every reward along the held-out episodes and how well its return separates success from failure."""
+    folder = out / "reward_report"
+    report_cfg = RewardReportConfig(env=env, dataset=data.heldout, embedding_reward=_str(baselines.get("embedding")),
+                                    proxy_reward=_str(baselines.get("proxy")), output_dir=folder,
+                                    max_episodes=64)  # fmt: skip
+    if not is_done(folder, report_cfg, cfg.fresh):
+        start(folder)
+        # The report points a copy of the env at the held-out data, every episode of it (a converted dataset
+        # records no task family to filter by).
+        write_reward_report(replace(report_cfg, env=replace(env, families=[])))
+        mark_done(folder, report_cfg)
+    return json.loads((folder / "reward_report.json").read_text())
+
+
+def _str(path: Path | None) -> str | None:
+    return None if path is None else str(path)
+
+
+def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episodes: int = 2, steps: int = 40) -> dict:
+    """Random actions in `roboscape_wm`: a video of frame beside goal and the reward curve."""
+    env = RoboscapeWorldModelEnv(replace(env_cfg, episode_length=steps), num_envs=episodes)
+    env.reset(seed=0)
+    frames, rewards = [np.concatenate(env.render(), axis=1)], []
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        frames.append(np.concatenate(env.render(), axis=1))
+        rewards.append(reward)
+        if (terminated | truncated).all():
+            break
+    rewards = np.stack(rewards)
+    video, plot = out / "wm_rollout.mp4", out / "wm_rollout_reward.png"
+    av.logging.set_level(av.logging.ERROR)
+    iio.imwrite(video, np.stack(frames), plugin="pyav", codec="libx264", fps=env.metadata["render_fps"])
+    fig, ax = plt.subplots(figsize=(6, 3))
+    for i in range(episodes):
+        ax.plot(rewards[:, i], label=env.tasks()[i])
+    ax.set_xlabel("step")
+    ax.set_ylabel("reward")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(plot, dpi=100)
+    plt.close(fig)
+    return {"video": video, "plot": plot, "steps": len(rewards), "episodes": episodes,
+            "returns": [round(float(r), 2) for r in rewards.sum(0)]}
+
+
+# ---- policies ----------------------------------------------------------------------------------------------------
+
+
+def run_lerobot(script: str, args: list[str]) -> None:
+    """A LeRobot command line (`lerobot_train`, `lerobot_eval`) in a subprocess with its own progress display."""
+    result = subprocess.run([sys.executable, "-m", f"lerobot.scripts.{script}", *args], stdout=subprocess.DEVNULL)
+    if result.returncode != 0:
+        raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
+
+
+def sft_episodes(dataset: DatasetConfig) -> list[int]:
+    """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model)."""
+    episodes = successful_episodes(open_dataset(dataset.repo_id, dataset.root))
+    if not episodes:
+        raise ValueError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
+    return episodes
+
+
+def lerobot_sft(output_dir: Path, dataset: DatasetConfig, policy_args: list[str], steps: int, batch_size: int,
+                num_workers: int = 2, fresh: bool = False) -> Path:
+    """SFT with `lerobot-train` on the dataset's successful episodes; returns the final pretrained_model directory."""
+    episodes = sft_episodes(dataset)
+    args = [f"--dataset.repo_id={dataset.repo_id}", *([f"--dataset.root={dataset.root}"] if dataset.root else []),
+            f"--dataset.episodes=[{','.join(map(str, episodes))}]", *policy_args, "--policy.push_to_hub=false",
+            f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}",
+            f"--log_freq={max(steps // 5, 1)}", f"--num_workers={num_workers}", f"--output_dir={output_dir}"]
+    if not is_done(output_dir, args, fresh):
+        start(output_dir)
+        run_lerobot("lerobot_train", args)
+        mark_done(output_dir, args)
+    return output_dir / "checkpoints" / "last" / "pretrained_model"
+
+
+def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
+    """{policy name: its lerobot-train arguments} of the policies this run trains."""
+    device = [f"--policy.device={cfg.device}"] if cfg.device != "auto" else []
+    specs = {"roboscape_mlp": ["--policy.type=roboscape_mlp", *device]}
+    if cfg.openvla_steps:
+        specs["openvla"] = ["--policy.type=openvla", f"--policy.base_model={cfg.openvla_base}", *device]
+    return specs
+
+
+def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
+    """SFT of each policy with `lerobot-train`; returns {policy name: checkpoint}."""
+    steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
+    return {name: lerobot_sft(out / f"sft_{name.removeprefix('roboscape_')}", data.train, args, *steps[name],
+                              num_workers=cfg.loader_workers, fresh=cfg.fresh)
+            for name, args in policy_specs(cfg).items()}  # fmt: skip
+
+
+def lerobot_eval_in_world_model(cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path],
+                                env: RoboscapeWorldModelEnvConfig) -> dict[str, Path]:
+    """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
+    flags = [f"--env.{key}={value}" for key, value in asdict(env).items()
+             if key in ("dataset_repo_id", "dataset_root", "tokenizer", "action_world_model", "text_world_model",
+                        "max_goal_steps", "allow_random_lpips", "image_size")]  # fmt: skip
+    results = {}
+    for name, checkpoint in checkpoints.items():
+        folder = out / f"eval_{name}_roboscape_wm"
+        args = [f"--policy.path={checkpoint}", "--env.type=roboscape_wm", f"--env.families=[{','.join(cfg.families)}]",
+                f"--env.episode_length={cfg.eval_episode_length}", *flags, f"--eval.n_episodes={cfg.eval_episodes}",
+                f"--eval.batch_size={cfg.eval_episodes}", f"--output_dir={folder}"]  # fmt: skip
+        if not is_done(folder, args, cfg.fresh):
+            start(folder)
+            run_lerobot("lerobot_eval", args)
+            mark_done(folder, args)
+        result = json.loads((folder / "eval_info.json").read_text())["overall"]
+        print(f"{name} in roboscape_wm: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
+              f"mean return {result['avg_sum_reward']:.2f}")
+        results[name] = folder / "eval_info.json"
+    return results
+
+
+def rl_envs(cfg: PipelineConfig, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig) -> dict:
+    """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
+    training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
+    environment"), the simulator in one scene."""
+    sim = RoboscapeManiSkillEnvConfig(families=cfg.families, split="ind", image_size=cfg.image_size,
+                                      episode_length=cfg.ppo_episode_length, dataset_repo_id=data.train.repo_id,
+                                      dataset_root=data.train.root)  # fmt: skip
+    envs = {RL_WORLD_MODEL: replace(wm_env, split="ind", episode_length=cfg.ppo_episode_length), RL_MANISKILL: sim}
+    if cfg.ppo_one_scene:
+        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[select_scenes("ind")[0].id])
+    return envs
+
+
+def method_tag(method: str) -> str:
+    """The method's name in folders and Hub repos."""
+    return {SFT: "sft", RL_WORLD_MODEL: "ppo_world_model", RL_MANISKILL: "ppo_maniskill",
+            RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene"}[method]  # fmt: skip
+
+
+def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
+    """One PPO run (resumed from its last checkpoint when interrupted); returns its final checkpoint."""
+    folder = Path(cfg.output_dir)
+    if is_done(folder, cfg, fresh):
+        return last_checkpoint(folder) / FINAL
+    resume = prepare(folder, cfg, fresh) and last_checkpoint(folder) is not None
+    checkpoint = train_ppo(replace(cfg, resume=resume))
+    mark_done(folder, cfg)
+    return checkpoint
+
+
+def rl(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig,
+       checkpoints: dict[str, Path]) -> dict[str, dict[str, Path]]:
+    """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock);
+    returns {policy: {method: checkpoint}}."""
+    runs = {}
+    for name, sft_checkpoint in checkpoints.items():
+        runs[name] = {}
+        for method, env in rl_envs(cfg, data, wm_env).items():
+            runs[name][method] = ppo(PPOConfig(
+                policy_path=str(sft_checkpoint), env=env, output_dir=out / "rl" / name / method_tag(method),
+                num_envs=cfg.ppo_envs, iterations=cfg.ppo_iterations,
+                time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
+                save_freq=max(min(cfg.ppo_iterations, 5), 1), device=cfg.device), cfg.fresh)  # fmt: skip
+    return runs
+
+
+# ---- evaluation in the simulator ---------------------------------------------------------------------------------
+
+
+def _evaluate_quietly(cfg: EvalConfig) -> dict:
+    import torch
+
+    torch.set_num_threads(1)  # side by side with other evaluations: one core each
+    with contextlib.redirect_stderr(open(os.devnull, "w")):
+        return evaluate_success(cfg)
+
+
+def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets,
+                   checkpoints: dict[str, dict[str, Path]]) -> dict:
+    """Success of every checkpoint in the simulator, IND and OOD (95% Wilson intervals); evaluations run
+    `workers` at a time, one per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
+    jobs = {}
+    for name, methods in checkpoints.items():
+        for method, checkpoint in methods.items():
+            for split in ("ind", "ood"):
+                jobs[name, method, split] = EvalConfig(
+                    policy_path=str(checkpoint), families=cfg.families, splits=[split], episodes=cfg.table_episodes,
+                    batch_size=min(8, len(cfg.families) * cfg.table_episodes),
+                    episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
+                    dataset_repo_id=data.train.repo_id, dataset_root=data.train.root, image_size=cfg.image_size,
+                    videos=2, output_dir=out / "eval" / name / method_tag(method) / split,
+                    device=cfg.device)  # fmt: skip
+    pending = {key: job for key, job in jobs.items() if not is_done(job.output_dir, job, cfg.fresh)}
+    for job in pending.values():
+        start(job.output_dir)
+    if cfg.workers > 1 and len(pending) > 1:
+        with ProcessPoolExecutor(min(cfg.workers, len(pending)), mp_context=get_context("spawn")) as pool:
+            for job, _ in zip(pending.values(), pool.map(_evaluate_quietly, pending.values()), strict=True):
+                mark_done(job.output_dir, job)
+    else:
+        for job in pending.values():
+            evaluate_success(job)
+            mark_done(job.output_dir, job)
+    results = {}
+    for (name, method, split), job in jobs.items():
+        cells = json.loads((job.output_dir / "eval.json").read_text())["splits"][split]
+        results.setdefault(name, {}).setdefault(method, {})[split] = cells
+    for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
+        for method, splits in methods.items():
+            length = jobs[name, method, "ind"].episode_length or "per family"
+            merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
+            folder = out / "eval" / name / method_tag(method)
+            (folder / "eval.json").write_text(json.dumps(merged, indent=2))
+            (folder / "eval.md").write_text(markdown_table(merged))
+    return results
