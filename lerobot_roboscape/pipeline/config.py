@@ -14,7 +14,8 @@ ALL = list(TASK_FAMILIES)
 # - "paper": the paper's setting (GPUs, days: 80 scenes, 128 px, paper presets, OpenVLA-7B with LoRA).
 SCALES = {
     "smoke": dict(
-        families=["push"], scenes=1, episodes_per_scene=1, heldout_scenes=0, image_size=64, workers=1,
+        families=["push"], scenes=1, episodes_per_scene=1, heldout_scenes=0, report_episodes=4, image_size=64,
+        workers=1,
         tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=4, tokenizer_batch_size=8, wm_steps=4,
         text_wm_steps=4, wm_batch_size=4, reward_model_steps=0, mlp_steps=4, sft_batch_size=16, openvla_steps=0,
         openvla_base="tiny", eval_episodes=1, eval_episode_length=4, ppo_iterations=1, ppo_minutes=None,
@@ -22,7 +23,8 @@ SCALES = {
         max_goal_steps=4, loader_workers=0, device="cpu",
     ),
     "tiny": dict(
-        families=["pick_place", "push"], scenes=2, episodes_per_scene=2, heldout_scenes=0, image_size=64, workers=2,
+        families=["pick_place", "push"], scenes=2, episodes_per_scene=2, heldout_scenes=0, report_episodes=8,
+        image_size=64, workers=2,
         tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=200, tokenizer_batch_size=8, wm_steps=200,
         text_wm_steps=100, wm_batch_size=4, reward_model_steps=0, mlp_steps=400, sft_batch_size=16,
         openvla_steps=0, openvla_base="tiny", eval_episodes=2, eval_episode_length=60, ppo_iterations=2,
@@ -30,15 +32,17 @@ SCALES = {
         table_episode_length=60, max_goal_steps=40, loader_workers=2, device="cpu",
     ),
     "bench": dict(
-        families=["pick_place", "push"], scenes=None, episodes_per_scene=2, heldout_scenes=8, image_size=64,
-        workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1500, tokenizer_batch_size=8,
-        wm_steps=600, text_wm_steps=300, wm_batch_size=4, reward_model_steps=300, mlp_steps=3000,
+        families=["pick_place", "push"], scenes=None, episodes_per_scene=2, heldout_scenes=8, report_episodes=16,
+        image_size=64,
+        workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1200, tokenizer_batch_size=8,
+        wm_steps=400, text_wm_steps=200, wm_batch_size=4, reward_model_steps=200, mlp_steps=3000,
         sft_batch_size=32, openvla_steps=0, openvla_base="tiny", eval_episodes=4, eval_episode_length=60,
-        ppo_iterations=1000, ppo_minutes=8.0, ppo_envs=16, ppo_episode_length=None, ppo_one_scene=True,
+        ppo_iterations=1000, ppo_minutes=6.0, ppo_envs=16, ppo_episode_length=None, ppo_one_scene=True,
         table_episodes=12, table_episode_length=None, max_goal_steps=40, loader_workers=2, device="auto",
     ),
     "paper": dict(
-        families=ALL, scenes=None, episodes_per_scene=25, heldout_scenes=16, image_size=128, workers=16,
+        families=ALL, scenes=None, episodes_per_scene=25, heldout_scenes=16, report_episodes=64, image_size=128,
+        workers=16,
         tokenizer_preset="paper", wm_preset="paper", tokenizer_steps=100_000, tokenizer_batch_size=32,
         wm_steps=200_000, text_wm_steps=100_000, wm_batch_size=32, reward_model_steps=5000, mlp_steps=20_000,
         sft_batch_size=32, openvla_steps=20_000, openvla_base="openvla/openvla-7b", eval_episodes=50,
@@ -62,6 +66,7 @@ class PipelineConfig:
     episodes_per_scene: planner episodes per (family, IND scene), a quarter of them deliberately failed.
     heldout_scenes: OOD scenes of the held-out collection (successful and failed episodes) that the fidelity and
         reward reports are measured on; 0: one recorded and converted IND episode instead.
+    report_episodes: held-out episodes (spread over the held-out dataset) behind the fidelity and reward reports.
     image_size: camera resolution.
     workers: ManiSkill worker processes (collection, and evaluations run side by side).
     tokenizer_preset: "tiny", "bench" or "paper".
@@ -102,6 +107,7 @@ class PipelineConfig:
     scenes: int | None = None
     episodes_per_scene: int | None = None
     heldout_scenes: int | None = None
+    report_episodes: int | None = None
     image_size: int | None = None
     workers: int | None = None
     tokenizer_preset: str | None = None

@@ -219,6 +219,14 @@ def world_model_env(cfg: PipelineConfig, data: Datasets, tokenizer_path: Path,
     )  # fmt: skip
 
 
+def spread(dataset: DatasetConfig, k: int) -> DatasetConfig:
+    """`k` episodes of the dataset evenly spaced over it (episodes are stored family by family and scene by
+    scene, so the first k would all be of one family)."""
+    n = open_dataset(dataset.repo_id, dataset.root).meta.total_episodes
+    episodes = sorted({int(i) for i in np.linspace(0, n - 1, min(k, n)).round()})
+    return replace(dataset, episodes=episodes)
+
+
 # ---- reports on the models ---------------------------------------------------------------------------------------
 
 
@@ -226,9 +234,10 @@ def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Pat
     """The action world model's fidelity report on the held-out episodes (PSNR per open-loop step against the
     tokenizer's own reconstruction, done scores); returns the report."""
     folder = out / "fidelity"
-    report_cfg = FidelityConfig(dataset=data.heldout, tokenizer=str(tokenizer_path),
-                                world_model=str(models["action"]), output_dir=folder, max_episodes=32,
-                                allow_random_lpips=True, device=cfg.device)  # fmt: skip
+    report_cfg = FidelityConfig(dataset=spread(data.heldout, cfg.report_episodes), tokenizer=str(tokenizer_path),
+                                world_model=str(models["action"]), output_dir=folder,
+                                max_episodes=cfg.report_episodes, allow_random_lpips=True,
+                                device=cfg.device)  # fmt: skip
     if not is_done(folder, report_cfg, cfg.fresh):
         start(folder)
         evaluate_fidelity(report_cfg)
@@ -240,9 +249,10 @@ def reward_report(cfg: PipelineConfig, out: Path, data: Datasets, env: Roboscape
                   baselines: dict[str, Path]) -> dict:
     """Every reward along the held-out episodes and how well its return separates success from failure."""
     folder = out / "reward_report"
-    report_cfg = RewardReportConfig(env=env, dataset=data.heldout, embedding_reward=_str(baselines.get("embedding")),
+    report_cfg = RewardReportConfig(env=env, dataset=spread(data.heldout, cfg.report_episodes),
+                                    embedding_reward=_str(baselines.get("embedding")),
                                     proxy_reward=_str(baselines.get("proxy")), output_dir=folder,
-                                    max_episodes=64)  # fmt: skip
+                                    max_episodes=cfg.report_episodes)  # fmt: skip
     if not is_done(folder, report_cfg, cfg.fresh):
         start(folder)
         # The report points a copy of the env at the held-out data, every episode of it (a converted dataset
