@@ -19,7 +19,8 @@ SCALES = {
         tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=4, tokenizer_batch_size=8, wm_steps=4,
         text_wm_steps=4, wm_batch_size=4, reward_model_steps=0, mlp_steps=4, sft_batch_size=16, openvla_steps=0,
         openvla_base="tiny", eval_episodes=1, eval_episode_length=4, ppo_iterations=1, ppo_minutes=None,
-        ppo_envs=2, ppo_episode_length=4, ppo_one_scene=False, table_episodes=1, table_episode_length=4,
+        ppo_critic_warmup=1, ppo_envs=2, ppo_episode_length=4, ppo_one_scene=False, table_episodes=1,
+        table_episode_length=4,
         max_goal_steps=4, loader_workers=0, device="cpu",
     ),
     "tiny": dict(
@@ -28,7 +29,7 @@ SCALES = {
         tokenizer_preset="tiny", wm_preset="tiny", tokenizer_steps=200, tokenizer_batch_size=8, wm_steps=200,
         text_wm_steps=100, wm_batch_size=4, reward_model_steps=0, mlp_steps=400, sft_batch_size=16,
         openvla_steps=0, openvla_base="tiny", eval_episodes=2, eval_episode_length=60, ppo_iterations=2,
-        ppo_minutes=None, ppo_envs=6, ppo_episode_length=30, ppo_one_scene=False, table_episodes=1,
+        ppo_minutes=None, ppo_critic_warmup=1, ppo_envs=6, ppo_episode_length=30, ppo_one_scene=False, table_episodes=1,
         table_episode_length=60, max_goal_steps=40, loader_workers=2, device="cpu",
     ),
     "bench": dict(
@@ -37,7 +38,8 @@ SCALES = {
         workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1200, tokenizer_batch_size=8,
         wm_steps=400, text_wm_steps=200, wm_batch_size=4, reward_model_steps=200, mlp_steps=3000,
         sft_batch_size=32, openvla_steps=0, openvla_base="tiny", eval_episodes=4, eval_episode_length=60,
-        ppo_iterations=1000, ppo_minutes=6.0, ppo_envs=16, ppo_episode_length=None, ppo_one_scene=True,
+        ppo_iterations=1000, ppo_minutes=8.0, ppo_critic_warmup=1, ppo_envs=8, ppo_episode_length=None,
+        ppo_one_scene=True,
         table_episodes=12, table_episode_length=None, max_goal_steps=40, loader_workers=2, device="auto",
     ),
     "paper": dict(
@@ -46,7 +48,8 @@ SCALES = {
         tokenizer_preset="paper", wm_preset="paper", tokenizer_steps=100_000, tokenizer_batch_size=32,
         wm_steps=200_000, text_wm_steps=100_000, wm_batch_size=32, reward_model_steps=5000, mlp_steps=20_000,
         sft_batch_size=32, openvla_steps=20_000, openvla_base="openvla/openvla-7b", eval_episodes=50,
-        eval_episode_length=160, ppo_iterations=200, ppo_minutes=None, ppo_envs=64, ppo_episode_length=None,
+        eval_episode_length=160, ppo_iterations=200, ppo_minutes=None, ppo_critic_warmup=None, ppo_envs=64,
+        ppo_episode_length=None,
         ppo_one_scene=True, table_episodes=50, table_episode_length=None, max_goal_steps=100, loader_workers=8,
         device="auto",
     ),
@@ -86,6 +89,8 @@ class PipelineConfig:
     ppo_iterations: PPO iterations in each env (one episode per parallel env each), at most.
     ppo_minutes: wall-clock budget of each PPO run (null: none), so that RL in the world model and in the
         simulator get the same time.
+    ppo_critic_warmup: PPO's first iterations that train the critic only (null: the policy type's default); a
+        run of a few iterations (CPU) keeps it at 1 so that the policy learns at all.
     ppo_envs: parallel episodes of PPO.
     ppo_episode_length: steps per PPO episode; null: per task family, its longest successful demonstration.
     ppo_one_scene: also run PPO in the simulator in one scene per family, as the paper's baseline did.
@@ -126,6 +131,7 @@ class PipelineConfig:
     eval_episode_length: int | None = None
     ppo_iterations: int | None = None
     ppo_minutes: float | None = None
+    ppo_critic_warmup: int | None = None
     ppo_envs: int | None = None
     ppo_episode_length: int | None = None
     ppo_one_scene: bool | None = None

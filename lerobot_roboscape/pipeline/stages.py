@@ -408,7 +408,7 @@ def rl(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldMod
         for method, env in rl_envs(cfg, data, wm_env).items():
             runs[name][method] = ppo(PPOConfig(
                 policy_path=str(sft_checkpoint), env=env, output_dir=out / "rl" / name / method_tag(method),
-                num_envs=cfg.ppo_envs, iterations=cfg.ppo_iterations,
+                num_envs=cfg.ppo_envs, iterations=cfg.ppo_iterations, critic_warmup_iterations=cfg.ppo_critic_warmup,
                 time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
                 save_freq=max(min(cfg.ppo_iterations, 5), 1), device=cfg.device), cfg.fresh)  # fmt: skip
     return runs
