@@ -10,7 +10,9 @@ ALL = list(TASK_FAMILIES)
 # - "smoke": every stage at its smallest (the end-to-end test).
 # - "tiny": the embedded default (2 CPU cores, under 20 min): shows every stage working, judges none.
 # - "bench": the paper's experiment at the largest size that fits 2 CPU cores in about 2 hours, sized from
-#   measurements (docs/results/bench/report.md): push and pick&place, all 64 IND scenes, a 16x16 token grid.
+#   measurements (docs/results/bench/report.md): push and pick&place, all 64 IND scenes, a 16x16 token grid. The
+#   simulator is the bottleneck (about 3 env steps/s per core with two 64 px cameras), so PPO gets 4 minutes per
+#   env and Table 1 has 4 episodes per cell: enough to run the protocol end to end, not to separate methods.
 # - "paper": the paper's setting (GPUs, days: 80 scenes, 128 px, paper presets, OpenVLA-7B with LoRA).
 SCALES = {
     "smoke": dict(
@@ -38,9 +40,9 @@ SCALES = {
         workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1200, tokenizer_batch_size=8,
         wm_steps=400, text_wm_steps=200, wm_batch_size=4, reward_model_steps=200, mlp_steps=3000,
         sft_batch_size=32, openvla_steps=0, openvla_base="tiny", eval_episodes=4, eval_episode_length=60,
-        ppo_iterations=1000, ppo_minutes=8.0, ppo_critic_warmup=1, ppo_envs=8, ppo_episode_length=None,
+        ppo_iterations=1000, ppo_minutes=4.0, ppo_critic_warmup=1, ppo_envs=4, ppo_episode_length=100,
         ppo_one_scene=True,
-        table_episodes=12, table_episode_length=None, max_goal_steps=40, loader_workers=2, device="auto",
+        table_episodes=4, table_episode_length=100, max_goal_steps=40, loader_workers=2, device="auto",
     ),
     "paper": dict(
         families=ALL, scenes=None, episodes_per_scene=25, heldout_scenes=16, report_episodes=64, image_size=128,
