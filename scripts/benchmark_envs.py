@@ -1,9 +1,12 @@
 """Env steps/s of `roboscape_wm` (world models) against `roboscape_maniskill` (the simulator) at equal batch and
-image size, and the reward's share of a world-model step.
+image size, and where a world-model step's time goes: next-frame generation (MaskGIT), decoding the frame to
+pixels (tokenizer) and the reward (similarity to the goal, done).
 
-Uses the tiny models and dataset of a demo run (run `roboscape-demo` first, or pass --demo-dir).
+Uses the models and dataset of a pipeline run (`roboscape-demo`: tiny models; --demo-dir=outputs/bench: the bench
+scale's 16x16-grid models).
 
     python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
+    python scripts/benchmark_envs.py --demo-dir outputs/bench
 """
 
 import argparse
@@ -31,12 +34,12 @@ class Timed:
         return out
 
 
-def steps_per_second(env, steps: int, timer: Timed | None = None) -> tuple[float, float]:
-    """Env steps/s (episodes x steps / s) and the seconds of the measured steps (`timer` counts only those)."""
+def steps_per_second(env, steps: int, timers: list[Timed] = ()) -> tuple[float, float]:
+    """Env steps/s (episodes x steps / s) and the seconds of the measured steps (`timers` count only those)."""
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))  # warm-up
-    if timer is not None:
+    for timer in timers:
         timer.seconds = 0.0
     start = time.perf_counter()
     for _ in range(steps):
@@ -52,6 +55,7 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     args = parser.parse_args()
     demo = args.demo_dir
+    torch.manual_seed(0)
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
         raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
     wm_config = RoboscapeWorldModelEnvConfig(
@@ -65,17 +69,19 @@ def main():
     ms_config = RoboscapeManiSkillEnvConfig(image_size=image_size, episode_length=10_000)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, {image_size} px, 2 cameras, "
           f"{args.steps} steps per measurement")
-    print(f"{'batch':>6} {'roboscape_wm steps/s':>21} {'reward share':>13} {'roboscape_maniskill steps/s':>28} "
-          f"{'ratio':>7}")
+    print(f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
+          f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}")
     for batch in args.batch_sizes:
         wm = RoboscapeWorldModelEnv(wm_config, num_envs=batch)
-        wm.reward_fn.forward = Timed(wm.reward_fn.forward)
-        wm_rate, wm_seconds = steps_per_second(wm, args.steps, wm.reward_fn.forward)
-        share = wm.reward_fn.forward.seconds / wm_seconds
+        timers = {"generate": Timed(wm.action_model.predict_next_frame), "decode": Timed(wm._decode),
+                  "reward": Timed(wm.reward_fn.forward)}  # fmt: skip
+        wm.action_model.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
+        wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
+        shares = " ".join(f"{timer.seconds / wm_seconds:>{w}.0%}" for timer, w in zip(timers.values(), (9, 7, 7)))
         ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
         ms_rate, _ = steps_per_second(ms, args.steps)
         ms.close()
-        print(f"{batch:>6} {wm_rate:>21.1f} {share:>12.0%} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
+        print(f"{batch:>6} {wm_rate:>21.1f} {shares} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
 
 
 if __name__ == "__main__":
