@@ -153,6 +153,13 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
     assert f"| frames, open-loop | {fp['frames_open_loop']['rate']:.3f} |" in table
     assert "no failed episode" in markdown_table({**report, "done_false_positive": None})
 
+    # Whole episodes generated open loop: one score per episode, a probability, and an AUC with both kinds.
+    whole = report["done_whole_episode_open_loop"]
+    assert whole["episodes"] == 2 and whole["successful"] == 2 - len(failed)
+    assert len(whole["max_done"]) == 2 and all(0 <= p <= 1 for p in whole["max_done"])
+    assert whole["roc_auc"] in (0.0, 0.5, 1.0)  # one successful and one failed episode
+    assert "whole episodes generated open loop" in table
+
 
 def test_false_positives_count_frames_and_episodes_of_failures():
     episodes = [{"recorded_success": False, "predicted_success": True}, {"recorded_success": True},
