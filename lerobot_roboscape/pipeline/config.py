@@ -40,7 +40,7 @@ SCALES = {
         families=["pick_place", "push"], scenes=None, episodes_per_scene=2, heldout_scenes=8, report_episodes=16,
         image_size=64,
         workers=2, tokenizer_preset="bench", wm_preset="bench", tokenizer_steps=1200, tokenizer_batch_size=8,
-        wm_steps=400, text_wm_steps=200, wm_batch_size=4, reward_model_steps=200, mlp_steps=3000,
+        wm_steps=800, text_wm_steps=300, wm_batch_size=4, reward_model_steps=200, mlp_steps=3000,
         sft_batch_size=32, openvla_steps=0, openvla_base="tiny", eval_episodes=4, eval_episode_length=60,
         ppo_iterations=1000, ppo_minutes=4.0, ppo_critic_warmup=1, ppo_envs=4, ppo_episode_length=100,
         ppo_one_scene=True,
