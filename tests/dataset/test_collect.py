@@ -3,12 +3,13 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.cli.collect import CollectConfig, collect, make_jobs
 from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.dataset.reader import successful_episodes
-from lerobot_roboscape.evaluation.tables import sft_episodes
+from lerobot_roboscape.pipeline.stages import sft_episodes
 from tests.conftest import IMAGE_SIZE
 
 
@@ -77,7 +78,7 @@ def test_planned_failures_fail_in_the_simulator(failed_collection, demo_dataset)
     assert not np.array(ds.hf_dataset["next.success"]).any()
     assert successful_episodes(ds) == []
     with pytest.raises(ValueError, match=str(root)):
-        sft_episodes("test/failed", str(root))
+        sft_episodes(DatasetConfig(repo_id="test/failed", root=str(root)))
 
     demos, _ = demo_dataset
     assert successful_episodes(demos) == [r["episode_index"] for r in read_episode_info(demos.root) if r["success"]]
