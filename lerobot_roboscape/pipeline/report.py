@@ -145,8 +145,15 @@ def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
             if seconds is not None:
                 times[f"PPO {policy}: {method}"] = seconds
     evals = [stage_seconds(p.parent) for p in (out / "eval").glob("*/*/*/stage.json")]
-    times[f"simulator evaluation ({cfg.workers} side by side)"] = sum(s for s in evals if s)
+    label = f"simulator evaluation (sum over its {len(evals)} jobs, {cfg.workers} at a time)"
+    times[label] = sum(s for s in evals if s)
     return {k: round(v, 1) for k, v in times.items() if v}
+
+
+def wall_minutes(cfg: PipelineConfig, times: dict[str, float]) -> float:
+    """The stages' wall-clock: evaluations ran `workers` at a time, the other stages one after the other."""
+    seconds = sum(v / (cfg.workers if k.startswith("simulator evaluation") else 1) for k, v in times.items())
+    return seconds / 60
 
 
 def machine() -> str:
@@ -204,7 +211,7 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
     targets, times = results["targets"], results["stage_seconds"]
     lines = [
         f"# RoboScape-R at the {cfg.scale} scale", "",
-        f"{results['machine']}; {sum(times.values()) / 60:.0f} min of stage time in all; {results['date']}. "
+        f"{results['machine']}; about {wall_minutes(cfg, times):.0f} min wall-clock in all; {results['date']}. "
         f"Regenerate with `roboscape-demo --scale={cfg.scale} --output_dir={cfg.output_dir} "
         f"--report_dir=docs/results/{cfg.scale}` (a rerun skips the stages already complete).", "",
         "## Protocol", "",
@@ -218,7 +225,9 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         f"({cfg.ppo_minutes} min) on the same machine. RL in ManiSkill runs twice: in one scene (the paper's "
         "baseline: the simulator \"only initializes a single type of environment\", section 3.2) and in every "
         f"training scene. Success: {cfg.table_episodes} simulator episodes per (split, family), episodes end at "
-        "success or at the family's horizon (its longest successful demonstration).", "",
+        "success or after " + (f"{cfg.table_episode_length or cfg.ppo_episode_length} steps"
+                               if cfg.table_episode_length or cfg.ppo_episode_length
+                               else "the family's horizon (its longest successful demonstration)") + ".", "",
         "## Targets", "", "| target | measured | goal | met |", "|---|---:|---|:---:|",
     ]  # fmt: skip
     for name, t in targets.items():
