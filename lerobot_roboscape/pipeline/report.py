@@ -150,12 +150,6 @@ def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
     return {k: round(v, 1) for k, v in times.items() if v}
 
 
-def wall_minutes(cfg: PipelineConfig, times: dict[str, float]) -> float:
-    """The stages' wall-clock: evaluations ran `workers` at a time, the other stages one after the other."""
-    seconds = sum(v / (cfg.workers if k.startswith("simulator evaluation") else 1) for k, v in times.items())
-    return seconds / 60
-
-
 def machine() -> str:
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
     return f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()}), {gpu}"
@@ -211,7 +205,7 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
     targets, times = results["targets"], results["stage_seconds"]
     lines = [
         f"# RoboScape-R at the {cfg.scale} scale", "",
-        f"{results['machine']}; about {wall_minutes(cfg, times):.0f} min wall-clock in all; {results['date']}. "
+        f"{results['machine']}; {results['date']}; the time of each stage is at the end. "
         f"Regenerate with `roboscape-demo --scale={cfg.scale} --output_dir={cfg.output_dir} "
         f"--report_dir=docs/results/{cfg.scale}` (a rerun skips the stages already complete).", "",
         "## Protocol", "",
