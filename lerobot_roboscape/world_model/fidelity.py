@@ -126,8 +126,7 @@ def _whole_episode_done(model: STWorldModel, episodes: list[tuple], rows: list[d
     labels = np.array([row["recorded_success"] for row in rows])
     auc = None
     if 0 < labels.sum() < len(labels):
-        ranks = torch.tensor(scores).argsort().argsort().float() / max(len(scores) - 1, 1)  # see reward_report
-        auc = float(binary_auroc(ranks, torch.from_numpy(labels.astype(np.int64))))
+        auc = float(binary_auroc(torch.tensor(scores), torch.from_numpy(labels.astype(np.int64))))
     return {"roc_auc": auc, "episodes": len(scores), "successful": int(labels.sum()), "max_done": scores}
 
 
