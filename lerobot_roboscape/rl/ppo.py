@@ -353,8 +353,10 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
     (tmp / "training_state").mkdir()
     save_optimizer_state(optimizer, tmp / "training_state")
     # json writes floats by repr, which reads back bit for bit.
-    state = {"iteration": iteration, "seconds": seconds, "return_stats": return_stats.state_dict()}
+    state = {"iteration": iteration, "return_stats": return_stats.state_dict()}
     (tmp / "training_state" / "iteration.json").write_text(json.dumps(state))
+    # Wall-clock apart from the state, which is the same bytes in every run with the same flags.
+    (tmp / "training_state" / "clock.json").write_text(json.dumps({"seconds": seconds}))
     with draccus.config_type("json"):
         draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
     (tmp / "reward.txt").write_text(reward + "\n")
@@ -377,7 +379,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
     if checkpoint is not None:
         state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
         start_iteration, return_stats = state["iteration"], RunningReturnStats(**state["return_stats"])
-        elapsed = state.get("seconds", 0.0)
+        elapsed = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
         raise FileExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
