@@ -15,6 +15,7 @@ import torch
 import torchvision
 from torch import nn
 
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance
 
@@ -26,7 +27,7 @@ TRUNK_BUILDERS = {"alex": torchvision.models.alexnet, "vgg": torchvision.models.
 SIMILARITIES = ("auto", "lpips", "tokenizer")
 
 
-class LPIPSTrunkMissingError(FileNotFoundError):
+class LPIPSTrunkMissingError(MissingInputError):
     pass
 
 
@@ -54,7 +55,7 @@ def load_lpips(
         allow_random_trunk: use a random trunk when no weights are found (tests, offline demos).
     """
     if net not in TRUNK_FILES:
-        raise ValueError(f"LPIPS net must be one of {sorted(TRUNK_FILES)}, got {net!r}")
+        raise InvalidInputError(f"LPIPS net must be one of {sorted(TRUNK_FILES)}, got {net!r}")
     with warnings.catch_warnings():  # lpips still calls torchvision with its deprecated `pretrained=` argument
         warnings.simplefilter("ignore", UserWarning)
         metric = lpips.LPIPS(net=net, pretrained=True, pnet_rand=True, verbose=False)
@@ -110,7 +111,7 @@ def load_similarity(
         allow_random_lpips: with kind="lpips", use a random trunk when no weights are found (not perceptual).
     """
     if kind not in SIMILARITIES:
-        raise ValueError(f"similarity must be one of {SIMILARITIES}, got {kind!r}")
+        raise InvalidInputError(f"similarity must be one of {SIMILARITIES}, got {kind!r}")
     if kind == "auto":
         cached = default_trunk_path(lpips_net)
         if lpips_weights is not None or cached.is_file():
@@ -122,5 +123,5 @@ def load_similarity(
     if kind == "lpips":
         return load_lpips(lpips_net, lpips_weights, allow_random_lpips)
     if tokenizer is None:
-        raise ValueError("the tokenizer similarity needs a trained tokenizer, got None")
+        raise InvalidInputError("the tokenizer similarity needs a trained tokenizer, got None")
     return TokenizerPerceptualDistance(tokenizer)

@@ -11,7 +11,6 @@ import logging
 import math
 import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,9 @@ from accelerate import Accelerator
 from accelerate.utils import set_seed
 from torch import nn
 from tqdm import tqdm
+
+from lerobot_roboscape.atomic import make_tmp_dir
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
 
@@ -63,10 +65,10 @@ class TrainingConfig:
         if str(self.mixed_precision).lower() in ("false", "none"):  # the CLI's YAML reads "no" as false
             self.mixed_precision = "no"
         if self.mixed_precision not in ("auto", "bf16", "fp16", "no"):
-            raise ValueError(f"mixed_precision must be auto, bf16, fp16 or no, got {self.mixed_precision!r}")
+            raise InvalidInputError(f"mixed_precision must be auto, bf16, fp16 or no, got {self.mixed_precision!r}")
         if self.steps < 1 or self.batch_size < 1 or self.save_freq < 1:
-            raise ValueError(f"steps, batch_size and save_freq must be >= 1, got {self.steps}, {self.batch_size}, "
-                             f"{self.save_freq}")
+            raise InvalidInputError(f"steps, batch_size and save_freq must be >= 1, got {self.steps}, "
+                                    f"{self.batch_size}, {self.save_freq}")
 
 
 def resolve_device(value: str) -> str:
@@ -101,7 +103,7 @@ def _save_checkpoint(accelerator: Accelerator, model: nn.Module, step: int, outp
     root = output_dir / CHECKPOINTS
     name = f"{step:08d}"
     if accelerator.is_main_process:
-        tmp = _make_tmp_dir(root, name)
+        tmp = make_tmp_dir(root, name)
     else:
         tmp = None
     tmp = Path(accelerate_broadcast_path(accelerator, tmp))
@@ -128,13 +130,6 @@ def accelerate_broadcast_path(accelerator: Accelerator, path: Path | None) -> st
     return holder[0]
 
 
-def _make_tmp_dir(parent: Path, name: str) -> Path:
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=parent))
-    tmp.chmod(0o755)  # mkdtemp makes it private; the final directory should not be
-    return tmp
-
-
 def cosine_with_warmup(config: TrainingConfig) -> Callable[[int], float]:
     def factor(step: int) -> float:
         if step < config.warmup_steps:
@@ -159,8 +154,8 @@ def fit(
     output_dir = Path(output_dir)
     resume_from = last_checkpoint(output_dir) if config.resume else None
     if not config.resume and (output_dir / CHECKPOINTS).exists():
-        raise FileExistsError(f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
-                              "or choose a new --output_dir")
+        raise OutputExistsError(f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
+                                "or choose a new --output_dir")
     output_dir.mkdir(parents=True, exist_ok=True)
     accelerator = make_accelerator(config, output_dir)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -206,7 +201,7 @@ def fit(
 
 def save_atomically(model, path: Path) -> None:
     """`model.save_pretrained(path)`, replacing `path` only once the new files are complete."""
-    tmp = _make_tmp_dir(path.parent, path.name)
+    tmp = make_tmp_dir(path.parent, path.name)
     model.save_pretrained(tmp)
     shutil.rmtree(path, ignore_errors=True)
     os.replace(tmp, path)

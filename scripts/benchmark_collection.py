@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def bench_collect(tmp: Path, episodes: int, image_size: int, workers: int) -> dict:
-    from lerobot_roboscape.cli.collect import CollectConfig, collect
+    from lerobot_roboscape.demos.collect import CollectConfig, collect
 
     cfg = CollectConfig(root=str(tmp / "collected"), families=["pick_place"], max_scenes=episodes,
                         episodes_per_scene=1, failed_fraction=0.0, suboptimal_fraction=0.0, image_size=image_size,
@@ -37,7 +37,7 @@ def bench_collect(tmp: Path, episodes: int, image_size: int, workers: int) -> di
 
 
 def bench_convert(tmp: Path, image_size: int) -> dict:
-    from lerobot_roboscape.cli.convert import ConvertConfig, convert
+    from lerobot_roboscape.dataset.convert import ConvertConfig, convert
     from lerobot_roboscape.demos.record import record_maniskill_trajectories
     from lerobot_roboscape.tasks import SCENES
 

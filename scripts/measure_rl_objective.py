@@ -18,7 +18,7 @@ from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.cli.collect import CollectConfig, collect
+from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig

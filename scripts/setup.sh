@@ -39,4 +39,6 @@ if [ -z "${UV_PYTHON:-}" ]; then
     fi
   done
 fi
-uv sync --locked --quiet ${UV_PYTHON:+--python "$UV_PYTHON"}
+# Bytecode compiled once at install: with PYTHONDONTWRITEBYTECODE set (as on CI), every process would otherwise
+# recompile torch, lerobot and mani_skill from source on import (about 25 s each instead of 5).
+uv sync --locked --quiet --compile-bytecode ${UV_PYTHON:+--python "$UV_PYTHON"}

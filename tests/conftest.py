@@ -4,7 +4,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from lerobot_roboscape.cli.collect import CollectConfig, collect
+from lerobot_roboscape.demos.collect import CollectConfig, collect
 
 IMAGE_SIZE = 32
 

@@ -1,66 +1,24 @@
-"""`roboscape-convert`: official ManiSkill trajectory files (.h5 + .json) to a LeRobotDataset v3.
+"""`roboscape-convert`: official ManiSkill trajectory files (.h5 + .json) to a LeRobotDataset v3, written
+atomically (a killed or refused conversion leaves no dataset behind).
 
     roboscape-convert --h5=demos/PickCube-v1/motionplanning/trajectory.rgb.pd_ee_delta_pose.physx_cpu.h5 \
         --task="pick up the cube" --root=outputs/datasets/pickcube
 """
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
 
-from lerobot_roboscape.dataset import write_dataset
-from lerobot_roboscape.demos.maniskill_files import open_trajectory_file, read_episodes
-from lerobot_roboscape.tasks import ENV_IDS, get_scene
-from lerobot_roboscape.tasks.base import CAMERA_NAMES
+from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 
 
-@dataclass
-class ConvertConfig:
-    """Args:
-    h5: the ManiSkill trajectory file.
-    json: its episode list (default: the .h5 path with .json).
-    repo_id: dataset name recorded in its metadata.
-    root: output directory; must not exist unless `overwrite`.
-    task: instruction stored with every frame (default: the scene's instruction for roboscape tasks, else the env id).
-    fps: frames per second (ManiSkill tabletop tasks control at 20 Hz).
-    overwrite: replace an existing dataset at `root`.
-    """
-
-    h5: str = ""
-    json: str | None = None
-    repo_id: str = "local/maniskill_converted"
-    root: str = "outputs/datasets/maniskill_converted"
-    task: str | None = None
-    fps: int = 20
-    overwrite: bool = False
-
-
-def default_task(env_id: str, env_kwargs: dict) -> str:
-    family = {v: k for k, v in ENV_IDS.items()}.get(env_id)
-    if family and "scene_id" in env_kwargs:
-        return get_scene(env_kwargs["scene_id"]).instruction(family)
-    logging.warning("No --task given: using the env id %r as the instruction", env_id)
-    return env_id
-
-
-def convert(cfg: ConvertConfig):
-    if not cfg.h5:
-        raise ValueError("--h5 is required (the ManiSkill trajectory file to convert)")
-    traj = open_trajectory_file(cfg.h5, cfg.json)
-    task = cfg.task or default_task(traj.env_id, traj.env_kwargs)
-    return write_dataset(
-        read_episodes(traj, task, camera_names=CAMERA_NAMES), cfg.repo_id, cfg.root, fps=cfg.fps,
-        overwrite=cfg.overwrite, total=len(traj.episodes),
-    )
-
-
+@one_line_errors("roboscape-convert")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(ConvertConfig, args=argv)
-    dataset = convert(cfg)
-    meta = dataset.meta
+    meta = convert(cfg).meta
     print(f"Wrote {meta.total_episodes} episodes, {meta.total_frames} frames to {Path(cfg.root).resolve()}")
 
 

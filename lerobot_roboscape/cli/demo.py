@@ -18,10 +18,12 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.run import run_pipeline
 
 
+@one_line_errors("roboscape-demo")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     run_pipeline(draccus.parse(PipelineConfig, args=argv))

@@ -9,9 +9,11 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 
 
+@one_line_errors("roboscape-eval-wm")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(FidelityConfig, args=argv)

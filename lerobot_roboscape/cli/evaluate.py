@@ -7,9 +7,11 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
 
 
+@one_line_errors("roboscape-eval")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     cfg = draccus.parse(EvalConfig, args=argv)

@@ -11,9 +11,11 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 
 
+@one_line_errors("roboscape-ppo")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     final = train_ppo(draccus.parse(PPOConfig, args=argv))

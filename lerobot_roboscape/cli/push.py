@@ -17,6 +17,8 @@ from pathlib import Path
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
 
 ARTIFACTS = ("dataset", "world_models", "policy")
@@ -55,14 +57,14 @@ class PushConfig:
 
     def __post_init__(self):
         if self.artifact not in ARTIFACTS:
-            raise ValueError(f"--artifact must be one of {ARTIFACTS}, got {self.artifact!r}")
+            raise InvalidInputError(f"--artifact must be one of {ARTIFACTS}, got {self.artifact!r}")
         if self.repo_id.count("/") != 1:
-            raise ValueError(f"--repo_id must be `user_or_org/name`, got {self.repo_id!r}")
+            raise InvalidInputError(f"--repo_id must be `user_or_org/name`, got {self.repo_id!r}")
         needed = {"dataset": ["dataset_root"], "world_models": ["tokenizer", "action_world_model", "text_world_model"],
                   "policy": ["policy"]}[self.artifact]
         missing = [f"--{name}" for name in needed if getattr(self, name) is None]
         if missing:
-            raise ValueError(f"--artifact={self.artifact} needs {', '.join(missing)}")
+            raise InvalidInputError(f"--artifact={self.artifact} needs {', '.join(missing)}")
 
 
 def push(cfg: PushConfig) -> str:
@@ -76,6 +78,7 @@ def push(cfg: PushConfig) -> str:
                        dataset_repo_id=cfg.dataset_repo_id)
 
 
+@one_line_errors("roboscape-push")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     print(f"Pushed to {push(draccus.parse(PushConfig, args=argv))}")

@@ -12,9 +12,11 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
 
 
+@one_line_errors("roboscape-reward-report")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(RewardReportConfig, args=argv)

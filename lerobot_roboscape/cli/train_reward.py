@@ -10,10 +10,12 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.training import FINAL
 
 
+@one_line_errors("roboscape-train-reward")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(TrainRewardConfig, args=argv)

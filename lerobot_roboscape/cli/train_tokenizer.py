@@ -8,10 +8,12 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training import FINAL
 
 
+@one_line_errors("roboscape-train-tokenizer")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(TrainTokenizerConfig, args=argv)

@@ -10,10 +10,12 @@ import logging
 
 import draccus
 
+from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.training import FINAL
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 
+@one_line_errors("roboscape-train-wm")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = draccus.parse(TrainWorldModelConfig, args=argv)

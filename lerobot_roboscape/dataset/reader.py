@@ -5,15 +5,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.video_utils import decode_video_frames
-from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, REWARD
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
 
 from lerobot_roboscape.dataset.writer import SUCCESS, read_episode_info
+from lerobot_roboscape.errors import InvalidInputError, require_finite
 
 
-class DatasetError(ValueError):
+class DatasetError(InvalidInputError):
     pass
 
 
@@ -35,7 +37,23 @@ def open_dataset(repo_id: str, root: str | Path | None = None, episodes: list[in
         raise DatasetError(f"dataset {where} has no camera features ({OBS_IMAGES}.<camera>)")
     if ACTION not in dataset.features:
         raise DatasetError(f"dataset {where} has no '{ACTION}' feature")
+    check_finite(dataset)
     return dataset
+
+
+def check_finite(dataset: LeRobotDataset) -> None:
+    """Refuse a dataset whose states, actions or rewards hold NaN or inf, naming the episode, frame and key."""
+    table = dataset.hf_dataset.data  # the Arrow table, without LeRobot's per-row conversion to tensors
+    episode, frame = table.column("episode_index").to_numpy(), table.column("frame_index").to_numpy()
+    for key in (OBS_STATE, ACTION, REWARD):
+        if key not in table.column_names:
+            continue
+        column = table.column(key).combine_chunks()
+        if pa.types.is_fixed_size_list(column.type):
+            values = column.flatten().to_numpy(zero_copy_only=False).reshape(len(column), -1)
+        else:
+            values = column.to_numpy(zero_copy_only=False)
+        require_finite(values, f"dataset {dataset.root}", key, lambda row: f"episode {episode[row]} frame {frame[row]}")
 
 
 def camera_names(dataset: LeRobotDataset) -> list[str]:

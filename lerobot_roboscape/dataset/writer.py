@@ -14,7 +14,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
 from tqdm import tqdm
 
-from lerobot_roboscape.demos.episode import Episode
+from lerobot_roboscape.dataset.episode import Episode
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 SUCCESS = "next.success"
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
@@ -43,12 +44,31 @@ def dataset_features(episode: Episode, state_names: list[str] | None = None,
     return features
 
 
-def _check_target(root: Path, overwrite: bool) -> None:
+def _describe(episode: Episode, k: int, root: Path) -> str:
+    """Where an episode comes from, for error messages: its source file, or its scene and seed."""
+    info = episode.info
+    if "source_file" in info:
+        return f"{info['source_file']} episode {info['source_episode_id']} (episode {k} for {root})"
+    if "scene" in info:
+        return f"{info.get('task_family')} in {info['scene']}, seed {info.get('seed')} (episode {k} for {root})"
+    return f"episode {k} for {root}"
+
+
+def check_features(episode: Episode, features: dict, where: str) -> None:
+    """Every episode of a dataset has the cameras and widths of its first."""
+    for key, feature in dataset_features(episode).items():
+        if key not in features or tuple(features[key]["shape"]) != tuple(feature["shape"]):
+            expected = tuple(features[key]["shape"]) if key in features else "no such feature"
+            raise InvalidInputError(f"{where}: {key} has shape {tuple(feature['shape'])} per frame, the dataset's "
+                                    f"first episode {expected}")
+
+
+def check_target(root: Path, overwrite: bool) -> None:
     if root.exists():
         if not overwrite:
-            raise FileExistsError(f"Output directory {root} already exists; choose another or pass --overwrite")
+            raise OutputExistsError(f"Output directory {root} already exists; choose another or pass --overwrite")
         if not (root / "meta" / "info.json").exists():
-            raise FileExistsError(f"Refusing to overwrite {root}: it exists and is not a LeRobot dataset")
+            raise OutputExistsError(f"Refusing to overwrite {root}: it exists and is not a LeRobot dataset")
 
 
 def write_dataset(
@@ -69,26 +89,30 @@ def write_dataset(
     Episodes for which `keep(episode)` is False are dropped. Raises ValueError if none is kept.
     """
     root = Path(root).resolve()
-    _check_target(root, overwrite)
+    check_target(root, overwrite)
     _quiet_encoders()
     root.parent.mkdir(parents=True, exist_ok=True)
+    for stale in root.parent.glob(f".{root.name}.partial-*"):  # left by a killed writer; never a dataset
+        shutil.rmtree(stale, ignore_errors=True)
     staging_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
     staging = staging_parent / root.name
     try:
-        dataset, records = None, []
-        for episode in tqdm(episodes, total=total, desc=f"writing {repo_id}", unit="episode"):
+        dataset, records, features = None, [], None
+        for k, episode in enumerate(tqdm(episodes, total=total, desc=f"writing {repo_id}", unit="episode")):
+            where = _describe(episode, k, root)
+            episode.validate(where)
             if not keep(episode):
                 continue
             if dataset is None:
-                dataset = LeRobotDataset.create(
-                    repo_id, fps=fps, root=staging, robot_type=robot_type, use_videos=True,
-                    features=dataset_features(episode, state_names, action_names),
-                )
+                features = dataset_features(episode, state_names, action_names)
+                dataset = LeRobotDataset.create(repo_id, fps=fps, root=staging, robot_type=robot_type,
+                                                use_videos=True, features=features)  # fmt: skip
+            check_features(episode, features, where)
             _add_episode(dataset, episode)
             records.append({"episode_index": len(records), "length": len(episode), "task": episode.task,
                             **episode.info})
         if dataset is None:
-            raise ValueError(f"No episode to write to {root} (none produced, or none kept)")
+            raise InvalidInputError(f"No episode to write to {root} (none produced, or none kept)")
         dataset.finalize()
         shutil.rmtree(staging / "images", ignore_errors=True)  # frames already encoded into videos/
         with open(staging / EPISODES_SIDECAR, "w") as f:

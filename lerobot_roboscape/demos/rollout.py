@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_roboscape.demos.episode import Episode
+from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
 

@@ -7,6 +7,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks.base import CAMERA_NAMES
 from lerobot_roboscape.training import resolve_device
 
@@ -16,7 +17,7 @@ STATE_DIM = 16  # joint positions (9) + TCP pose (7), as `observation.state` of 
 
 def check_episode_length(episode_length: int | None) -> None:
     if episode_length is not None and episode_length < 1:
-        raise ValueError(f"episode_length must be >= 1 or null (per-family horizons), got {episode_length}")
+        raise InvalidInputError(f"episode_length must be >= 1 or null (per-family horizons), got {episode_length}")
 
 
 def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
@@ -112,20 +113,20 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         from lerobot_roboscape.perceptual import SIMILARITIES
 
         if self.similarity not in SIMILARITIES:
-            raise ValueError(f"similarity must be one of {SIMILARITIES}, got {self.similarity!r}")
+            raise InvalidInputError(f"similarity must be one of {SIMILARITIES}, got {self.similarity!r}")
         check_episode_length(self.episode_length)
         if self.goal_source not in GOAL_SOURCES:
-            raise ValueError(f"goal_source must be one of {GOAL_SOURCES}, got {self.goal_source!r}")
+            raise InvalidInputError(f"goal_source must be one of {GOAL_SOURCES}, got {self.goal_source!r}")
         if self.reward_type not in ("world_model", "embedding", "proxy"):
-            raise ValueError(f"reward_type must be world_model, embedding or proxy, got {self.reward_type!r}")
+            raise InvalidInputError(f"reward_type must be world_model, embedding or proxy, got {self.reward_type!r}")
         if self.reward_type != "world_model" and not self.reward_model:
-            raise ValueError(
+            raise InvalidInputError(
                 f"reward_type={self.reward_type} needs reward_model (train one with roboscape-train-reward)"
             )
         if self.goal_source == "text_model" and not self.text_world_model:
-            raise ValueError("goal_source=text_model needs text_world_model")
+            raise InvalidInputError("goal_source=text_model needs text_world_model")
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
-            raise ValueError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
+            raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
         self.features, self.features_map = camera_features(self.image_size)
 
     @property
@@ -192,7 +193,7 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
 
     def __post_init__(self):
         if self.split not in ("", "ind", "ood"):
-            raise ValueError(f"split must be 'ind', 'ood' or '', got {self.split!r}")
+            raise InvalidInputError(f"split must be 'ind', 'ood' or '', got {self.split!r}")
         check_episode_length(self.episode_length)
         self.cameras = tuple(self.cameras)
         self.features, self.features_map = camera_features(self.image_size, self.cameras)

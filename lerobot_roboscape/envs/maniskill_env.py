@@ -15,6 +15,7 @@ from lerobot_roboscape.dataset.reader import family_horizons, open_dataset
 from lerobot_roboscape.demos.rollout import observation_images, observation_state
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.configs import STATE_DIM
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tasks.make import make_task_env
@@ -38,7 +39,7 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         families = list(config.families) or list(TASK_FAMILIES)
         self.scenes = select_scenes(config.split or "all", list(config.scenes) or None)
         if not self.scenes:
-            raise ValueError(f"no scene matches split={config.split!r} scenes={config.scenes}")
+            raise InvalidInputError(f"no scene matches split={config.split!r} scenes={config.scenes}")
         self.slot_families = [families[i % len(families)] for i in range(num_envs)]
         horizons = task_horizons(config, families)
         self.horizons = np.array([horizons[f] for f in self.slot_families])

@@ -30,6 +30,7 @@ from lerobot_roboscape.dataset.reader import (
     read_frames,
 )
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.pull import pull_world_models, snapshot
 from lerobot_roboscape.perceptual import load_similarity
 from lerobot_roboscape.reward.baselines import RewardModel
@@ -58,7 +59,7 @@ def load_pretrained(cls, ref: str, what: str, command: str):
     """`cls.from_pretrained` of a local directory or a Hub repo id, with an error naming what is missing."""
     path = snapshot(ref, what, f"train one with `{command}`")
     if not (path / "config.json").is_file():
-        raise FileNotFoundError(f"no {what} at {ref} (config.json missing); train one with `{command}` or give a "
+        raise MissingInputError(f"no {what} at {ref} (config.json missing); train one with `{command}` or give a "
                                 "Hub repo id")
     return cls.from_pretrained(str(path))
 
@@ -72,8 +73,8 @@ def model_refs(config) -> tuple[str, str, str | None, str]:
         return (str(bundle.tokenizer), str(bundle.action_world_model),
                 str(bundle.text_world_model) if uses_text else None, config.dataset_repo_id or bundle.dataset_repo_id)
     if not config.dataset_repo_id:
-        raise ValueError("roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or world_models "
-                         "(a repo that names it)")
+        raise InvalidInputError("roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
+                                "world_models (a repo that names it)")
     return config.tokenizer, config.action_world_model, config.text_world_model if uses_text else None, \
         config.dataset_repo_id
 
@@ -93,7 +94,8 @@ def load_models(tokenizer: str, action_model: str, text_model: str | None, devic
 @lru_cache(maxsize=4)
 def load_reward_model(ref: str | None, device: str) -> RewardModel:
     if not ref:
-        raise ValueError("reward_type embedding/proxy needs reward_model (train one with roboscape-train-reward)")
+        raise InvalidInputError("reward_type embedding/proxy needs reward_model (train one with "
+                                "roboscape-train-reward)")
     return load_pretrained(RewardModel, ref, "reward model", "roboscape-train-reward").to(device).eval()
 
 
@@ -111,8 +113,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.tokenizer, self.action_model, self.text_model = load_models(tokenizer, action_model, text_model,
                                                                          self.device)
         if self.action_model.config.control != "action":
-            raise ValueError(f"{action_model} is a {self.action_model.config.control} world model, "
-                             "not an action world model")
+            raise InvalidInputError(f"{action_model} is a {self.action_model.config.control} world model, "
+                                    "not an action world model")
         self.reward_fn = WorldModelReward(
             load_reward_distance(config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips,
                                  self.device),
@@ -128,8 +130,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if config.reward_type != "world_model":
             self.reward_model = load_reward_model(config.reward_model, self.device)
             if self.reward_model.config.kind != config.reward_type:
-                raise ValueError(f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
-                                 f"reward_type is {config.reward_type!r}")
+                raise InvalidInputError(f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
+                                        f"reward_type is {config.reward_type!r}")
         self.starts, self.cameras, self.action_range = self._load_starts()
         self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
 
@@ -155,8 +157,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         dataset = open_dataset(self.dataset_repo_id, cfg.dataset_root)
         cameras = camera_names(dataset)
         if len(cameras) != self.action_model.config.n_cameras:
-            raise ValueError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
-                             f"{self.action_model.config.n_cameras} views")
+            raise InvalidInputError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
+                                    f"{self.action_model.config.n_cameras} views")
         horizons = family_horizons(dataset) if cfg.episode_length is None else {}
         starts = []
         for index in episode_indices(dataset):
@@ -173,8 +175,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
             starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts, horizon))
         if not starts:
-            raise ValueError(f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} "
-                             f"scenes={cfg.scenes}")
+            raise InvalidInputError(f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} "
+                                    f"scenes={cfg.scenes}")
         return starts, cameras, action_range(dataset)
 
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:

@@ -4,19 +4,22 @@ initial states; OOD: held-out scenes) and task family, with 95% Wilson intervals
 import json
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_roboscape.atomic import write_text_atomically
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training import resolve_device
 
 logger = logging.getLogger(__name__)
+SPLITS = "splits"  # each split's result, written when the split is complete
 
 
 @dataclass
@@ -34,8 +37,9 @@ class EvalConfig:
     image_size: camera image side (0: the policy's).
     seed: seed of the initial states; the datasets' episodes use small seeds, so the default is far from them.
     videos: episodes recorded per split (the first batch's).
-    output_dir: eval.json, eval.md and videos/.
+    output_dir: eval.json, eval.md and videos/ (and splits/, each split's result as soon as it is complete).
     device: "auto", "cpu" or "cuda".
+    resume: continue an interrupted evaluation in output_dir, keeping the splits it completed.
     """
 
     policy_path: str = ""
@@ -51,15 +55,16 @@ class EvalConfig:
     videos: int = 2
     output_dir: Path = Path("outputs/eval")
     device: str = "auto"
+    resume: bool = False
 
     def __post_init__(self):
         if not self.policy_path:
-            raise ValueError("--policy_path is required")
+            raise InvalidInputError("--policy_path is required")
         unknown = set(self.families) - set(TASK_FAMILIES)
         if unknown:
-            raise ValueError(f"unknown task families {sorted(unknown)}; known: {list(TASK_FAMILIES)}")
+            raise InvalidInputError(f"unknown task families {sorted(unknown)}; known: {list(TASK_FAMILIES)}")
         if not set(self.splits) <= {"ind", "ood"} or not self.splits:
-            raise ValueError(f"splits must be among 'ind', 'ood', got {self.splits}")
+            raise InvalidInputError(f"splits must be among 'ind', 'ood', got {self.splits}")
         self.output_dir = Path(self.output_dir)
 
 
@@ -99,6 +104,7 @@ def evaluate_success(cfg: EvalConfig) -> dict:
     from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
     from lerobot_roboscape.rl.ppo import write_video
 
+    done = completed_splits(cfg)
     device = resolve_device(cfg.device)
     policy, preprocessor, postprocessor = load_policy(cfg.policy_path, device)
     policy.eval()
@@ -109,6 +115,9 @@ def evaluate_success(cfg: EvalConfig) -> dict:
     families = list(cfg.families) or list(TASK_FAMILIES)
     results = {"policy": cfg.policy_path, "episode_length": cfg.episode_length or "per family", "splits": {}}
     for split in cfg.splits:
+        if split in done:
+            results["splits"][split] = done[split]
+            continue
         # Success at any step is what counts, so an episode can stop at its first success.
         env_cfg = RoboscapeManiSkillEnvConfig(families=families, split=split, image_size=image_size,
                                               episode_length=cfg.episode_length, terminate_on_success=True,
@@ -130,10 +139,27 @@ def evaluate_success(cfg: EvalConfig) -> dict:
         env.close()
         results["splits"][split] = {family: summarise(o) for family, o in outcomes.items()}
         results["splits"][split]["all"] = summarise([x for o in outcomes.values() for x in o])
-    cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    (cfg.output_dir / "eval.json").write_text(json.dumps(results, indent=2))
-    (cfg.output_dir / "eval.md").write_text(markdown_table(results))
+        write_text_atomically(cfg.output_dir / SPLITS / f"{split}.json", json.dumps(results["splits"][split]))
+    # The tables appear only complete: a killed evaluation leaves its finished splits, never a partial eval.json.
+    write_text_atomically(cfg.output_dir / "eval.json", json.dumps(results, indent=2))
+    write_text_atomically(cfg.output_dir / "eval.md", markdown_table(results))
     return results
+
+
+def completed_splits(cfg: EvalConfig) -> dict[str, dict]:
+    """The splits an interrupted evaluation with the same settings completed (with --resume=true)."""
+    settings = json.dumps({k: str(v) for k, v in asdict(cfg).items() if k != "resume"}, sort_keys=True)
+    written = cfg.output_dir / SPLITS / "eval_config.json"
+    if (cfg.output_dir / "eval.json").exists() or written.exists():
+        if not cfg.resume:
+            raise OutputExistsError(f"{cfg.output_dir} already holds an evaluation: pass --resume=true to continue "
+                                    "it, or choose another --output_dir")
+        if written.exists() and written.read_text() != settings:
+            raise InvalidInputError(f"--resume=true: {cfg.output_dir} was evaluated with other settings "
+                                    f"({written}); use them, or choose another --output_dir")
+    write_text_atomically(written, settings)
+    return {split: json.loads((cfg.output_dir / SPLITS / f"{split}.json").read_text()) for split in cfg.splits
+            if (cfg.output_dir / SPLITS / f"{split}.json").exists()}
 
 
 def summarise(outcomes: list[bool]) -> dict:

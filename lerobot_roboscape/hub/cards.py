@@ -10,6 +10,7 @@ from lerobot.datasets.utils import create_lerobot_dataset_card
 from safetensors import safe_open
 
 from lerobot_roboscape.dataset.writer import read_episode_info
+from lerobot_roboscape.errors import MissingInputError
 
 LICENSE = "apache-2.0"
 DATASET_TAGS = ["robotics", "roboscape", "maniskill"]
@@ -20,7 +21,7 @@ def templates_dir() -> Path:
     for candidate in (Path(__file__).parent / "hub_cards", Path(__file__).parents[2] / "hub_cards"):
         if candidate.is_dir():
             return candidate
-    raise FileNotFoundError("the card templates (hub_cards/) are missing from this installation")
+    raise MissingInputError("the card templates (hub_cards/) are missing from this installation")
 
 
 def render(template: str, **fields) -> str:

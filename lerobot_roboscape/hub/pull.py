@@ -11,10 +11,12 @@ from pathlib import Path
 from huggingface_hub import constants, snapshot_download
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, RepositoryNotFoundError
 
+from lerobot_roboscape.errors import MissingInputError
+
 WORLD_MODELS_MANIFEST = "roboscape_wm.json"
 
 
-class ArtifactNotFoundError(FileNotFoundError):
+class ArtifactNotFoundError(MissingInputError):
     pass
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from huggingface_hub import HfApi
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.cards import (
     DATASET_TAGS,
     LICENSE,
@@ -32,7 +33,7 @@ POLICY_FILES = ("config.json", "model.safetensors", "train_config.json")
 
 def _require(path: Path, what: str, how_to_make: str) -> Path:
     if not (path / "config.json").is_file():
-        raise FileNotFoundError(f"no {what} at {path} (config.json missing); {how_to_make}")
+        raise MissingInputError(f"no {what} at {path} (config.json missing); {how_to_make}")
     return path
 
 
@@ -70,12 +71,14 @@ def stage_world_models(folder: Path, repo_id: str, tokenizer: Path, action_world
     for key in ("action_world_model", "text_world_model"):
         control = key.split("_")[0]
         if configs[key].get("control") != control:
-            raise ValueError(f"{sources[key]} is a {configs[key].get('control')} world model, not a {control} one")
+            raise InvalidInputError(f"{sources[key]} is a {configs[key].get('control')} world model, not a "
+                                    f"{control} one")
     trained = {key: _training_config(path) for key, path in sources.items()}
     if dataset_repo_id is None:
         dataset_repo_id = next((t["dataset"]["repo_id"] for t in trained.values() if t and "dataset" in t), None)
         if dataset_repo_id is None:
-            raise ValueError("dataset_repo_id is needed: no training config beside the models names their dataset")
+            raise InvalidInputError("dataset_repo_id is needed: no training config beside the models names their "
+                                    "dataset")
 
     for key, source in sources.items():
         _copy_model(source, folder / WORLD_MODEL_FOLDERS[key])
@@ -145,7 +148,7 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
     results = None
     if eval_dir is not None:
         if not (Path(eval_dir) / "eval.md").is_file():
-            raise FileNotFoundError(f"no roboscape-eval results in {eval_dir} (eval.md missing)")
+            raise MissingInputError(f"no roboscape-eval results in {eval_dir} (eval.md missing)")
         results = (Path(eval_dir) / "eval.md").read_text().split("\n", 1)[1].strip()  # drop the local path line
         shutil.copy2(Path(eval_dir) / "eval.json", folder / "eval.json")
     base_model = config.get("base_model")  # a Hub id, a local folder or a random preset ("tiny")
@@ -194,7 +197,7 @@ def push_dataset(root: Path, repo_id: str, local_dir: Path | None = None, privat
     """LeRobotDataset.push_to_hub with our card; with `local_dir`, the same files and card in a local folder."""
     root = Path(root)
     if not (root / "meta" / "info.json").is_file():
-        raise FileNotFoundError(f"no LeRobot dataset at {root} (meta/info.json is missing)")
+        raise MissingInputError(f"no LeRobot dataset at {root} (meta/info.json is missing)")
     if local_dir is None:
         LeRobotDataset(repo_id, root=root).push_to_hub(
             tags=DATASET_TAGS, license=LICENSE, private=private, dataset_description=dataset_description(root, repo_id))

@@ -4,6 +4,7 @@ from dataclasses import dataclass
 
 import torch
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import TASK_FAMILIES
 
 ALL = list(TASK_FAMILIES)
@@ -155,7 +156,7 @@ class PipelineConfig:
 
     def __post_init__(self):
         if self.scale not in SCALES:
-            raise ValueError(f"--scale must be one of {list(SCALES)}, got {self.scale!r}")
+            raise InvalidInputError(f"--scale must be one of {list(SCALES)}, got {self.scale!r}")
         preset = dict(SCALES[self.scale])
         if self.scale == "bench" and self.device != "cpu" and torch.cuda.is_available():
             preset |= BENCH_ON_GPU
@@ -164,4 +165,4 @@ class PipelineConfig:
                 setattr(self, name, list(value) if isinstance(value, list) else value)
         unknown = [f for f in self.families if f not in TASK_FAMILIES]
         if unknown:
-            raise ValueError(f"unknown task families {unknown}; choose from {list(TASK_FAMILIES)}")
+            raise InvalidInputError(f"unknown task families {unknown}; choose from {list(TASK_FAMILIES)}")

@@ -21,9 +21,10 @@ import matplotlib
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.cli.collect import CollectConfig, collect
-from lerobot_roboscape.cli.convert import ConvertConfig, convert
+from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
+from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
@@ -43,6 +44,8 @@ from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldMode
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+from lerobot_roboscape.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 STAGE_FILE = "stage.json"
@@ -85,7 +88,7 @@ def prepare(folder: Path, settings, fresh: bool) -> bool:
         _began[folder] = time.time()
         return True
     start(folder).mkdir(parents=True)
-    started.write_text(json.dumps(_jsonable(settings), indent=2))
+    write_text_atomically(started, json.dumps(_jsonable(settings), indent=2))
     return False
 
 
@@ -94,7 +97,8 @@ def mark_done(folder: Path, settings) -> None:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     seconds = time.time() - _began.pop(folder, time.time())
-    (folder / STAGE_FILE).write_text(json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2))
+    write_text_atomically(folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds},
+                                                         indent=2))  # fmt: skip
 
 
 def stage_seconds(folder: Path) -> float | None:
@@ -309,7 +313,7 @@ def sft_episodes(dataset: DatasetConfig) -> list[int]:
     """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model)."""
     episodes = successful_episodes(open_dataset(dataset.repo_id, dataset.root))
     if not episodes:
-        raise ValueError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
+        raise InvalidInputError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
     return episodes
 
 
@@ -460,6 +464,6 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets,
             length = jobs[name, method, "ind"].episode_length or "per family"
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
             folder = out / "eval" / name / method_tag(method)
-            (folder / "eval.json").write_text(json.dumps(merged, indent=2))
+            write_text_atomically(folder / "eval.json", json.dumps(merged, indent=2))
             (folder / "eval.md").write_text(markdown_table(merged))
     return results

@@ -9,8 +9,10 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from huggingface_hub import PyTorchModelHubMixin
 from torch import nn
+
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.weights import CheckedHubMixin
 
 REWARD_KINDS = ("embedding", "proxy")
 
@@ -35,10 +37,10 @@ class RewardModelConfig:
 
     def __post_init__(self):
         if self.kind not in REWARD_KINDS:
-            raise ValueError(f"kind must be one of {REWARD_KINDS}, got {self.kind!r}")
+            raise InvalidInputError(f"kind must be one of {REWARD_KINDS}, got {self.kind!r}")
 
 
-class RewardModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-roboscape",
+class RewardModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
                   tags=["lerobot", "reward-model", "robotics"]):
     """Predicts the rule-based reward of a frame, from world-model features (B, d_model) or images
     (B, n_cameras, 3, H, W) in [0, 1], depending on `config.kind`."""

@@ -12,6 +12,7 @@ import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import TrainingConfig, fit
@@ -59,7 +60,8 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
     world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).eval().requires_grad_(False)
     if world_model.config.control != "action":
-        raise ValueError(f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one")
+        raise InvalidInputError(f"{cfg.action_world_model} is a {world_model.config.control} world model, not an "
+                                "action one")
     cfg.reward.d_model = world_model.config.d_model
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)

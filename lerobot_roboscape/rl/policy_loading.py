@@ -3,15 +3,20 @@
 from pathlib import Path
 
 import numpy as np
+from huggingface_hub import hf_hub_download
+from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import preprocess_observation
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.import_utils import register_third_party_plugins
 from torch import Tensor
 
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.rl.actor_critic import ActorCritic
+from lerobot_roboscape.weights import check_tensors
 
 
 def load_policy(path: str | Path, device: str):
@@ -20,12 +25,16 @@ def load_policy(path: str | Path, device: str):
     try:
         config = PreTrainedConfig.from_pretrained(str(path))
     except Exception as error:
-        raise FileNotFoundError(
+        raise MissingInputError(
             f"No LeRobot policy checkpoint at {path!r} ({type(error).__name__}: {error}). Pass the "
             f"pretrained_model directory of a lerobot-train or roboscape-ppo run, or a Hub repo id."
         ) from error
     config.device = device
     policy = get_policy_class(config.type).from_pretrained(str(path), config=config)
+    if type(policy)._load_as_safetensor.__func__ is PreTrainedPolicy._load_as_safetensor.__func__:
+        # LeRobot's loader is not strict: a policy missing tensors would run with their random initial values.
+        local = Path(path) / SAFETENSORS_SINGLE_FILE
+        check_tensors(policy, local if local.is_file() else hf_hub_download(str(path), SAFETENSORS_SINGLE_FILE))
     overrides = {"device_processor": {"device": device}}
     preprocessor, postprocessor = make_pre_post_processors(
         config, pretrained_path=str(path), preprocessor_overrides=overrides
@@ -35,7 +44,7 @@ def load_policy(path: str | Path, device: str):
 
 def check_actor_critic(policy, path) -> None:
     if not isinstance(policy, ActorCritic):
-        raise TypeError(
+        raise InvalidInputError(
             f"The {policy.name!r} policy at {path} cannot be trained by PPO: it lacks sample_action, "
             f"evaluate_actions or predict_value (lerobot_roboscape.rl.ActorCritic). Use roboscape_mlp or openvla."
         )
@@ -50,14 +59,15 @@ def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
     }
     for key, feature in policy.config.input_features.items():
         if feature.type is not FeatureType.VISUAL:
-            raise ValueError(f"The policy at {path} reads {key!r}, which the {env_cfg.type} env does not provide")
+            raise InvalidInputError(f"The policy at {path} reads {key!r}, which the {env_cfg.type} env does not "
+                                    "provide")
         channels_first = tuple(feature.shape)
         if key not in env_images:
-            raise ValueError(f"The policy at {path} reads camera {key!r}; the {env_cfg.type} env gives "
-                             f"{sorted(env_images)}")
+            raise InvalidInputError(f"The policy at {path} reads camera {key!r}; the {env_cfg.type} env gives "
+                                    f"{sorted(env_images)}")
         height, width, channels = env_images[key]
         if channels_first != (channels, height, width):
-            raise ValueError(
+            raise InvalidInputError(
                 f"The policy at {path} expects {key} images of shape {channels_first} (C, H, W); the "
                 f"{env_cfg.type} env renders {(channels, height, width)}: set --env.image_size={channels_first[-1]}"
             )

@@ -27,9 +27,11 @@ from lerobot.optim.optimizers import load_optimizer_state, save_optimizer_state
 from torch import Tensor, nn
 from tqdm import tqdm
 
+from lerobot_roboscape.atomic import make_tmp_dir
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, check_policy_fits_env, load_policy
-from lerobot_roboscape.training import CHECKPOINTS, FINAL, _make_tmp_dir, last_checkpoint, resolve_mixed_precision
+from lerobot_roboscape.training import CHECKPOINTS, FINAL, last_checkpoint, resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
 HISTORY = "history.jsonl"
@@ -113,10 +115,10 @@ class PPOConfig:
 
     def __post_init__(self):
         if not self.policy_path:
-            raise ValueError("--policy_path is required: the SFT checkpoint (or Hub repo id) PPO starts from")
+            raise InvalidInputError("--policy_path is required: the SFT checkpoint (or Hub repo id) PPO starts from")
         if self.num_envs < 1 or self.iterations < 1 or self.save_freq < 1:
-            raise ValueError(f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
-                             f"{self.iterations}, {self.save_freq}")
+            raise InvalidInputError(f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
+                                    f"{self.iterations}, {self.save_freq}")
         self.output_dir = Path(self.output_dir)
 
     def with_policy_defaults(self, policy_type: str) -> "PPOConfig":
@@ -346,7 +348,7 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
     folder and moved into place; `checkpoints/last` names the newest."""
     root = output_dir / CHECKPOINTS
     name = f"{iteration:08d}"
-    tmp = _make_tmp_dir(root, name)
+    tmp = make_tmp_dir(root, name)
     policy.save_pretrained(tmp / FINAL)
     io.preprocessor.save_pretrained(tmp / FINAL)
     io.postprocessor.save_pretrained(tmp / FINAL)
@@ -382,8 +384,8 @@ def train_ppo(cfg: PPOConfig) -> Path:
         elapsed = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
-        raise FileExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
-                              f"or choose another --output_dir")
+        raise OutputExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
+                                f"or choose another --output_dir")
     policy, preprocessor, postprocessor = load_policy(start_path, device)
     check_actor_critic(policy, start_path)
     check_policy_fits_env(policy, cfg.env, start_path)

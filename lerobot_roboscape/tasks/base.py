@@ -90,7 +90,7 @@ class RoboscapeTabletopEnv(BaseEnv):
 
     Subclasses set `family` and implement `_initialize_episode`, `evaluate` and `compute_dense_reward`.
     The scene is chosen by `scene_id` at construction, or changed later with
-    `reset(options={"scene_id": ...})`, which rebuilds the scene.
+    `reset(options={"scene_id": ...})`. Every reset rebuilds the scene.
     """
 
     SUPPORTED_ROBOTS = ["panda_wristcam"]
@@ -116,9 +116,12 @@ class RoboscapeTabletopEnv(BaseEnv):
     def reset(self, seed=None, options=None):
         options = dict(options or {})
         scene_id = options.pop("scene_id", None)
-        if scene_id is not None and scene_id != self.scene_spec.id:
+        if scene_id is not None:
             self.scene_spec = get_scene(scene_id)
-            options["reconfigure"] = True
+        # Every reset rebuilds the scene (0.3 s on CPU): PhysX keeps contact state across a plain reset, so an
+        # episode would depend, to the last bits, on the episodes before it in the same env, and a resumed
+        # collection or PPO run could not equal an uninterrupted one.
+        options["reconfigure"] = True
         return super().reset(seed=seed, options=options)
 
     # Cameras.

@@ -1,5 +1,6 @@
 import gymnasium as gym
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES
 
 CONTROL_MODE = "pd_ee_delta_pose"  # 7-D: xyz delta, rotation delta (XYZ Euler), gripper; all in [-1, 1]
@@ -8,7 +9,7 @@ CONTROL_MODE = "pd_ee_delta_pose"  # 7-D: xyz delta, rotation delta (XYZ Euler),
 def make_task_env(family: str, scene_id: str, image_size: int = 64, obs_mode: str = "rgb", **kwargs) -> gym.Env:
     """One ManiSkill env of a task family in one scene, with both cameras at `image_size` pixels square."""
     if family not in ENV_IDS:
-        raise ValueError(f"Unknown task family {family!r}; expected one of {TASK_FAMILIES}")
+        raise InvalidInputError(f"Unknown task family {family!r}; expected one of {TASK_FAMILIES}")
     return gym.make(
         ENV_IDS[family],
         scene_id=scene_id,

@@ -8,6 +8,8 @@ that defines them.
 from dataclasses import dataclass
 from typing import Literal
 
+from lerobot_roboscape.errors import InvalidInputError
+
 Shape = Literal["cube", "box", "sphere", "cylinder"]
 
 
@@ -122,7 +124,7 @@ class Scene:
 
     def instruction(self, family: str) -> str:
         if family not in INSTRUCTIONS:
-            raise ValueError(f"Unknown task family {family!r}; expected one of {TASK_FAMILIES}")
+            raise InvalidInputError(f"Unknown task family {family!r}; expected one of {TASK_FAMILIES}")
         return INSTRUCTIONS[family].format(object=self.object.name, container=self.container.name)
 
 
@@ -132,7 +134,7 @@ _SCENES_BY_ID = {scene.id: scene for scene in SCENES}
 
 def get_scene(scene_id: str) -> Scene:
     if scene_id not in _SCENES_BY_ID:
-        raise ValueError(
+        raise InvalidInputError(
             f"Unknown scene {scene_id!r}; known scenes look like {SCENES[0].id!r} "
             "(see `roboscape-collect --list-scenes`)"
         )
@@ -142,7 +144,7 @@ def get_scene(scene_id: str) -> Scene:
 def select_scenes(split: Literal["ind", "ood", "all"] = "all", scene_ids: list[str] | None = None) -> list[Scene]:
     """Scenes by explicit ids (in the given order) or by split."""
     if split not in ("ind", "ood", "all"):
-        raise ValueError(f"Unknown split {split!r}; expected 'ind', 'ood' or 'all'")
+        raise InvalidInputError(f"Unknown split {split!r}; expected 'ind', 'ood' or 'all'")
     if scene_ids:
         scenes = [get_scene(s) for s in scene_ids]
     else:

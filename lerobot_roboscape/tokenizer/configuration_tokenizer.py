@@ -2,6 +2,8 @@ from dataclasses import dataclass
 
 import draccus
 
+from lerobot_roboscape.errors import InvalidInputError
+
 
 @dataclass
 class TokenizerConfig(draccus.ChoiceRegistry):
@@ -40,12 +42,12 @@ class TokenizerConfig(draccus.ChoiceRegistry):
     def __post_init__(self):
         self.channel_multipliers = tuple(self.channel_multipliers)
         if self.image_size % self.downsample:
-            raise ValueError(
+            raise InvalidInputError(
                 f"image_size={self.image_size} must be divisible by the downsampling factor {self.downsample} "
                 f"(from channel_multipliers={self.channel_multipliers})"
             )
         if not 1 <= self.codebook_bits <= 16:
-            raise ValueError(
+            raise InvalidInputError(
                 f"codebook_bits must be in [1, 16] (tokens are stored as uint16), got {self.codebook_bits}"
             )
 

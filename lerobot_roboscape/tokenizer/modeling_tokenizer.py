@@ -9,11 +9,11 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 from einops import rearrange
-from huggingface_hub import PyTorchModelHubMixin
 from torch import nn
 from vector_quantize_pytorch import LFQ
 
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
+from lerobot_roboscape.weights import CheckedHubMixin
 
 
 def _norm(channels: int) -> nn.GroupNorm:
@@ -78,7 +78,7 @@ class TokenizerOutput(NamedTuple):
     quantizer_loss: torch.Tensor  # LFQ entropy + commitment loss, weighted
 
 
-class VisualTokenizer(nn.Module, PyTorchModelHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "tokenizer"]):
+class VisualTokenizer(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "tokenizer"]):
     def __init__(self, config: TokenizerConfig):
         super().__init__()
         self.config = config

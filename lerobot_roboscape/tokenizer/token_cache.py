@@ -27,13 +27,14 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
+from lerobot_roboscape.errors import InvalidInputError, require_finite
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
 FORMAT_VERSION = 2
 ARRAYS = ("tokens", "actions", "done", "rewards")
 
 
-class TokenCacheMismatchError(ValueError):
+class TokenCacheMismatchError(InvalidInputError):
     pass
 
 
@@ -111,7 +112,24 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
     for name, array in arrays.items():
         if len(array) != n:
             raise TokenCacheMismatchError(f"{path / f'{name}.npy'} has {len(array)} rows, manifest says {n}")
+    _check_values(path, arrays, episodes, manifest["vocab_size"])
     return TokenCache(path, manifest, arrays["tokens"], arrays["actions"], arrays["done"], arrays["rewards"], episodes)
+
+
+def _check_values(path: Path, arrays: dict[str, np.ndarray], episodes: list[dict], vocab_size: int) -> None:
+    """Labels and actions finite, codes inside the vocabulary; a fault names the dataset episode and frame."""
+    starts = np.array([row["start"] for row in episodes])
+
+    def row_name(row: int) -> str:
+        episode = episodes[int(np.searchsorted(starts, row, side="right")) - 1]
+        return f"(episode {episode['episode_index']} frame {row - episode['start']})"
+
+    for name in ("actions", "done", "rewards"):
+        require_finite(arrays[name], str(path / f"{name}.npy"), name, row_name)
+    if len(arrays["tokens"]) and int(arrays["tokens"].max()) >= vocab_size:
+        row = int(np.argmax(arrays["tokens"].reshape(len(arrays["tokens"]), -1).max(axis=1) >= vocab_size))
+        raise TokenCacheMismatchError(f"{path / 'tokens.npy'} {row_name(row)}: a code is outside the vocabulary of "
+                                      f"{vocab_size}; delete the cache to rebuild it")
 
 
 def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path: str | Path,
@@ -126,6 +144,8 @@ def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path:
     cameras, episodes = camera_names(dataset), episode_indices(dataset)
     side, n = tokenizer.config.tokens_per_side, dataset.num_frames
     path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in path.parent.glob(f".{path.name}.*"):  # left by a killed build; never opened as a cache
+        shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))

@@ -70,6 +70,7 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
     if size != cfg.tokenizer.image_size:
         raise DatasetError(f"dataset {dataset.root} has {size}x{size} images but --tokenizer.image_size is "
                            f"{cfg.tokenizer.image_size}; collect at that size or set --tokenizer.image_size={size}")
+    set_seed(cfg.train.seed)  # before the LPIPS trunk too, which is random when no weights are found
     lpips_metric = None
     if cfg.tokenizer.perceptual_weight > 0:
         lpips_metric = load_lpips(cfg.tokenizer.lpips_net, cfg.lpips_weights, cfg.allow_random_lpips)
@@ -80,6 +81,5 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
         return model.compute_loss(batch["images"], lpips_metric)
 
     batches = RandomFrameBatches(CameraFrames(dataset), cfg.train.batch_size, cfg.train.seed, cfg.num_workers)
-    set_seed(cfg.train.seed)
     model = VisualTokenizer(cfg.tokenizer)
     return fit(model, loss_fn, batches, cfg.train, cfg.output_dir, asdict(cfg), desc="tokenizer")

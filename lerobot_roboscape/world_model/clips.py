@@ -3,6 +3,7 @@
 import numpy as np
 import torch
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.token_cache import TokenCache
 
 
@@ -12,7 +13,8 @@ def select_episodes(cache: TokenCache, episodes: list[int] | None = None, only_o
     optimal; their success is read from the done labels."""
     known = {row["episode_index"] for row in cache.episodes}
     if episodes is not None and (missing := sorted(set(episodes) - known)):
-        raise ValueError(f"episodes {missing} are not in the token cache {cache.root} (it has {len(known)} episodes)")
+        raise InvalidInputError(f"episodes {missing} are not in the token cache {cache.root} (it has {len(known)} "
+                                "episodes)")
     rows = []
     for row in cache.episodes:
         if episodes is not None and row["episode_index"] not in episodes:
@@ -24,8 +26,8 @@ def select_episodes(cache: TokenCache, episodes: list[int] | None = None, only_o
             continue
         rows.append(row)
     if not rows:
-        raise ValueError(f"no episodes of {cache.root} left for training (episodes={episodes}, "
-                         f"only_optimal={only_optimal}, only_successful={only_successful})")
+        raise InvalidInputError(f"no episodes of {cache.root} left for training (episodes={episodes}, "
+                                f"only_optimal={only_optimal}, only_successful={only_successful})")
     return rows
 
 

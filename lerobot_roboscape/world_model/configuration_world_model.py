@@ -2,6 +2,8 @@ from dataclasses import dataclass
 
 import draccus
 
+from lerobot_roboscape.errors import InvalidInputError
+
 CONTROLS = ("action", "text")
 
 
@@ -62,13 +64,13 @@ class WorldModelConfig(draccus.ChoiceRegistry):
 
     def __post_init__(self):
         if self.control not in CONTROLS:
-            raise ValueError(f"control must be one of {CONTROLS}, got {self.control!r}")
+            raise InvalidInputError(f"control must be one of {CONTROLS}, got {self.control!r}")
         if self.d_model % self.n_head or (self.d_model // self.n_head) % 2:
-            raise ValueError(f"d_model={self.d_model} must split into n_head={self.n_head} heads of even width")
+            raise InvalidInputError(f"d_model={self.d_model} must split into n_head={self.n_head} heads of even width")
         if not 1 <= self.prompt_frames < self.window:
-            raise ValueError(f"prompt_frames={self.prompt_frames} must be in [1, window={self.window})")
+            raise InvalidInputError(f"prompt_frames={self.prompt_frames} must be in [1, window={self.window})")
         if self.maskgit_steps < 1:
-            raise ValueError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
+            raise InvalidInputError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
 
     @classmethod
     def default_choice_name(cls) -> str:

@@ -30,6 +30,8 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from lerobot_roboscape.errors import InvalidInputError
+
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
 
@@ -144,8 +146,8 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
     model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
     if model.config.control != "action":
-        raise ValueError(f"{cfg.world_model} is a {model.config.control} world model; the fidelity report needs the "
-                         "action world model")
+        raise InvalidInputError(f"{cfg.world_model} is a {model.config.control} world model; the fidelity report "
+                                "needs the action world model")
     lpips_metric = load_lpips(tokenizer.config.lpips_net, cfg.lpips_weights, cfg.allow_random_lpips).to(device)
     prompt = cfg.prompt_frames or model.config.prompt_frames
     n_cameras = model.config.n_cameras
@@ -187,7 +189,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
         whole.append((tokens[:prompt], actions))
     if not episodes_out:
-        raise ValueError(f"no episode of {dataset.root} is longer than the {prompt} prompt frames")
+        raise InvalidInputError(f"no episode of {dataset.root} is longer than the {prompt} prompt frames")
 
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),

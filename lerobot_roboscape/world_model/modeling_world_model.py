@@ -10,9 +10,10 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from huggingface_hub import PyTorchModelHubMixin, snapshot_download
+from huggingface_hub import snapshot_download
 from torch import nn
 
+from lerobot_roboscape.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
@@ -34,7 +35,7 @@ class RolloutState:
     frames_seen: int = 0
 
 
-class STWorldModel(nn.Module, PyTorchModelHubMixin, library_name="lerobot-roboscape",
+class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
                    tags=["lerobot", "world-model", "robotics"]):
     def __init__(self, config: WorldModelConfig, text_encoder_dir: str | None = None):
         super().__init__()

@@ -6,9 +6,9 @@ import pytest
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.cli.collect import CollectConfig, collect, make_jobs
 from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.dataset.reader import successful_episodes
+from lerobot_roboscape.demos.collect import CollectConfig, collect, make_jobs
 from lerobot_roboscape.pipeline.stages import sft_episodes
 from tests.conftest import IMAGE_SIZE
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.cli.convert import ConvertConfig, convert
+from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from tests.conftest import record_maniskill_file
 
 

@@ -168,3 +168,22 @@ def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):
         return env.step(np.broadcast_to(action, (2, 7)))[0]["pixels"]["wrist"]
 
     np.testing.assert_array_equal(next_frame(np.ones(7, np.float32)), next_frame(high))  # clipped to the range
+
+
+def test_soak_at_batch_64_is_finite_with_flat_memory(env_config):
+    """300 steps of 64 episodes (resets included): finite outputs, and the resident memory stops growing once the
+    first episodes have filled the caches (scripts/soak_world_model_env.py prints the curve)."""
+    import psutil
+
+    env = RoboscapeWorldModelEnv(env_config(episode_length=50, temperature=1.0, similarity="tokenizer"), num_envs=64)
+    rng, process, rss = np.random.default_rng(0), psutil.Process(), {}
+    env.reset(seed=0)
+    for step in range(1, 301):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, (64, 7)).astype(np.float32))
+        assert np.isfinite(reward).all() and np.isfinite(info["done_probability"]).all()
+        assert np.isfinite(info["distance_to_goal"]).all()
+        if (terminated | truncated).all():
+            env.reset()
+        if step in (1, 100, 200, 300):
+            rss[step] = process.memory_info().rss / 2**20
+    assert rss[300] - rss[100] < 0.05 * rss[100], f"RSS (MiB) at steps 1, 100, 200, 300: {rss}"

@@ -1,17 +1,16 @@
 """PPO in `roboscape_wm`, run as a user runs it (the `roboscape-ppo` command): the same flags and seed give the
 same bytes, and a run killed with SIGKILL and resumed ends where an uninterrupted one does."""
 
-import os
-import signal
-import subprocess
-import sys
-import time
+from pathlib import Path
 
+import draccus
 import pytest
 import torch
 from safetensors.torch import load_file
 
+from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from tests.conftest import IMAGE_SIZE
+from tests.harness import assert_same_weights, command, kill_when, run
 
 ITERATIONS = 3
 
@@ -28,43 +27,23 @@ def ppo_args(demo_dataset, trained_tokenizer, world_models, mlp_checkpoint):
             "--mixed_precision=no", "--seed=5"]  # fmt: skip
 
 
-def command(args: list[str]) -> list[str]:
-    return [sys.executable, "-m", "lerobot_roboscape.cli.ppo", *args]
-
-
-def run(args: list[str]) -> None:
-    result = subprocess.run(command(args), capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
-
-
-def weights(output_dir, iteration: int = ITERATIONS) -> dict[str, torch.Tensor]:
-    return load_file(output_dir / "checkpoints" / f"{iteration:08d}" / "pretrained_model" / "model.safetensors")
-
-
-def assert_same(a: dict, b: dict) -> None:
-    assert a.keys() == b.keys()
-    different = [key for key in a if not torch.equal(a[key], b[key])]
-    assert not different, f"tensors differ: {different}"
+def weights(output_dir, iteration: int = ITERATIONS) -> Path:
+    return output_dir / "checkpoints" / f"{iteration:08d}" / "pretrained_model" / "model.safetensors"
 
 
 def test_seeded_runs_are_identical_and_a_killed_run_resumes_exactly(ppo_args, tmp_path):
-    run([*ppo_args, f"--output_dir={tmp_path / 'reference'}"])
-    reference = weights(tmp_path / "reference")
-    assert not all(torch.equal(reference[k], weights(tmp_path / "reference", 1)[k]) for k in reference)  # it trained
+    reference = tmp_path / "reference"  # trained in this process, the killed run and its resumption in others
+    train_ppo(draccus.parse(PPOConfig, args=[*ppo_args, f"--output_dir={reference}"]))
+    first, last = load_file(weights(reference, 1)), load_file(weights(reference))
+    assert not all(torch.equal(first[k], last[k]) for k in first)  # it trained
 
     # A second run with the same flags, killed during iteration 2: what it saved before equals the reference.
     killed = tmp_path / "killed"
-    process = subprocess.Popen(command([*ppo_args, f"--output_dir={killed}"]), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)  # fmt: skip
-    deadline = time.time() + 600
-    while not (killed / "checkpoints" / "last").is_file() and process.poll() is None and time.time() < deadline:
-        time.sleep(0.05)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
-    assert not (killed / "checkpoints" / f"{ITERATIONS:08d}").exists(), "the run finished before it was killed"
-    assert_same(weights(tmp_path / "reference", 1), weights(killed, 1))
-    assert (tmp_path / "reference" / "checkpoints" / "00000001" / "training_state" / "iteration.json").read_text() \
-        == (killed / "checkpoints" / "00000001" / "training_state" / "iteration.json").read_text()
+    kill_when(command("ppo", *ppo_args, f"--output_dir={killed}"), lambda: (killed / "checkpoints" / "last").is_file())
+    assert not weights(killed).exists(), "the run finished before it was killed"
+    assert_same_weights(weights(reference, 1), weights(killed, 1))
+    state = Path("checkpoints", "00000001", "training_state", "iteration.json")
+    assert (reference / state).read_text() == (killed / state).read_text()
 
-    run([*ppo_args, f"--output_dir={killed}", "--resume=true"])
-    assert_same(reference, weights(killed))
+    run(command("ppo", *ppo_args, f"--output_dir={killed}", "--resume=true"))
+    assert_same_weights(weights(reference), weights(killed))

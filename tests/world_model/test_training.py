@@ -1,14 +1,9 @@
 import json
-import signal
-import subprocess
-import sys
-import time
 
 import draccus
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import load_file
 
 from lerobot_roboscape.training import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
@@ -20,6 +15,7 @@ from lerobot_roboscape.world_model.fidelity import (
 )
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+from tests.harness import assert_same_weights, command, kill_when, run
 
 STEPS = 60
 
@@ -74,29 +70,17 @@ def test_episode_filters(token_cache):
 
 def test_killed_run_resumes_to_the_same_model(action_wm, demo_dataset, trained_tokenizer, token_cache, tmp_path):
     args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path)
-    command = [sys.executable, "-m", "lerobot_roboscape.cli.train_wm", *args]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 300
-    while last_checkpoint(tmp_path) is None and process.poll() is None and time.time() < deadline:
-        time.sleep(0.02)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    kill_when(command("train_wm", *args), lambda: last_checkpoint(tmp_path) is not None)
     interrupted_at = json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())["step"]
     assert interrupted_at < STEPS and not (tmp_path / FINAL).exists()
 
     with pytest.raises(FileExistsError, match="--resume=true"):
         train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
-    resumed = subprocess.run([*command, "--train.resume=true"], capture_output=True, text=True)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    resumed = run(command("train_wm", *args, "--train.resume=true"))
     assert f"{interrupted_at}/{STEPS}" in resumed.stderr  # the progress bar starts at the checkpoint's step
     final = json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())["step"]
     assert final == STEPS
-
-    uninterrupted = load_file(action_wm / FINAL / "model.safetensors")
-    after_resume = load_file(tmp_path / FINAL / "model.safetensors")
-    assert uninterrupted.keys() == after_resume.keys()
-    for name in uninterrupted:
-        torch.testing.assert_close(after_resume[name], uninterrupted[name], rtol=0, atol=0, msg=name)
+    assert_same_weights(action_wm / FINAL / "model.safetensors", tmp_path / FINAL / "model.safetensors")
 
 
 def test_trained_model_learns_and_loads(action_wm):

@@ -21,6 +21,7 @@ from tokenizers import Tokenizer, decoders, models, normalizers, processors
 from transformers import LlamaTokenizerFast, PreTrainedTokenizerBase
 
 from lerobot_policy_openvla.prismatic import PrismaticArchitecture, PrismaticVLA
+from lerobot_roboscape.errors import InvalidInputError
 
 TINY = "tiny"
 RANDOM_7B = "random-7b"
@@ -28,8 +29,8 @@ CHECKPOINT_PATTERNS = ["*.json", "*.safetensors", "tokenizer.model"]
 SPIECE_SPACE = "\u2581"  # sentencepiece's word boundary, token 29871 in Llama-2
 
 
-class OpenVLACheckpointError(ValueError):
-    pass
+class OpenVLACheckpointError(InvalidInputError):
+    """A checkpoint whose files or tensors do not match the published layout."""
 
 
 @dataclass

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from torch.distributions import Categorical
 
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
-from lerobot_policy_openvla.checkpoint import SPIECE_SPACE, build_vla, read_checkpoint
+from lerobot_policy_openvla.checkpoint import SPIECE_SPACE, OpenVLACheckpointError, build_vla, read_checkpoint
 from lerobot_policy_openvla.configuration_openvla import OpenVLAConfig
 from lerobot_roboscape.rl import ActionEvaluation, PolicySample, scale_gradient
 
@@ -88,7 +88,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
             tensors = {key: file.get_tensor(key) for key in file.keys()}
         missing, unexpected = sorted(expected - set(tensors)), sorted(set(tensors) - expected)
         if missing or unexpected:
-            raise ValueError(
+            raise OpenVLACheckpointError(
                 f"{model_file} does not fit this policy's adapter (base {model.config.base_model!r}, LoRA r="
                 f"{model.config.lora_r}, targets {model.config.lora_target_modules}): missing {missing[:5]} "
                 f"({len(missing)}), unexpected {unexpected[:5]} ({len(unexpected)})"

@@ -9,7 +9,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from lerobot_roboscape.demos.episode import Episode
+from lerobot_roboscape.dataset.episode import Episode
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 
 RENDER_HINT = (
     "It has no camera images. Render them by replaying it first, e.g.\n"
@@ -33,9 +34,9 @@ def open_trajectory_file(h5_path: str | Path, json_path: str | Path | None = Non
     h5_path = Path(h5_path)
     json_path = Path(json_path) if json_path else h5_path.with_suffix(".json")
     if not h5_path.exists():
-        raise FileNotFoundError(f"{h5_path}: no such trajectory file")
+        raise MissingInputError(f"{h5_path}: no such trajectory file")
     if not json_path.exists():
-        raise FileNotFoundError(
+        raise MissingInputError(
             f"{json_path}: missing; ManiSkill writes it beside {h5_path.name} and it is needed for the episode list"
         )
     try:
@@ -43,15 +44,15 @@ def open_trajectory_file(h5_path: str | Path, json_path: str | Path | None = Non
             meta = json.load(f)
         env_info, episodes = meta["env_info"], meta["episodes"]
     except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{json_path}: not a ManiSkill trajectory .json ({type(e).__name__}: {e})") from e
+        raise InvalidInputError(f"{json_path}: not a ManiSkill trajectory .json ({type(e).__name__}: {e})") from e
     if not episodes:
-        raise ValueError(f"{json_path}: lists no episodes")
+        raise InvalidInputError(f"{json_path}: lists no episodes")
     env_kwargs = env_info.get("env_kwargs", {})
     control_mode = env_kwargs.get("control_mode") or episodes[0].get("control_mode")
     try:
         h5 = h5py.File(h5_path, "r")
     except OSError as e:
-        raise ValueError(f"{h5_path}: cannot be read as HDF5 (truncated or corrupt?): {e}") from e
+        raise InvalidInputError(f"{h5_path}: cannot be read as HDF5 (truncated or corrupt?): {e}") from e
     with h5:
         for episode in episodes:
             _check_episode(h5, h5_path, episode)
@@ -62,25 +63,25 @@ def _check_episode(h5: h5py.File, h5_path: Path, episode: dict) -> None:
     key = f"traj_{episode['episode_id']}"
     where = f"{h5_path} episode {episode['episode_id']}"
     if key not in h5:
-        raise ValueError(f"{where}: group {key!r} listed in the .json is missing from the .h5 (truncated file?)")
+        raise InvalidInputError(f"{where}: group {key!r} listed in the .json is missing from the .h5 (truncated file?)")
     group = h5[key]
     if "actions" not in group:
-        raise ValueError(f"{where}: has no 'actions' dataset")
+        raise InvalidInputError(f"{where}: has no 'actions' dataset")
     try:
         n = group["actions"].shape[0]
         cameras = _cameras(group)
         if not cameras:
-            raise ValueError(f"{where}: " + RENDER_HINT.format(h5=h5_path))
+            raise InvalidInputError(f"{where}: " + RENDER_HINT.format(h5=h5_path))
         for name, rgb in cameras.items():
             if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.shape[0] != n + 1:
-                raise ValueError(
+                raise InvalidInputError(
                     f"{where}: camera {name!r} has shape {rgb.shape}; expected ({n + 1}, H, W, 3) for {n} actions"
                 )
         for flag in ("success", "terminated", "truncated"):
             if flag in group and group[flag].shape[0] != n:
-                raise ValueError(f"{where}: {flag!r} has {group[flag].shape[0]} entries for {n} actions")
+                raise InvalidInputError(f"{where}: {flag!r} has {group[flag].shape[0]} entries for {n} actions")
     except (OSError, RuntimeError, KeyError) as e:  # h5py raises these on truncated chunks
-        raise ValueError(f"{where}: unreadable data (truncated file?): {e}") from e
+        raise InvalidInputError(f"{where}: unreadable data (truncated file?): {e}") from e
 
 
 def _cameras(group: h5py.Group) -> dict[str, h5py.Dataset]:
@@ -124,7 +125,7 @@ def read_episodes(traj: TrajectoryFile, task: str, camera_names: dict[str, str] 
                 reward = group["rewards"][:].astype(np.float32) if "rewards" in group else np.zeros(n, np.float32)
                 state = _state(group, n)
             except (OSError, RuntimeError, KeyError) as e:
-                raise ValueError(f"{where}: unreadable data (truncated file?): {e}") from e
+                raise InvalidInputError(f"{where}: unreadable data (truncated file?): {e}") from e
             episode = Episode(images, state, actions, reward, success, done, task,
                               info={"source_file": traj.h5_path.name, "source_episode_id": meta["episode_id"],
                                     "env_id": traj.env_id, "control_mode": traj.control_mode,

@@ -1,0 +1,139 @@
+"""Planner demonstrations in the task suite, collected into a LeRobotDataset v3 (`roboscape-collect`)."""
+
+import json
+import logging
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from tqdm import tqdm
+
+from lerobot_roboscape.atomic import make_tmp_dir
+from lerobot_roboscape.dataset.episode import Episode
+from lerobot_roboscape.dataset.writer import check_target, write_dataset
+from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+
+STATE_NAMES = [f"joint_{i}" for i in range(7)] + ["finger_left", "finger_right"] + [
+    "tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
+ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
+CONTROL_FREQ = 20  # Hz, the ManiSkill tabletop default
+JOBS = "jobs.json"  # the planned episodes of an interrupted collection, which a resumed one must equal
+
+
+@dataclass
+class CollectConfig:
+    """Args:
+    repo_id: dataset name (`user/name`) recorded in its metadata and used when pushing.
+    root: output directory; must not exist unless `overwrite`.
+    families: task families to collect.
+    split: scenes of this split ("ind", "ood" or "all").
+    scenes: explicit scene ids (overrides `max_scenes`; still filtered by `split`).
+    max_scenes: use only the first N scenes of the split (None: all).
+    episodes_per_scene: episodes per (family, scene).
+    failed_fraction: share of deliberately failed attempts (a grasp or push beside the object, the object put
+        down or pushed short of its target), dealt per family: the world model must see what failure looks like.
+    suboptimal_fraction: share of suboptimal trajectories among the other attempts (the rest are optimal).
+    seed: base seed; episode k of the run uses seed + k.
+    image_size: square camera resolution for both cameras.
+    workers: parallel ManiSkill processes (0: run in this process).
+    keep_failed: also write attempts that did not succeed (in the simulator, whatever their kind).
+    overwrite: replace an existing dataset at `root`.
+    resume: continue an interrupted collection into `root` from the episodes it saved.
+    list_scenes: print the scenes with their split and exit.
+    """
+
+    repo_id: str = "local/roboscape_demos"
+    root: str = "outputs/datasets/roboscape_demos"
+    families: list[str] = field(default_factory=lambda: list(TASK_FAMILIES))
+    split: str = "ind"
+    scenes: list[str] | None = None
+    max_scenes: int | None = None
+    episodes_per_scene: int = 2
+    failed_fraction: float = 0.25
+    suboptimal_fraction: float = 0.5
+    seed: int = 0
+    image_size: int = 64
+    workers: int = 2
+    keep_failed: bool = True
+    overwrite: bool = False
+    resume: bool = False
+    list_scenes: bool = False
+
+    def __post_init__(self):
+        unknown = [f for f in self.families if f not in TASK_FAMILIES]
+        if unknown:
+            raise InvalidInputError(f"Unknown task families {unknown}; expected a subset of {list(TASK_FAMILIES)}")
+        if not 0.0 <= self.failed_fraction <= 1.0:
+            raise InvalidInputError(f"failed_fraction must be in [0, 1], got {self.failed_fraction}")
+        if not 0.0 <= self.suboptimal_fraction <= 1.0:
+            raise InvalidInputError(f"suboptimal_fraction must be in [0, 1], got {self.suboptimal_fraction}")
+        if self.episodes_per_scene < 1:
+            raise InvalidInputError(f"episodes_per_scene must be >= 1, got {self.episodes_per_scene}")
+        if self.image_size < 16:
+            raise InvalidInputError(f"image_size must be >= 16, got {self.image_size}")
+
+
+def make_jobs(cfg: CollectConfig) -> list[EpisodeJob]:
+    scenes = select_scenes(cfg.split, cfg.scenes)
+    if cfg.max_scenes is not None and not cfg.scenes:
+        scenes = scenes[: cfg.max_scenes]
+    if not scenes:
+        raise InvalidInputError(f"No scene matches split={cfg.split!r} scenes={cfg.scenes}")
+    rng = np.random.default_rng(cfg.seed)
+    # Kinds are dealt over all episodes of a family, not per scene: a few episodes per scene would round a small
+    # failed_fraction down to no failure at all.
+    n = len(scenes) * cfg.episodes_per_scene
+    n_failed = round(n * cfg.failed_fraction)
+    n_sub = round((n - n_failed) * cfg.suboptimal_fraction)
+    deck = ["failed"] * n_failed + ["suboptimal"] * n_sub + ["optimal"] * (n - n_failed - n_sub)
+    jobs = []
+    for family in cfg.families:
+        kinds = iter(rng.permutation(deck))
+        for scene in scenes:
+            for _ in range(cfg.episodes_per_scene):
+                jobs.append(EpisodeJob(family, scene.id, cfg.seed + len(jobs), str(next(kinds)), cfg.image_size))
+    return jobs
+
+
+def collect(cfg: CollectConfig) -> LeRobotDataset:
+    """Run the planner jobs and write their episodes as a dataset at `cfg.root`.
+
+    Each finished episode is saved at once beside the target (`.<root>.episodes/`), so a killed run continues with
+    --resume=true from the episodes it had; the dataset is written, atomically, once all of them exist.
+    """
+    jobs = make_jobs(cfg)
+    root = Path(cfg.root).resolve()
+    check_target(root, cfg.overwrite)  # before hours of collection, not after
+    work = root.parent / f".{root.name}.episodes"
+    plan = [asdict(job) for job in jobs]
+    if work.exists():
+        if not cfg.resume:
+            raise OutputExistsError(f"{work} holds an interrupted collection for {root}: pass --resume=true to "
+                                    "continue it, or delete it to start over")
+        if json.loads((work / JOBS).read_text()) != plan:
+            raise InvalidInputError(f"--resume=true: {work} was collected with other settings (families, scenes, "
+                                    "episodes, fractions, seed or image size); use them, or delete it to start over")
+    else:
+        root.parent.mkdir(parents=True, exist_ok=True)
+        staging = make_tmp_dir(root.parent, f"{root.name}.episodes")
+        (staging / JOBS).write_text(json.dumps(plan))
+        os.replace(staging, work)
+    files = [work / f"{k:06d}.npz" for k in range(len(jobs))]
+    todo = [k for k, file in enumerate(files) if not file.exists()]
+    logging.info("Collecting %d of %d episodes over %d families with %d workers", len(todo), len(jobs),
+                 len(cfg.families), cfg.workers)  # fmt: skip
+    episodes = run_jobs([jobs[k] for k in todo], cfg.workers)
+    for k, episode in tqdm(zip(todo, episodes, strict=True), total=len(todo), desc="collecting", unit="episode"):
+        episode.save(files[k])
+    dataset = write_dataset(
+        (Episode.load(file) for file in files), cfg.repo_id, root, fps=CONTROL_FREQ, state_names=STATE_NAMES,
+        action_names=ACTION_NAMES, robot_type="panda", overwrite=cfg.overwrite, total=len(jobs),
+        keep=lambda episode: cfg.keep_failed or episode.succeeded,
+    )
+    shutil.rmtree(work)
+    return dataset

@@ -1,0 +1,140 @@
+"""Every long command, SIGKILLed inside its work and rerun, ends where an uninterrupted run ends, bit for bit; a
+kill never leaves an output that a later run accepts. (World-model training and PPO in `roboscape_wm` are killed
+in tests/world_model/test_training.py and tests/rl/test_ppo_world_model.py.)"""
+
+import json
+
+import draccus
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from lerobot.configs.default import DatasetConfig
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_roboscape.dataset import EPISODES_SIDECAR
+from lerobot_roboscape.dataset.convert import ConvertConfig, convert
+from lerobot_roboscape.dataset.reader import episode_indices, read_episode
+from lerobot_roboscape.demos.collect import CollectConfig, collect
+from lerobot_roboscape.errors import OutputExistsError
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
+from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.tokenizer.token_cache import open_token_cache
+from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training import FINAL, last_checkpoint
+from lerobot_roboscape.world_model.train import prepare_token_cache
+from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
+from tests.harness import assert_same_weights, command, kill_when, run
+
+
+def assert_same_dataset(expected, got) -> None:
+    """Same tables (every column of every frame), metadata, episode facts and decoded frames."""
+    tables = sorted(p.relative_to(expected) for p in expected.rglob("*.parquet"))
+    assert tables == sorted(p.relative_to(got) for p in got.rglob("*.parquet"))
+    for table in tables:
+        assert pq.read_table(expected / table).equals(pq.read_table(got / table)), table
+    for meta in ("meta/info.json", EPISODES_SIDECAR):
+        assert (expected / meta).read_text() == (got / meta).read_text(), meta
+    a, b = LeRobotDataset("test/a", root=expected), LeRobotDataset("test/b", root=got)
+    for index in episode_indices(a):
+        frames_a, frames_b = read_episode(a, index).images, read_episode(b, index).images
+        assert all(np.array_equal(frames_a[camera], frames_b[camera]) for camera in frames_a), f"episode {index}"
+
+
+def test_collect(tmp_path):
+    args = ["--repo_id=test/demos", "--families=[push]", "--max_scenes=1", "--episodes_per_scene=3",
+            "--failed_fraction=0.34", f"--image_size={IMAGE_SIZE}", "--workers=0", "--seed=11"]  # fmt: skip
+    collect(draccus.parse(CollectConfig, args=[*args, f"--root={tmp_path / 'reference'}"]))
+    root, work = tmp_path / "demos", tmp_path / ".demos.episodes"
+    kill_when(command("collect", *args, f"--root={root}"), lambda: any(work.glob("*.npz")))
+    assert not root.exists() and 1 <= len(list(work.glob("*.npz"))) < 3
+    with pytest.raises(OutputExistsError, match="--resume=true"):  # a plain rerun neither starts over nor resumes
+        collect(draccus.parse(CollectConfig, args=[*args, f"--root={root}"]))
+    run(command("collect", *args, f"--root={root}", "--resume=true"))
+    assert not work.exists()
+    assert_same_dataset(tmp_path / "reference", root)
+
+
+def test_convert(tmp_path):
+    h5 = record_maniskill_file(tmp_path / "source")
+    root = tmp_path / "converted"
+    args = [f"--h5={h5}", f"--root={root}", "--task=pick up the cube"]
+    kill_when(command("convert", *args), lambda: any(tmp_path.glob(".converted.partial-*/converted/meta")))
+    assert not root.exists()  # nothing, not a partial dataset
+    run(command("convert", *args))
+    assert not any(tmp_path.glob(".converted.partial-*"))  # the killed run's leftovers are gone
+    convert(ConvertConfig(h5=str(h5), root=str(tmp_path / "reference"), task="pick up the cube"))
+    assert_same_dataset(tmp_path / "reference", root)
+
+
+@pytest.mark.parametrize("trainer", ["tokenizer", "reward"])
+def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_models, tmp_path):
+    _, root = demo_dataset
+    common = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", "--train.steps=24", "--train.save_freq=4",
+              "--train.log_freq=4", "--train.mixed_precision=no"]  # fmt: skip
+    if trainer == "tokenizer":
+        name, config, train = "train_tokenizer", TrainTokenizerConfig, train_tokenizer
+        args = [*common, f"--tokenizer.image_size={IMAGE_SIZE}", "--tokenizer.base_channels=8",
+                "--tokenizer.channel_multipliers=[1,2,2,2]", "--tokenizer.codebook_bits=6", "--train.batch_size=4",
+                "--num_workers=0", "--allow_random_lpips=true"]  # fmt: skip
+    else:
+        name, config, train = "train_reward", TrainRewardConfig, train_reward_model
+        args = [*common, "--reward.kind=embedding", f"--tokenizer={trained_tokenizer}",
+                f"--action_world_model={world_models['action']}", f"--token_cache={token_cache.root}",
+                "--train.batch_size=4"]  # fmt: skip
+    train(draccus.parse(config, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
+    killed = tmp_path / "killed"
+    kill_when(command(name, *args, f"--output_dir={killed}"), lambda: last_checkpoint(killed) is not None)
+    assert not (killed / FINAL).exists()
+    run(command(name, *args, f"--output_dir={killed}", "--train.resume=true"))
+    assert_same_weights(tmp_path / "reference" / FINAL / "model.safetensors", killed / FINAL / "model.safetensors")
+
+
+def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
+    args = [f"--policy_path={mlp_checkpoint}", "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}",
+            "--env.families=[push]", "--env.episode_length=3", "--num_envs=2", "--iterations=2", "--save_freq=1",
+            "--critic_warmup_iterations=1", "--minibatch_size=3", "--device=cpu", "--mixed_precision=no",
+            "--seed=7"]  # fmt: skip
+    reference = train_ppo(draccus.parse(PPOConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
+    killed = tmp_path / "killed"
+    kill_when(command("ppo", *args, f"--output_dir={killed}"), lambda: (killed / "checkpoints" / "last").is_file())
+    assert not (killed / "checkpoints" / "00000002").exists()
+    run(command("ppo", *args, f"--output_dir={killed}", "--resume=true"))
+    resumed = killed / "checkpoints" / "00000002"
+    assert_same_weights(reference / "model.safetensors", resumed / FINAL / "model.safetensors")
+    state = "training_state/iteration.json"
+    assert (reference.parent / state).read_text() == (resumed / state).read_text()
+
+
+def test_eval(mlp_checkpoint, tmp_path):
+    args = [f"--policy_path={mlp_checkpoint}", "--families=[push,pull]", "--episodes=1", "--batch_size=2",
+            "--episode_length=2", "--device=cpu", "--videos=1"]  # fmt: skip
+    reference = evaluate_success(draccus.parse(EvalConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
+    for split in ("ind", "ood"):
+        cells = reference["splits"][split]
+        assert cells["push"]["episodes"] == cells["pull"]["episodes"] == 1 and cells["all"]["episodes"] == 2
+        assert 0 <= cells["all"]["successes"] <= 2
+        assert (tmp_path / "reference" / "videos" / f"{split}.mp4").exists()
+    assert "| OOD | pull |" in (tmp_path / "reference" / "eval.md").read_text()
+
+    killed = tmp_path / "killed"
+    kill_when(command("evaluate", *args, f"--output_dir={killed}"), lambda: (killed / "splits" / "ind.json").exists())
+    assert not (killed / "eval.json").exists()  # no table reported as complete
+    with pytest.raises(OutputExistsError, match="--resume=true"):
+        evaluate_success(draccus.parse(EvalConfig, args=[*args, f"--output_dir={killed}"]))
+    run(command("evaluate", *args, f"--output_dir={killed}", "--resume=true"))
+    assert json.loads((killed / "eval.json").read_text()) == reference
+
+
+def test_token_cache(demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    _, root = demo_dataset
+    cache_dir = tmp_path / "cache"
+    args = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
+            f"--cache_dir={cache_dir}", f"--output_dir={tmp_path / 'wm'}", "--train.steps=1", *TEST_WM_ARGS]
+    kill_when(command("train_wm", *args), lambda: any(cache_dir.glob(".v*")))  # killed while tokenizing
+    assert not [p for p in cache_dir.iterdir() if not p.name.startswith(".")]  # no cache a later run would open
+    rebuilt = prepare_token_cache(DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer),
+                                  cache_dir)  # fmt: skip
+    assert [p.name for p in cache_dir.iterdir()] == [rebuilt.root.name]  # the killed build's leftovers are gone
+    rebuilt = open_token_cache(rebuilt.root)
+    assert np.array_equal(rebuilt.tokens, token_cache.tokens) and np.array_equal(rebuilt.actions, token_cache.actions)
