@@ -28,6 +28,7 @@ def main():
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--episode-length", type=int, default=50)
     parser.add_argument("--every", type=int, default=25, help="steps between two memory readings")
+    parser.add_argument("--image-size", type=int, default=64, help="the models' camera image side")
     args = parser.parse_args()
     demo = args.demo_dir
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
@@ -38,7 +39,7 @@ def main():
         tokenizer=str(demo / "tokenizer" / "pretrained_model"),
         action_world_model=str(demo / "world_model_action" / "pretrained_model"),
         text_world_model=str(demo / "world_model_text" / "pretrained_model"),
-        allow_random_lpips=True, episode_length=args.episode_length, temperature=1.0,
+        image_size=args.image_size, allow_random_lpips=True, episode_length=args.episode_length, temperature=1.0,
     )  # fmt: skip
     env = RoboscapeWorldModelEnv(config, num_envs=args.batch_size)
     process, rng = psutil.Process(), np.random.default_rng(0)

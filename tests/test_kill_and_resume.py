@@ -42,12 +42,12 @@ def assert_same_dataset(expected, got) -> None:
 
 
 def test_collect(tmp_path):
-    args = ["--repo_id=test/demos", "--families=[push]", "--max_scenes=1", "--episodes_per_scene=3",
-            "--failed_fraction=0.34", f"--image_size={IMAGE_SIZE}", "--workers=0", "--seed=11"]  # fmt: skip
+    args = ["--repo_id=test/demos", "--families=[push]", "--max_scenes=1", "--episodes_per_scene=2",
+            "--failed_fraction=0.5", f"--image_size={IMAGE_SIZE}", "--workers=0", "--seed=11"]  # fmt: skip
     collect(draccus.parse(CollectConfig, args=[*args, f"--root={tmp_path / 'reference'}"]))
     root, work = tmp_path / "demos", tmp_path / ".demos.episodes"
     kill_when(command("collect", *args, f"--root={root}"), lambda: any(work.glob("*.npz")))
-    assert not root.exists() and 1 <= len(list(work.glob("*.npz"))) < 3
+    assert not root.exists() and len(list(work.glob("*.npz"))) == 1
     with pytest.raises(OutputExistsError, match="--resume=true"):  # a plain rerun neither starts over nor resumes
         collect(draccus.parse(CollectConfig, args=[*args, f"--root={root}"]))
     run(command("collect", *args, f"--root={root}", "--resume=true"))
@@ -92,7 +92,7 @@ def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_m
 
 def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
     args = [f"--policy_path={mlp_checkpoint}", "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}",
-            "--env.families=[push]", "--env.episode_length=3", "--num_envs=2", "--iterations=2", "--save_freq=1",
+            "--env.families=[push]", "--env.episode_length=3", "--num_envs=1", "--iterations=2", "--save_freq=1",
             "--critic_warmup_iterations=1", "--minibatch_size=3", "--device=cpu", "--mixed_precision=no",
             "--seed=7"]  # fmt: skip
     reference = train_ppo(draccus.parse(PPOConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
@@ -107,15 +107,14 @@ def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
 
 
 def test_eval(mlp_checkpoint, tmp_path):
-    args = [f"--policy_path={mlp_checkpoint}", "--families=[push,pull]", "--episodes=1", "--batch_size=2",
+    args = [f"--policy_path={mlp_checkpoint}", "--families=[push]", "--episodes=1", "--batch_size=1",
             "--episode_length=2", "--device=cpu", "--videos=1"]  # fmt: skip
     reference = evaluate_success(draccus.parse(EvalConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
     for split in ("ind", "ood"):
         cells = reference["splits"][split]
-        assert cells["push"]["episodes"] == cells["pull"]["episodes"] == 1 and cells["all"]["episodes"] == 2
-        assert 0 <= cells["all"]["successes"] <= 2
+        assert cells["push"]["episodes"] == cells["all"]["episodes"] == 1
         assert (tmp_path / "reference" / "videos" / f"{split}.mp4").exists()
-    assert "| OOD | pull |" in (tmp_path / "reference" / "eval.md").read_text()
+    assert "| OOD | push |" in (tmp_path / "reference" / "eval.md").read_text()
 
     killed = tmp_path / "killed"
     kill_when(command("evaluate", *args, f"--output_dir={killed}"), lambda: (killed / "splits" / "ind.json").exists())

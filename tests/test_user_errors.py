@@ -6,8 +6,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
-import sys
 
 import draccus
 import h5py
@@ -202,10 +200,6 @@ def test_weights_that_do_not_fit_their_config_are_refused(world_models, mlp_chec
 
 
 def test_debug_switch_shows_the_traceback_and_bugs_keep_theirs(monkeypatch):
-    cmd = [sys.executable, "-m", "lerobot_roboscape.cli.collect", "--failed_fraction=2"]
-    plain = subprocess.run(cmd, capture_output=True, text=True, timeout=300)  # the installed command's own exit
-    assert plain.returncode == USER_ERROR_EXIT and plain.stderr.strip().splitlines() == [
-        "roboscape-collect: error: failed_fraction must be in [0, 1], got 2.0"]
     monkeypatch.setenv(DEBUG_ENV, "1")
     with pytest.raises(draccus.utils.ParsingError):
         collect_cli.main(["--failed_fraction=2"])

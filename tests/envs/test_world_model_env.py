@@ -175,7 +175,7 @@ def test_soak_at_batch_64_is_finite_with_flat_memory(env_config):
     first episodes have filled the caches (scripts/soak_world_model_env.py prints the curve)."""
     import psutil
 
-    env = RoboscapeWorldModelEnv(env_config(episode_length=50, temperature=1.0, similarity="tokenizer"), num_envs=64)
+    env = RoboscapeWorldModelEnv(env_config(episode_length=50, temperature=1.0, similarity="lpips"), num_envs=64)
     rng, process, rss = np.random.default_rng(0), psutil.Process(), {}
     env.reset(seed=0)
     for step in range(1, 301):
