@@ -1,5 +1,2 @@
-"""Reinforcement learning of policies in the roboscape envs."""
-
-from lerobot_roboscape.rl.actor_critic import ActionEvaluation, ActorCritic, PolicySample, scale_gradient
-
-__all__ = ["ActionEvaluation", "ActorCritic", "PolicySample", "scale_gradient"]
+"""Reinforcement learning of policies in the roboscape envs (PPO); the contract a policy meets to be trained here is
+`lerobot_roboscape.actor_critic`."""

@@ -14,8 +14,8 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.import_utils import register_third_party_plugins
 from torch import Tensor
 
+from lerobot_roboscape.actor_critic import ActorCritic
 from lerobot_roboscape.errors import InvalidInputError, MissingInputError
-from lerobot_roboscape.rl.actor_critic import ActorCritic
 from lerobot_roboscape.weights import check_tensors
 
 

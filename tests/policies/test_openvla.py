@@ -19,8 +19,8 @@ from lerobot_policy_openvla.checkpoint import (
 from lerobot_policy_openvla.modeling_openvla import openvla_prompt
 from safetensors import safe_open
 
+from lerobot_roboscape.actor_critic import ActorCritic
 from lerobot_roboscape.hub.push import push_policy
-from lerobot_roboscape.rl import ActorCritic
 from tests.conftest import IMAGE_SIZE, lerobot_train
 
 CAMERA = "observation.images.third_view"

@@ -5,7 +5,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.rl import ActorCritic
+from lerobot_roboscape.actor_critic import ActorCritic
 from tests.conftest import IMAGE_SIZE
 
 CAMERAS = ("observation.images.third_view", "observation.images.wrist")

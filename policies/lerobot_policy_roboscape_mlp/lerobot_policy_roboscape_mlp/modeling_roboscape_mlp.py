@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from torch.distributions import Normal
 
 from lerobot_policy_roboscape_mlp.configuration_roboscape_mlp import RoboscapeMLPConfig
-from lerobot_roboscape.rl import ActionEvaluation, PolicySample, scale_gradient
+from lerobot_roboscape.actor_critic import ActionEvaluation, PolicySample, scale_gradient
 
 
 class RoboscapeMLPImageEncoder(nn.Module):
