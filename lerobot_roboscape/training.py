@@ -22,13 +22,11 @@ from torch import nn
 from tqdm import tqdm
 
 from lerobot_roboscape.atomic import make_tmp_dir
+from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINTS = "checkpoints"
-LAST = "last"
-FINAL = "pretrained_model"
 
 
 @dataclass
@@ -91,33 +89,14 @@ def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
     return accelerator
 
 
-def last_checkpoint(output_dir: Path) -> Path | None:
-    pointer = output_dir / CHECKPOINTS / LAST
-    if not pointer.is_file():
-        return None
-    path = output_dir / CHECKPOINTS / pointer.read_text().strip()
-    return path if path.is_dir() else None
-
-
 def _save_checkpoint(accelerator: Accelerator, model: nn.Module, step: int, output_dir: Path, keep: int) -> None:
-    root = output_dir / CHECKPOINTS
-    name = f"{step:08d}"
-    if accelerator.is_main_process:
-        tmp = make_tmp_dir(root, name)
-    else:
-        tmp = None
+    tmp = begin_checkpoint(output_dir, step) if accelerator.is_main_process else None
     tmp = Path(accelerate_broadcast_path(accelerator, tmp))
-    accelerator.save_state(tmp)
+    accelerator.save_state(tmp)  # every process writes its part
     if accelerator.is_main_process:
         accelerator.unwrap_model(model).save_pretrained(tmp / FINAL)
         (tmp / "training_step.json").write_text(json.dumps({"step": step}))
-        shutil.rmtree(root / name, ignore_errors=True)
-        os.replace(tmp, root / name)
-        pointer = root / f".{LAST}.tmp"
-        pointer.write_text(name)
-        os.replace(pointer, root / LAST)
-        for old in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))[:-keep]:
-            shutil.rmtree(old)
+        publish_checkpoint(output_dir, step, tmp, keep)
     accelerator.wait_for_everyone()
 
 

@@ -18,12 +18,12 @@ from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
 
+from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
-from lerobot_roboscape.training import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model

@@ -19,10 +19,10 @@ from pathlib import Path
 import draccus
 from lerobot.configs.default import DatasetConfig
 
+from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.pipeline import stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.training import FINAL
 
 
 @dataclass

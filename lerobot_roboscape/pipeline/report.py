@@ -13,6 +13,7 @@ import matplotlib
 import numpy as np
 import torch
 
+from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read_episode
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.config import PipelineConfig
@@ -26,7 +27,6 @@ from lerobot_roboscape.pipeline.stages import (
 )
 from lerobot_roboscape.rl.ppo import read_history
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.training import FINAL
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -22,6 +22,7 @@ import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect
@@ -37,7 +38,6 @@ from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from lerobot_roboscape.tasks import select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
-from lerobot_roboscape.training import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model

@@ -11,8 +11,6 @@ critic of a freshly SFT'd policy catches up before its advantages steer the poli
 import json
 import logging
 import math
-import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,11 +25,11 @@ from lerobot.optim.optimizers import load_optimizer_state, save_optimizer_state
 from torch import Tensor, nn
 from tqdm import tqdm
 
-from lerobot_roboscape.atomic import make_tmp_dir
+from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, check_policy_fits_env, load_policy
-from lerobot_roboscape.training import CHECKPOINTS, FINAL, last_checkpoint, resolve_mixed_precision
+from lerobot_roboscape.training import resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
 HISTORY = "history.jsonl"
@@ -39,9 +37,9 @@ HISTORY = "history.jsonl"
 # Per policy type: RL4VLA's settings for OpenVLA; ours (tuned on the tiny tasks) for the MLP.
 PPO_DEFAULTS = {
     "openvla": dict(policy_lr=1e-4, value_lr=3e-3, update_epochs=1, minibatch_size=8, grad_accum_steps=20,
-                    max_grad_norm=10.0, huber_delta=10.0, vf_coef=1.0, critic_warmup_iterations=5),
+                    max_grad_norm=10.0, value_loss="huber", vf_coef=1.0, critic_warmup_iterations=5),
     "roboscape_mlp": dict(policy_lr=3e-4, value_lr=1e-3, update_epochs=4, minibatch_size=64, grad_accum_steps=1,
-                          max_grad_norm=0.5, huber_delta=None, vf_coef=0.5, critic_warmup_iterations=2),
+                          max_grad_norm=0.5, value_loss="mse", vf_coef=0.5, critic_warmup_iterations=2),
 }  # fmt: skip
 
 
@@ -72,7 +70,8 @@ class PPOConfig:
     minibatch_size: samples per gradient computation; null: default.
     grad_accum_steps: minibatches per optimiser step; null: default.
     max_grad_norm: gradient-norm clipping, of the policy's and the value head's gradients separately; null: default.
-    huber_delta: Huber value loss with this delta instead of squared error; null: default (0 forces squared).
+    value_loss: "mse" (half the squared error) or "huber" (Huber with `huber_delta`, as RL4VLA); null: default.
+    huber_delta: the Huber loss's delta.
     vf_coef: value loss coefficient; null: default.
     device: "auto" (cuda when present), "cpu" or "cuda"; Accelerate picks the GPU of each process.
     mixed_precision: "auto" (bf16 on GPUs that support it), "bf16" or "no".
@@ -103,7 +102,8 @@ class PPOConfig:
     minibatch_size: int | None = None
     grad_accum_steps: int | None = None
     max_grad_norm: float | None = None
-    huber_delta: float | None = None
+    value_loss: str | None = None
+    huber_delta: float = 10.0
     vf_coef: float | None = None
     device: str = "auto"
     mixed_precision: str = "auto"
@@ -119,16 +119,21 @@ class PPOConfig:
         if self.num_envs < 1 or self.iterations < 1 or self.save_freq < 1:
             raise InvalidInputError(f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
                                     f"{self.iterations}, {self.save_freq}")
+        if self.value_loss not in (None, "mse", "huber"):
+            raise InvalidInputError(f"value_loss must be mse or huber, got {self.value_loss!r}")
         self.output_dir = Path(self.output_dir)
 
     def with_policy_defaults(self, policy_type: str) -> "PPOConfig":
         """Fill the fields left null with the defaults of `policy_type`."""
-        defaults = PPO_DEFAULTS.get(policy_type, PPO_DEFAULTS["roboscape_mlp"])
-        for name, value in defaults.items():
+        if policy_type not in PPO_DEFAULTS:
+            unset = [name for name in PPO_DEFAULTS["roboscape_mlp"] if getattr(self, name) is None]
+            if unset:
+                raise InvalidInputError(f"PPO has no defaults for policy type {policy_type!r} (it knows "
+                                        f"{sorted(PPO_DEFAULTS)}): set {', '.join(f'--{n}' for n in unset)}")
+            return self
+        for name, value in PPO_DEFAULTS[policy_type].items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
-        if self.huber_delta == 0:
-            self.huber_delta = None
         return self
 
 
@@ -194,14 +199,14 @@ class PPOLosses(NamedTuple):
 
 def ppo_losses(new_log_prob: Tensor, old_log_prob: Tensor, advantages: Tensor, new_value: Tensor,
                old_value: Tensor, returns: Tensor, entropy: Tensor, clip_coef: float,
-               value_clip_coef: float | None, huber_delta: float | None) -> PPOLosses:
+               value_clip_coef: float | None, value_loss: str = "mse", huber_delta: float = 10.0) -> PPOLosses:
     """Clipped surrogate, (clipped) value loss and diagnostics, averaged over the samples."""
     log_ratio = new_log_prob - old_log_prob
     ratio = log_ratio.exp()
     policy_loss = torch.max(-advantages * ratio, -advantages * ratio.clamp(1 - clip_coef, 1 + clip_coef)).mean()
 
     def error_loss(error: Tensor) -> Tensor:
-        if huber_delta is None:
+        if value_loss == "mse":
             return 0.5 * error.pow(2)
         return nn.functional.huber_loss(error, torch.zeros_like(error), reduction="none", delta=huber_delta)
 
@@ -307,7 +312,7 @@ def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: Poli
                 evaluation = scorer(batch, rollout.raw_actions[t, b])
                 losses = ppo_losses(evaluation.log_prob, rollout.log_probs[t, b], b_advantages[minibatch],
                                     evaluation.value, rollout.values[t, b], returns[t, b], evaluation.entropy,
-                                    cfg.clip_coef, cfg.value_clip_coef, cfg.huber_delta)  # fmt: skip
+                                    cfg.clip_coef, cfg.value_clip_coef, cfg.value_loss, cfg.huber_delta)  # fmt: skip
                 loss = cfg.vf_coef * losses.value
                 if not critic_only:
                     loss = loss + losses.policy - cfg.ent_coef * losses.entropy
@@ -345,10 +350,8 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
                     return_stats: RunningReturnStats, reward: str, seconds: float) -> Path:
     """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state,
     ppo_config.json, reward.txt (the reward it was trained on, its similarity resolved)}, written to a temporary
-    folder and moved into place; `checkpoints/last` names the newest."""
-    root = output_dir / CHECKPOINTS
-    name = f"{iteration:08d}"
-    tmp = make_tmp_dir(root, name)
+    folder and moved into place; `checkpoints/last` names the newest (lerobot_roboscape.checkpoints)."""
+    tmp = begin_checkpoint(output_dir, iteration)
     policy.save_pretrained(tmp / FINAL)
     io.preprocessor.save_pretrained(tmp / FINAL)
     io.postprocessor.save_pretrained(tmp / FINAL)
@@ -362,12 +365,7 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
     with draccus.config_type("json"):
         draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
     (tmp / "reward.txt").write_text(reward + "\n")
-    shutil.rmtree(root / name, ignore_errors=True)
-    os.replace(tmp, root / name)
-    pointer = root / ".last.tmp"
-    pointer.write_text(name)
-    os.replace(pointer, root / "last")
-    return root / name
+    return publish_checkpoint(output_dir, iteration, tmp)
 
 
 def train_ppo(cfg: PPOConfig) -> Path:

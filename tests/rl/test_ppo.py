@@ -43,7 +43,7 @@ def test_ppo_loss_terms_on_known_inputs():
     losses = ppo_losses(new, old, advantages, new_value=torch.tensor([1.0, 0.0, 3.0]),
                         old_value=torch.tensor([0.0, 0.0, 0.0]), returns=torch.tensor([1.0, 1.0, 1.0]),
                         entropy=torch.tensor([0.3, 0.3, 0.3]), clip_coef=0.2, value_clip_coef=0.5,
-                        huber_delta=None)  # fmt: skip
+                        value_loss="mse")  # fmt: skip
     # -min(r*A, clip(r)*A): 1.5 -> -1.2; 0.5 -> -0.5 (unclipped side is smaller); 1.1 with A=-2 -> 2.2
     torch.testing.assert_close(losses.policy, torch.tensor((-1.2 - 0.5 + 2.2) / 3))
     # value: max(0.5*(v-R)^2, 0.5*(clipped-R)^2) with clipped = 0.5, 0, 0.5 -> max(0, .125), max(.5, .5), max(2, .125)
@@ -51,7 +51,7 @@ def test_ppo_loss_terms_on_known_inputs():
     torch.testing.assert_close(losses.clip_fraction, torch.tensor(2 / 3))
     torch.testing.assert_close(losses.entropy, torch.tensor(0.3))
     huber = ppo_losses(new, old, advantages, torch.tensor([4.0]), torch.tensor([4.0]), torch.tensor([1.0]),
-                       torch.zeros(1), 0.2, None, huber_delta=1.0)  # fmt: skip
+                       torch.zeros(1), 0.2, None, value_loss="huber", huber_delta=1.0)  # fmt: skip
     torch.testing.assert_close(huber.value, torch.tensor(3.0 - 0.5))  # linear beyond delta: delta*(|e| - delta/2)
 
 
@@ -138,3 +138,13 @@ def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_pa
     with pytest.raises(ValueError, match="observation.images.third_view"):
         config = RoboscapeManiSkillEnvConfig(image_size=32, cameras=("wrist",))
         train_ppo(ppo_config(fresh_mlp, tmp_path / "c", env=config))
+
+
+def test_unknown_policy_type_needs_every_setting(fresh_mlp, tmp_path):
+    with pytest.raises(ValueError, match="no defaults for policy type 'act'.*--policy_lr"):
+        ppo_config(fresh_mlp, tmp_path / "ppo").with_policy_defaults("act")
+    explicit = dict(policy_lr=1e-4, value_lr=1e-3, update_epochs=1, minibatch_size=4, grad_accum_steps=1,
+                    max_grad_norm=1.0, value_loss="huber", vf_coef=1.0, critic_warmup_iterations=0)  # fmt: skip
+    assert ppo_config(fresh_mlp, tmp_path / "ppo", **explicit).with_policy_defaults("act").value_loss == "huber"
+    with pytest.raises(ValueError, match="value_loss must be mse or huber"):
+        ppo_config(fresh_mlp, tmp_path / "ppo", value_loss="l1")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_roboscape.training import FINAL, last_checkpoint
+from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
 from lerobot_roboscape.world_model.fidelity import (
     FidelityConfig,

@@ -1,0 +1,49 @@
+"""The checkpoint layout of every trainer (tokenizer, world models, reward models, PPO):
+
+    output_dir/checkpoints/NNNNNNNN/...     one folder per saved step or iteration
+    output_dir/checkpoints/last             a file naming the newest, which `resume` continues from
+    .../pretrained_model                    the model as `from_pretrained` loads it
+
+A checkpoint is built in a hidden folder beside its final place and renamed into place once complete, and `last`
+is replaced only then: a kill at any moment leaves the previous checkpoint as the one to resume from.
+"""
+
+import os
+import shutil
+from pathlib import Path
+
+from lerobot_roboscape.atomic import make_tmp_dir, write_text_atomically
+
+CHECKPOINTS = "checkpoints"
+LAST = "last"
+FINAL = "pretrained_model"
+
+
+def checkpoint_name(step: int) -> str:
+    return f"{step:08d}"
+
+
+def last_checkpoint(output_dir: Path) -> Path | None:
+    pointer = Path(output_dir) / CHECKPOINTS / LAST
+    if not pointer.is_file():
+        return None
+    path = Path(output_dir) / CHECKPOINTS / pointer.read_text().strip()
+    return path if path.is_dir() else None
+
+
+def begin_checkpoint(output_dir: Path, step: int) -> Path:
+    """The hidden folder to write checkpoint `step` into; `publish_checkpoint` moves it into place."""
+    return make_tmp_dir(Path(output_dir) / CHECKPOINTS, checkpoint_name(step))
+
+
+def publish_checkpoint(output_dir: Path, step: int, tmp: Path, keep: int | None = None) -> Path:
+    """Move the complete checkpoint `tmp` into place, point `last` at it, and keep only the newest `keep`."""
+    root = Path(output_dir) / CHECKPOINTS
+    name = checkpoint_name(step)
+    shutil.rmtree(root / name, ignore_errors=True)
+    os.replace(tmp, root / name)
+    write_text_atomically(root / LAST, name)
+    if keep is not None:
+        for old in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))[:-keep]:
+            shutil.rmtree(old)
+    return root / name
