@@ -12,11 +12,12 @@ import os
 import shutil
 from pathlib import Path
 
+from lerobot.utils.constants import CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
+
 from lerobot_roboscape.atomic import make_tmp_dir, write_text_atomically
 
-CHECKPOINTS = "checkpoints"
-LAST = "last"
-FINAL = "pretrained_model"
+# LeRobot's names, so that its tools and ours find the same folders.
+CHECKPOINTS, LAST, FINAL = CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
 
 
 def checkpoint_name(step: int) -> str:

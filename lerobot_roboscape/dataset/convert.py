@@ -7,7 +7,7 @@ from lerobot_roboscape.dataset import write_dataset
 from lerobot_roboscape.dataset.maniskill_files import open_trajectory_file, read_episodes
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import ENV_IDS, get_scene
-from lerobot_roboscape.tasks.base import CAMERA_NAMES
+from lerobot_roboscape.tasks.base import CAMERA_NAMES, CONTROL_FREQ
 
 
 @dataclass
@@ -27,7 +27,7 @@ class ConvertConfig:
     repo_id: str = "local/maniskill_converted"
     root: str = "outputs/datasets/maniskill_converted"
     task: str | None = None
-    fps: int = 20
+    fps: int = CONTROL_FREQ
     overwrite: bool = False
 
 

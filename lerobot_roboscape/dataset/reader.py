@@ -9,9 +9,9 @@ import pyarrow as pa
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.video_utils import decode_video_frames
-from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD, SUCCESS
 
-from lerobot_roboscape.dataset.writer import SUCCESS, read_episode_info
+from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.errors import InvalidInputError, require_finite
 
 

@@ -11,13 +11,12 @@ from pathlib import Path
 import datasets
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD
+from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD, SUCCESS
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
-SUCCESS = "next.success"
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
 EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"
 

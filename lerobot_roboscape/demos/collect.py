@@ -17,11 +17,8 @@ from lerobot_roboscape.dataset.writer import check_target, write_dataset
 from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from lerobot_roboscape.tasks.base import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 
-STATE_NAMES = [f"joint_{i}" for i in range(7)] + ["finger_left", "finger_right"] + [
-    "tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
-ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
-CONTROL_FREQ = 20  # Hz, the ManiSkill tabletop default
 JOBS = "jobs.json"  # the planned episodes of an interrupted collection, which a resumed one must equal
 
 

@@ -6,13 +6,15 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
+from lerobot_roboscape.tasks.base import CONTROL_FREQ
+
 
 class BatchedEnv(gym.vector.VectorEnv):
     """B episodes stepped together. Autoreset is off: an ended episode stays frozen until `reset()`, which restarts
     all of them (LeRobot's evaluation and our PPO reset whole batches). Subclasses define `tasks()`, the
     instruction of each episode."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20, "autoreset_mode": AutoresetMode.DISABLED}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQ, "autoreset_mode": AutoresetMode.DISABLED}
 
     def _seed_from(self, seed, options) -> int | None:
         if (options or {}).get("reset_mask") is not None and not np.all(options["reset_mask"]):
@@ -93,7 +95,7 @@ class SingleEnv(gym.Env):
     """One episode of a `BatchedEnv` (built with num_envs=1) behind the plain `gym.Env` API, for gymnasium's env
     checker and tools that want a single env. Batch dimensions are dropped."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQ}
 
     def __init__(self, vector_env: BatchedEnv):
         if vector_env.num_envs != 1:

@@ -8,11 +8,11 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.tasks.base import CAMERA_NAMES
+from lerobot_roboscape.tasks.base import ACTION_NAMES, CAMERA_NAMES, CONTROL_FREQ, STATE_NAMES
 from lerobot_roboscape.training import resolve_device
 
 CAMERAS = tuple(CAMERA_NAMES.values())
-STATE_DIM = 16  # joint positions (9) + TCP pose (7), as `observation.state` of the collected datasets
+STATE_DIM = len(STATE_NAMES)
 
 
 def check_episode_length(episode_length: int | None) -> None:
@@ -21,7 +21,7 @@ def check_episode_length(episode_length: int | None) -> None:
 
 
 def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
-    features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
+    features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(ACTION_NAMES),))}
     features_map = {ACTION: ACTION}
     for cam in cameras:
         features[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=(image_size, image_size, 3))
@@ -76,7 +76,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     """
 
     task: str | None = None
-    fps: int = 20
+    fps: int = CONTROL_FREQ
     world_models: str | None = None
     dataset_repo_id: str | None = None
     dataset_root: str | None = None
@@ -173,7 +173,7 @@ class RoboscapeManiSkillEnvConfig(EnvConfig):
     """
 
     task: str | None = None
-    fps: int = 20
+    fps: int = CONTROL_FREQ
     families: list[str] = field(default_factory=list)
     split: str = "ind"
     scenes: list[str] = field(default_factory=list)

@@ -29,6 +29,7 @@ from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, check_policy_fits_env, load_policy
+from lerobot_roboscape.tasks.base import CONTROL_FREQ
 from lerobot_roboscape.training import resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
@@ -432,7 +433,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
                              episodes_per_s=f"{len(episodes) / seconds:.2f}")  # fmt: skip
         if record:
             write_video(cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4", rollout.frames,
-                        env.metadata.get("render_fps", 20))  # fmt: skip
+                        env.metadata.get("render_fps", CONTROL_FREQ))  # fmt: skip
         out_of_time = cfg.time_budget_s is not None and elapsed >= cfg.time_budget_s
         done = iteration + 1 == cfg.iterations or out_of_time
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:

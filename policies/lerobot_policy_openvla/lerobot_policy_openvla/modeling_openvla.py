@@ -9,7 +9,7 @@ Action token k is predicted at P + k, and the value head reads the hidden state 
 import torch
 import torch.nn.functional as F
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION
+from lerobot.utils.constants import ACTION, OBS_IMAGES
 from peft import LoraConfig, inject_adapter_in_model
 from safetensors import safe_open
 from safetensors.torch import save_file
@@ -230,7 +230,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
     def image(self, batch: dict) -> Tensor:
         key = self.config.camera
         if key not in batch:
-            cameras = sorted(k for k in batch if k.startswith("observation.images."))
+            cameras = sorted(k for k in batch if k.startswith(f"{OBS_IMAGES}."))
             raise KeyError(f"openvla expects camera {key!r}; the batch has {cameras}")
         images = batch[key]
         if tuple(images.shape[1:]) != self.image_shape:

@@ -11,7 +11,7 @@ import zlib
 import torch
 import torch.nn.functional as F
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION
+from lerobot.utils.constants import ACTION, OBS_IMAGES
 from torch import Tensor, nn
 from torch.distributions import Normal
 
@@ -147,7 +147,7 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
 
     def camera(self, batch: dict, key: str) -> Tensor:
         if key not in batch:
-            cameras = sorted(k for k in batch if k.startswith("observation.images."))
+            cameras = sorted(k for k in batch if k.startswith(f"{OBS_IMAGES}."))
             raise KeyError(f"roboscape_mlp expects camera {key!r}; the batch has {cameras}")
         images = batch[key]
         if tuple(images.shape[1:]) != self.image_shape:
