@@ -106,6 +106,9 @@ class RoboscapeTabletopEnv(BaseEnv):
     family: str = ""
     max_dense_reward: float = 1.0
 
+    # Success tolerance (metres): an object whose centre is this close to its resting height is on the table.
+    rest_height_tolerance = 0.01
+
     # Layout of the workspace (metres, world frame; the robot base is at x=-0.615 facing +x).
     object_spawn_x = (-0.08, 0.06)
     object_spawn_y = (-0.14, 0.14)
@@ -200,7 +203,7 @@ class RoboscapeTabletopEnv(BaseEnv):
         return dict(tcp_pose=self.agent.tcp_pose.raw_pose, is_grasped=info["is_grasped"])
 
     def object_rests_on_table(self) -> torch.Tensor:
-        return self.obj.pose.p[:, 2] < self.scene_spec.object.half_height + 0.01
+        return self.obj.pose.p[:, 2] < self.scene_spec.object.half_height + self.rest_height_tolerance
 
     def reach_reward(self, target_xyz: torch.Tensor) -> torch.Tensor:
         return 1 - torch.tanh(5 * torch.linalg.norm(target_xyz - self.agent.tcp_pose.p, axis=1))

@@ -24,6 +24,7 @@ class MoveToAimEnv(RoboscapeTabletopEnv):
 
     family = "move_to_aim"
     carpet_radius = 0.06
+    carpet_margin = 0.01  # success tolerance (metres): the object's centre this far inside the carpet's edge
     max_dense_reward = 5.0
 
     def _load_task_extras(self):
@@ -44,7 +45,7 @@ class MoveToAimEnv(RoboscapeTabletopEnv):
 
     def evaluate(self):
         offset = self.obj.pose.p[:, :2] - self.carpet.pose.p[:, :2]
-        on_carpet = torch.linalg.norm(offset, axis=1) <= self.carpet_radius - 0.01
+        on_carpet = torch.linalg.norm(offset, axis=1) <= self.carpet_radius - self.carpet_margin
         is_grasped = self.agent.is_grasping(self.obj)
         on_table = self.object_rests_on_table()
         return {

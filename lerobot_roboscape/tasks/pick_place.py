@@ -22,6 +22,10 @@ class PickPlaceEnv(RoboscapeTabletopEnv):
     family = "pick_place"
     max_dense_reward = 5.0
     container_x = (-0.06, 0.08)
+    # Success tolerances (metres): the object's centre this far inside the container's rim, and at most this far
+    # above resting on the container's floor (halfway up its wall).
+    rim_margin = 0.015
+    height_tolerance = 0.012
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         with torch.device(self.device):
@@ -36,8 +40,8 @@ class PickPlaceEnv(RoboscapeTabletopEnv):
     def evaluate(self):
         spec = self.scene_spec
         offset = self.obj.pose.p - self.container.pose.p
-        inside = torch.linalg.norm(offset[:, :2], axis=1) <= spec.container.radius - 0.015
-        low = offset[:, 2] <= spec.object.half_height + 0.012 + 0.5 * spec.container.wall_height
+        inside = torch.linalg.norm(offset[:, :2], axis=1) <= spec.container.radius - self.rim_margin
+        low = offset[:, 2] <= spec.object.half_height + self.height_tolerance + 0.5 * spec.container.wall_height
         is_grasped = self.agent.is_grasping(self.obj)
         return {
             "success": inside & low & ~is_grasped,

@@ -27,6 +27,10 @@ class PushEnv(RoboscapeTabletopEnv):
     max_dense_reward = 3.0
     object_spawn_x = (-0.1, -0.02)
 
+    def _load_scene(self, options: dict):
+        super()._load_scene(options)
+        self.start_xy = torch.zeros((self.num_envs, 2), device=self.device)  # where each episode's object began
+
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         with torch.device(self.device):
             b = len(env_idx)
@@ -34,8 +38,6 @@ class PushEnv(RoboscapeTabletopEnv):
             obj_xy = self._spawn_object(b)
             container_xy = torch.stack([self._uniform(b, -0.05, 0.05), self._away_from(obj_xy, min_gap=0.18)], dim=1)
             self._place(self.container, container_xy, 0.0)
-            if not hasattr(self, "start_xy"):
-                self.start_xy = torch.zeros((self.num_envs, 2), device=self.device)
             self.start_xy[env_idx] = obj_xy
 
     @property
