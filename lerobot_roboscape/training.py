@@ -35,7 +35,7 @@ class TrainingConfig:
     steps: optimiser steps in total.
     batch_size: samples per step and process.
     lr: peak learning rate (AdamW), reached after warmup_steps and decayed by a cosine to lr / 10.
-    weight_decay: AdamW weight decay.
+    weight_decay: AdamW weight decay of weight matrices and embeddings (biases and norms are not decayed).
     warmup_steps: linear warm-up steps.
     grad_clip: gradient-norm clipping.
     log_freq: steps between log lines (TensorBoard under output_dir/logs, and the progress bar).
@@ -138,7 +138,10 @@ def fit(
     output_dir.mkdir(parents=True, exist_ok=True)
     accelerator = make_accelerator(config, output_dir)
     params = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay, betas=(0.9, 0.95))
+    # As nanoGPT's configure_optimizers: weight matrices and embeddings decay; biases and norms' gains (1-D) do not.
+    groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
+              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]  # fmt: skip
+    optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95))
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(config))
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
     accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
