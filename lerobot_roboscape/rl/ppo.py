@@ -245,34 +245,38 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
     observation, _ = env.reset(seed=seed)
     tasks = list(env.call("task"))
     steps, n = env.call("_max_episode_steps")[0], env.num_envs
+    device = next(policy.parameters()).device
+    # Storage for the whole horizon, (steps, num_envs, ...) as in CleanRL, cut to the steps run at the end.
     pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in observation["pixels"].items()}
-    columns = {name: [] for name in ("raw_actions", "log_probs", "values", "rewards", "terminated", "truncated",
-                                     "alive")}
+    log_probs, values, rewards = (torch.zeros((steps, n), device=device) for _ in range(3))
+    terminated, truncated, alive_at = (torch.zeros((steps, n), dtype=torch.bool, device=device) for _ in range(3))
+    raw_actions = None  # shaped as the policy's choice: a Gaussian sample, or OpenVLA's action token ids
     alive = np.ones(n, dtype=bool)
     returns, successes, frames = np.zeros(n), np.zeros(n, dtype=bool), []
     for t in range(steps):
         for cam, image in observation["pixels"].items():
             pixels[cam][t] = image
         sample = policy.sample_action(io.batch(observation["pixels"], tasks))
-        observation, reward, terminated, truncated, info = env.step(io.env_action(sample.action))
+        if raw_actions is None:
+            raw_actions = torch.zeros((steps, *sample.raw_action.shape), dtype=sample.raw_action.dtype, device=device)
+        observation, reward, ended_by_task, ended_by_time, info = env.step(io.env_action(sample.action))
         if record:
             frames.append(np.concatenate(env.render(), axis=1))
         returns += reward * alive
         successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & alive
-        for name, value in (("raw_actions", sample.raw_action), ("log_probs", sample.log_prob),
-                            ("values", sample.value), ("rewards", reward), ("terminated", terminated & alive),
-                            ("truncated", truncated & alive), ("alive", alive.copy())):  # fmt: skip
-            columns[name].append(torch.as_tensor(value))
-        alive &= ~(terminated | truncated)
+        raw_actions[t], log_probs[t], values[t] = sample.raw_action, sample.log_prob, sample.value
+        rewards[t] = torch.as_tensor(reward, device=device)
+        alive_at[t] = torch.as_tensor(alive, device=device)
+        terminated[t] = torch.as_tensor(ended_by_task & alive, device=device)
+        truncated[t] = torch.as_tensor(ended_by_time & alive, device=device)
+        alive &= ~(ended_by_task | ended_by_time)
         if not alive.any():
             break
     last_value = policy.predict_value(io.batch(observation["pixels"], tasks))
-    device = last_value.device
-    stacked = {name: torch.stack(values).to(device) for name, values in columns.items()}
-    stacked["rewards"] = stacked["rewards"].float()
-    length = len(stacked["alive"])
-    return Rollout({cam: array[:length] for cam, array in pixels.items()}, tasks, **stacked,
-                   last_value=last_value, returns=returns, successes=successes, frames=frames)  # fmt: skip
+    T = t + 1
+    return Rollout({cam: array[:T] for cam, array in pixels.items()}, tasks, raw_actions[:T], log_probs[:T],
+                   values[:T], rewards[:T], terminated[:T], truncated[:T], alive_at[:T], last_value, returns,
+                   successes, frames)  # fmt: skip
 
 
 # Update.
