@@ -44,6 +44,7 @@ def require_finite(values, where: str, key: str, row_name: Callable[[int], str] 
 def require_shape(values, where: str, key: str, shape: tuple) -> None:
     """Raise InvalidInputError unless `values` has `shape` (None: any size along that axis)."""
     actual = tuple(np.shape(values))
-    if len(actual) != len(shape) or any(want is not None and got != want for got, want in zip(actual, shape)):
+    fits = len(actual) == len(shape) and all(want in (None, got) for got, want in zip(actual, shape, strict=True))
+    if not fits:
         expected = "(" + ", ".join("N" if want is None else str(want) for want in shape) + ")"
         raise InvalidInputError(f"{where}: {key} has shape {actual}, expected {expected}")

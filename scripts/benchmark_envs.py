@@ -77,7 +77,8 @@ def main():
                   "reward": Timed(wm.reward_fn.forward)}  # fmt: skip
         wm.action_model.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
-        shares = " ".join(f"{timer.seconds / wm_seconds:>{w}.0%}" for timer, w in zip(timers.values(), (9, 7, 7)))
+        widths = (9, 7, 7)  # of the generate, decode and reward columns
+        shares = " ".join(f"{t.seconds / wm_seconds:>{w}.0%}" for t, w in zip(timers.values(), widths, strict=True))
         ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
         ms_rate, _ = steps_per_second(ms, args.steps)
         ms.close()

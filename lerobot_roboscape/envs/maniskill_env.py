@@ -73,7 +73,7 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
         self._obs = []
         self._state = np.zeros((self.num_envs, STATE_DIM), np.float32)
-        for env, scene_id, s in zip(self.envs, scene_ids, episode_seeds):
+        for env, scene_id, s in zip(self.envs, scene_ids, episode_seeds, strict=True):
             obs, _ = env.reset(seed=int(s), options={"scene_id": str(scene_id)})
             self._obs.append(observation_images(obs))
             self._state[len(self._obs) - 1] = observation_state(obs)

@@ -130,7 +130,7 @@ def _markdown(report: dict, n: int, n_success: int) -> str:
 
 def _plot(episodes: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, len(episodes), figsize=(4 * len(episodes), 3), squeeze=False)
-    for ax, episode in zip(axes[0], episodes):
+    for ax, episode in zip(axes[0], episodes, strict=True):
         for kind, values in episode["rewards"].items():
             span = values.max() - values.min()
             ax.plot((values - values.min()) / span if span > 0 else values * 0, label=kind)  # each scaled to [0, 1]

@@ -145,8 +145,5 @@ def select_scenes(split: Literal["ind", "ood", "all"] = "all", scene_ids: list[s
     """Scenes by explicit ids (in the given order) or by split."""
     if split not in ("ind", "ood", "all"):
         raise InvalidInputError(f"Unknown split {split!r}; expected 'ind', 'ood' or 'all'")
-    if scene_ids:
-        scenes = [get_scene(s) for s in scene_ids]
-    else:
-        scenes = list(SCENES)
+    scenes = [get_scene(s) for s in scene_ids] if scene_ids else list(SCENES)
     return [s for s in scenes if split == "all" or s.split == split]

@@ -75,7 +75,7 @@ class TextEncoder(nn.Module):
             states = self.t5(**batch).last_hidden_state.float()
             for i, s in enumerate(missing):
                 self._cache[s] = (states[i], batch["attention_mask"][i].bool())
-        states, mask = zip(*(self._cache[s] for s in instructions))
+        states, mask = zip(*(self._cache[s] for s in instructions), strict=True)
         return torch.stack(states).to(device), torch.stack(mask).to(device)
 
     def forward(self, instructions: list[str]) -> Control:

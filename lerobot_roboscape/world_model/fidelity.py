@@ -255,8 +255,8 @@ def markdown_table(report: dict) -> str:
 
 
 def plot(report: dict, path: Path) -> None:
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
-    for ax, metric in zip(axes, METRICS):
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(12, 3.2))
+    for ax, metric in zip(axes, METRICS, strict=True):
         for kind, style in (("prediction", "-o"), ("reconstruction", "--")):
             values = [np.nan if v is None else v for v in report["per_step"][f"{kind}_{metric}"]]
             ax.plot(range(1, len(values) + 1), values, style, label=kind, markersize=3)

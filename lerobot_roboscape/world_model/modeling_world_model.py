@@ -81,7 +81,7 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         """Final hidden states (B, T, S, C) and the frames' keys/values per layer (with a cache, T = 1 and the new
         frame's keys/values are written into it instead)."""
         B, T, S = tokens_BTS.shape
-        if S != self.config.tokens_per_frame:
+        if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
         x = self.token_emb(tokens_BTS) + self.pos_emb  # (B, T, S, C)
         kvs = []

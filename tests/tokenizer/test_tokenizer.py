@@ -25,7 +25,7 @@ def test_encode_decode_round_trip_through_indices():
     out = tok(images)
     indices = tok.encode(images)
     assert indices.shape == (3, 4, 4) and indices.dtype == torch.long
-    assert 0 <= indices.min() and indices.max() < 64
+    assert indices.min() >= 0 and indices.max() < 64
     assert torch.equal(indices, out.indices)
     # The codes recovered from the indices are exactly the quantised latents, so decoding them reproduces forward().
     assert torch.allclose(tok.decode(indices), out.reconstruction.clamp(0, 1), atol=1e-5)
