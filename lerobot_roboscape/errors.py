@@ -36,9 +36,11 @@ def require_finite(values, where: str, key: str, row_name: Callable[[int], str] 
     bad_rows = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
     if bad_rows.any():
         row = int(np.argmax(bad_rows))
-        raise InvalidInputError(f"{where} {row_name(row)}: {key} is not finite "
-                                f"({np.array2string(values[row], precision=4)}); {int(bad_rows.sum())} of "
-                                f"{len(values)} frames are")
+        raise InvalidInputError(
+            f"{where} {row_name(row)}: {key} is not finite "
+            f"({np.array2string(values[row], precision=4)}); {int(bad_rows.sum())} of "
+            f"{len(values)} frames are"
+        )
 
 
 def require_shape(values, where: str, key: str, shape: tuple) -> None:

@@ -28,7 +28,6 @@ from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 logger = logging.getLogger(__name__)
 
 
-
 @dataclass
 class TrainingConfig:
     """Args:
@@ -65,12 +64,13 @@ class TrainingConfig:
         if self.mixed_precision not in ("auto", "bf16", "fp16", "no"):
             raise InvalidInputError(f"mixed_precision must be auto, bf16, fp16 or no, got {self.mixed_precision!r}")
         if self.steps < 1 or self.batch_size < 1 or self.save_freq < 1:
-            raise InvalidInputError(f"steps, batch_size and save_freq must be >= 1, got {self.steps}, "
-                                    f"{self.batch_size}, {self.save_freq}")
+            raise InvalidInputError(
+                f"steps, batch_size and save_freq must be >= 1, got {self.steps}, {self.batch_size}, {self.save_freq}"
+            )
 
 
 def resolve_device(value: str) -> str:
-    """"auto" -> "cuda" when a GPU is present, else "cpu"; anything else as given."""
+    """ "auto" -> "cuda" when a GPU is present, else "cpu"; anything else as given."""
     return ("cuda" if torch.cuda.is_available() else "cpu") if value == "auto" else value
 
 
@@ -83,8 +83,9 @@ def resolve_mixed_precision(value: str | bool) -> str:
 
 
 def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
-    accelerator = Accelerator(mixed_precision=resolve_mixed_precision(config.mixed_precision),
-                              log_with="tensorboard", project_dir=output_dir)
+    accelerator = Accelerator(
+        mixed_precision=resolve_mixed_precision(config.mixed_precision), log_with="tensorboard", project_dir=output_dir
+    )
     set_seed(config.seed)
     return accelerator
 
@@ -133,14 +134,18 @@ def fit(
     output_dir = Path(output_dir)
     resume_from = last_checkpoint(output_dir) if config.resume else None
     if not config.resume and (output_dir / CHECKPOINTS).exists():
-        raise OutputExistsError(f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
-                                "or choose a new --output_dir")
+        raise OutputExistsError(
+            f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
+            "or choose a new --output_dir"
+        )
     output_dir.mkdir(parents=True, exist_ok=True)
     accelerator = make_accelerator(config, output_dir)
     params = [p for p in model.parameters() if p.requires_grad]
     # As nanoGPT's configure_optimizers: weight matrices and embeddings decay; biases and norms' gains (1-D) do not.
-    groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
-              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]  # fmt: skip
+    groups = [
+        {"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
+        {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
+    ]
     optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95))
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(config))
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
@@ -154,11 +159,19 @@ def fit(
         (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
 
     model.train()
-    progress = tqdm(range(start, config.steps), desc=desc, initial=start, total=config.steps,
-                    disable=not accelerator.is_main_process, dynamic_ncols=True)
+    progress = tqdm(
+        range(start, config.steps),
+        desc=desc,
+        initial=start,
+        total=config.steps,
+        disable=not accelerator.is_main_process,
+        dynamic_ncols=True,
+    )
     for step in progress:
-        batch = {k: v.to(accelerator.device) if torch.is_tensor(v) else v
-                 for k, v in batches(step, accelerator.process_index).items()}
+        batch = {
+            k: v.to(accelerator.device) if torch.is_tensor(v) else v
+            for k, v in batches(step, accelerator.process_index).items()
+        }
         with accelerator.autocast():
             loss, logs = loss_fn(model, batch)
         if not torch.isfinite(loss):

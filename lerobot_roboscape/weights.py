@@ -35,22 +35,36 @@ def check_tensors(model: nn.Module, model_file: str) -> None:
     faults = []
     missing = [name for name in expected if not any(alias in found for alias in aliases[name])]
     unexpected = [name for name in found if name not in expected]
-    wrong = [f"{name} {found[name][0]} {found[name][1]}, expected {tuple(expected[name].shape)} "
-             f"{str(expected[name].dtype).removeprefix('torch.')}"
-             for name in found if name in expected and not _fits(found[name], expected[name])]  # fmt: skip
+    wrong = [
+        f"{name} {found[name][0]} {found[name][1]}, expected {tuple(expected[name].shape)} "
+        f"{str(expected[name].dtype).removeprefix('torch.')}"
+        for name in found
+        if name in expected and not _fits(found[name], expected[name])
+    ]
     for kind, names in (("missing", missing), ("unexpected", unexpected), ("mismatched", wrong)):
         if names:
             more = f" and {len(names) - _SHOWN} more" if len(names) > _SHOWN else ""
             faults.append(f"{kind} tensors {'; '.join(names[:_SHOWN])}{more}")
     if faults:
-        raise InvalidInputError(f"{model_file} does not fit the {type(model).__name__} its config.json builds: "
-                                + ", ".join(faults))
+        raise InvalidInputError(
+            f"{model_file} does not fit the {type(model).__name__} its config.json builds: " + ", ".join(faults)
+        )
 
 
 def _fits(found: tuple[tuple, str], tensor) -> bool:
     shape, dtype = found
-    names = {"F32": "float32", "F16": "float16", "BF16": "bfloat16", "F64": "float64", "I64": "int64",
-             "I32": "int32", "I16": "int16", "I8": "int8", "U8": "uint8", "BOOL": "bool"}  # fmt: skip
+    names = {
+        "F32": "float32",
+        "F16": "float16",
+        "BF16": "bfloat16",
+        "F64": "float64",
+        "I64": "int64",
+        "I32": "int32",
+        "I16": "int16",
+        "I8": "int8",
+        "U8": "uint8",
+        "BOOL": "bool",
+    }
     return shape == tuple(tensor.shape) and names.get(dtype, dtype) == str(tensor.dtype).removeprefix("torch.")
 
 
@@ -69,8 +83,10 @@ class CheckedHubMixin(PyTorchModelHubMixin):
         try:
             return super().from_pretrained(ref, **kwargs)
         except (LocalEntryNotFoundError, EntryNotFoundError, HfHubHTTPError) as error:
-            raise MissingInputError(f"no {cls.__name__} at {ref}: no such directory, and the Hub repo {ref!r} "
-                                    f"could not be fetched ({type(error).__name__})") from error
+            raise MissingInputError(
+                f"no {cls.__name__} at {ref}: no such directory, and the Hub repo {ref!r} "
+                f"could not be fetched ({type(error).__name__})"
+            ) from error
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
@@ -80,5 +96,7 @@ class CheckedHubMixin(PyTorchModelHubMixin):
 
     @classmethod
     def _load_as_pickle(cls, model, model_file: str, map_location: str, strict: bool):
-        raise InvalidInputError(f"{model_file}: only model.safetensors is read (a pickled file can run code); "
-                                "convert it with safetensors, or push the model again with roboscape-push")
+        raise InvalidInputError(
+            f"{model_file}: only model.safetensors is read (a pickled file can run code); "
+            "convert it with safetensors, or push the model again with roboscape-push"
+        )

@@ -27,9 +27,16 @@ ROOT = Path(__file__).resolve().parents[1]
 def bench_collect(tmp: Path, episodes: int, image_size: int, workers: int) -> dict:
     from lerobot_roboscape.demos.collect import CollectConfig, collect
 
-    cfg = CollectConfig(root=str(tmp / "collected"), families=["pick_place"], max_scenes=episodes,
-                        episodes_per_scene=1, failed_fraction=0.0, suboptimal_fraction=0.0, image_size=image_size,
-                        workers=workers)
+    cfg = CollectConfig(
+        root=str(tmp / "collected"),
+        families=["pick_place"],
+        max_scenes=episodes,
+        episodes_per_scene=1,
+        failed_fraction=0.0,
+        suboptimal_fraction=0.0,
+        image_size=image_size,
+        workers=workers,
+    )
     start = time.perf_counter()
     ds = collect(cfg)
     seconds = time.perf_counter() - start
@@ -51,13 +58,42 @@ def bench_maniskill_runner(tmp: Path, episodes: int, workers: int) -> dict | str
     venv = tmp / "ms-numpy1"
     try:
         subprocess.run(["uv", "venv", "-q", "--python", sys.executable, str(venv)], check=True)
-        subprocess.run(["uv", "pip", "install", "-q", "--python", str(venv / "bin" / "python"), "mani-skill==3.0.1",
-                        "numpy<2", "torch==2.11.0", "setuptools<81", "opencv-python-headless"], check=True)
+        subprocess.run(
+            [
+                "uv",
+                "pip",
+                "install",
+                "-q",
+                "--python",
+                str(venv / "bin" / "python"),
+                "mani-skill==3.0.1",
+                "numpy<2",
+                "torch==2.11.0",
+                "setuptools<81",
+                "opencv-python-headless",
+            ],
+            check=True,
+        )
     except (subprocess.CalledProcessError, FileNotFoundError) as e:
         return f"skipped: could not build the NumPy<2 environment ({e})"
     record_dir = tmp / "ms_runner"
-    cmd = [str(venv / "bin" / "python"), "-m", "mani_skill.examples.motionplanning.panda.run", "-e", "PickCube-v1",
-           "-o", "rgb", "-n", str(episodes), "-b", "cpu", "--num-procs", str(workers), "--record-dir", str(record_dir)]
+    cmd = [
+        str(venv / "bin" / "python"),
+        "-m",
+        "mani_skill.examples.motionplanning.panda.run",
+        "-e",
+        "PickCube-v1",
+        "-o",
+        "rgb",
+        "-n",
+        str(episodes),
+        "-b",
+        "cpu",
+        "--num-procs",
+        str(workers),
+        "--record-dir",
+        str(record_dir),
+    ]
     start = time.perf_counter()
     result = subprocess.run(cmd, capture_output=True, text=True)
     seconds = time.perf_counter() - start
@@ -79,8 +115,10 @@ def main():
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="roboscape-bench-"))
     try:
-        results = {"collect": bench_collect(tmp, args.episodes, args.image_size, args.workers),
-                   "convert": bench_convert(tmp, args.image_size)}
+        results = {
+            "collect": bench_collect(tmp, args.episodes, args.image_size, args.workers),
+            "convert": bench_convert(tmp, args.image_size),
+        }
         if not args.skip_reference:
             results["maniskill_motionplanning_runner"] = bench_maniskill_runner(tmp, args.episodes, args.workers)
     finally:
@@ -88,8 +126,10 @@ def main():
 
     print(f"\nimage size {args.image_size}x{args.image_size}, {args.workers} workers, {args.episodes} episodes")
     print(f"{'what':52s} {'episodes/min':>12s} {'frames/s':>9s}")
-    rows = [("roboscape-collect pick_place (2 cameras, to LeRobot)", results["collect"]),
-            ("roboscape-convert (ManiSkill .h5 -> LeRobot)", results["convert"])]
+    rows = [
+        ("roboscape-collect pick_place (2 cameras, to LeRobot)", results["collect"]),
+        ("roboscape-convert (ManiSkill .h5 -> LeRobot)", results["convert"]),
+    ]
     if "maniskill_motionplanning_runner" in results:
         rows.append(("ManiSkill motionplanning runner PickCube (1 camera)", results["maniskill_motionplanning_runner"]))
     for name, r in rows:

@@ -59,22 +59,33 @@ def main():
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
         raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
     wm_config = RoboscapeWorldModelEnvConfig(
-        dataset_repo_id="local/roboscape_demos", dataset_root=str(demo / "datasets" / "roboscape_demos"),
+        dataset_repo_id="local/roboscape_demos",
+        dataset_root=str(demo / "datasets" / "roboscape_demos"),
         tokenizer=str(demo / "tokenizer" / "pretrained_model"),
         action_world_model=str(demo / "world_model_action" / "pretrained_model"),
         text_world_model=str(demo / "world_model_text" / "pretrained_model"),
-        allow_random_lpips=True, episode_length=10_000, max_goal_steps=20, theta=1.0,  # no episode ends mid-run
-    )  # fmt: skip
+        allow_random_lpips=True,
+        episode_length=10_000,
+        max_goal_steps=20,
+        theta=1.0,  # no episode ends mid-run
+    )
     image_size = wm_config.image_size
     ms_config = RoboscapeManiSkillEnvConfig(image_size=image_size, episode_length=10_000)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, {image_size} px, 2 cameras, "
-          f"{args.steps} steps per measurement")
-    print(f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
-          f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, {image_size} px, 2 cameras, "
+        f"{args.steps} steps per measurement"
+    )
+    print(
+        f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
+        f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}"
+    )
     for batch in args.batch_sizes:
         wm = RoboscapeWorldModelEnv(wm_config, num_envs=batch)
-        timers = {"generate": Timed(wm.action_model.predict_next_frame), "decode": Timed(wm._decode),
-                  "reward": Timed(wm.reward_fn.forward)}  # fmt: skip
+        timers = {
+            "generate": Timed(wm.action_model.predict_next_frame),
+            "decode": Timed(wm._decode),
+            "reward": Timed(wm.reward_fn.forward),
+        }
         wm.action_model.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
         widths = (9, 7, 7)  # of the generate, decode and reward columns

@@ -20,10 +20,12 @@ CAMERA = "observation.images.third_view"
 
 def make_policy(base_model: str, device: str, image_size: int, gradient_checkpointing: bool) -> OpenVLAPolicy:
     config = OpenVLAConfig(
-        device=device, base_model=base_model, gradient_checkpointing=gradient_checkpointing,
+        device=device,
+        base_model=base_model,
+        gradient_checkpointing=gradient_checkpointing,
         input_features={CAMERA: PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-    )  # fmt: skip
+    )
     return OpenVLAPolicy(config)
 
 

@@ -52,22 +52,34 @@ def main():
     if not checkpoint.is_dir():
         raise SystemExit(f"no SFT MLP under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
     wm = RoboscapeWorldModelEnvConfig(
-        dataset_repo_id="local/roboscape_demos", dataset_root=str(demo / "datasets" / "roboscape_demos"),
+        dataset_repo_id="local/roboscape_demos",
+        dataset_root=str(demo / "datasets" / "roboscape_demos"),
         tokenizer=str(demo / "tokenizer" / "pretrained_model"),
         action_world_model=str(demo / "world_model_action" / "pretrained_model"),
-        text_world_model=str(demo / "world_model_text" / "pretrained_model"), image_size=args.image_size,
-        episode_length=args.episode_length, allow_random_lpips=True, device="cpu", max_goal_steps=40,
-    )  # fmt: skip
+        text_world_model=str(demo / "world_model_text" / "pretrained_model"),
+        image_size=args.image_size,
+        episode_length=args.episode_length,
+        allow_random_lpips=True,
+        device="cpu",
+        max_goal_steps=40,
+    )
     sim = RoboscapeManiSkillEnvConfig(image_size=args.image_size, episode_length=args.episode_length)
-    print(f"PPO of the MLP policy, {args.image_size} px, 2 cameras, {args.episode_length}-step episodes, CPU "
-          f"({torch.get_num_threads()} threads)")
-    print("| batch | roboscape_wm rollout steps/s | roboscape_wm PPO steps/s | roboscape_maniskill rollout steps/s "
-          "| roboscape_maniskill PPO steps/s | PPO ratio |\n|---:|---:|---:|---:|---:|---:|")
+    print(
+        f"PPO of the MLP policy, {args.image_size} px, 2 cameras, {args.episode_length}-step episodes, CPU "
+        f"({torch.get_num_threads()} threads)"
+    )
+    print(
+        "| batch | roboscape_wm rollout steps/s | roboscape_wm PPO steps/s | roboscape_maniskill rollout steps/s "
+        "| roboscape_maniskill PPO steps/s | PPO ratio |\n|---:|---:|---:|---:|---:|---:|"
+    )
     for batch_size in args.batch_sizes:
         wm_rollout, wm_total = measure(wm, checkpoint, batch_size, args.iterations)
         sim_rollout, sim_total = measure(sim, checkpoint, batch_size, args.iterations)
-        print(f"| {batch_size} | {wm_rollout:.1f} | {wm_total:.1f} | {sim_rollout:.1f} | {sim_total:.1f} | "
-              f"{wm_total / sim_total:.1f}x |", flush=True)
+        print(
+            f"| {batch_size} | {wm_rollout:.1f} | {wm_total:.1f} | {sim_rollout:.1f} | {sim_total:.1f} | "
+            f"{wm_total / sim_total:.1f}x |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

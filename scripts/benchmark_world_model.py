@@ -17,8 +17,9 @@ from lerobot_roboscape.world_model.configuration_world_model import PaperWorldMo
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 
-def frames_per_second(model: STWorldModel, batch: int, frames: int, use_cache: bool, device: str,
-                      dtype: torch.dtype) -> float:
+def frames_per_second(
+    model: STWorldModel, batch: int, frames: int, use_cache: bool, device: str, dtype: torch.dtype
+) -> float:
     cfg = model.config
     prompt_len = cfg.window - 1
     g = torch.Generator(device="cpu").manual_seed(0)
@@ -39,9 +40,11 @@ def run(name: str, cfg, device: str, dtype: torch.dtype, batch_sizes: list[int],
     torch.manual_seed(0)
     model = STWorldModel(cfg).to(device).eval()
     params = sum(p.numel() for p in model.parameters()) / 1e6
-    print(f"\n{name}: {params:.1f}M parameters, {cfg.n_layer} layers, d_model {cfg.d_model}, "
-          f"{cfg.tokens_per_frame} tokens/frame, window {cfg.window}, {cfg.maskgit_steps} MaskGIT steps, "
-          f"{device}, {str(dtype).removeprefix('torch.')}")
+    print(
+        f"\n{name}: {params:.1f}M parameters, {cfg.n_layer} layers, d_model {cfg.d_model}, "
+        f"{cfg.tokens_per_frame} tokens/frame, window {cfg.window}, {cfg.maskgit_steps} MaskGIT steps, "
+        f"{device}, {str(dtype).removeprefix('torch.')}"
+    )
     print(f"{'batch':>6} {'cached frames/s':>16} {'recompute frames/s':>19} {'speed-up':>9}")
     for batch in batch_sizes:
         cached = frames_per_second(model, batch, frames, True, device, dtype)
@@ -62,8 +65,14 @@ def main():
     run("tiny preset", TinyWorldModelConfig(window=args.window), "cpu", torch.float32, args.batch_sizes, args.frames)
     if torch.cuda.is_available():
         print(f"GPU: {torch.cuda.get_device_name()}")
-        run("paper preset", PaperWorldModelConfig(text_encoder=None), "cuda", torch.bfloat16, args.batch_sizes,
-            args.frames)
+        run(
+            "paper preset",
+            PaperWorldModelConfig(text_encoder=None),
+            "cuda",
+            torch.bfloat16,
+            args.batch_sizes,
+            args.frames,
+        )
 
 
 if __name__ == "__main__":

@@ -35,16 +35,22 @@ def main():
         raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
     torch.manual_seed(0)
     config = RoboscapeWorldModelEnvConfig(
-        dataset_repo_id="local/roboscape_demos", dataset_root=str(demo / "datasets" / "roboscape_demos"),
+        dataset_repo_id="local/roboscape_demos",
+        dataset_root=str(demo / "datasets" / "roboscape_demos"),
         tokenizer=str(demo / "tokenizer" / "pretrained_model"),
         action_world_model=str(demo / "world_model_action" / "pretrained_model"),
         text_world_model=str(demo / "world_model_text" / "pretrained_model"),
-        image_size=args.image_size, allow_random_lpips=True, episode_length=args.episode_length, temperature=1.0,
-    )  # fmt: skip
+        image_size=args.image_size,
+        allow_random_lpips=True,
+        episode_length=args.episode_length,
+        temperature=1.0,
+    )
     env = RoboscapeWorldModelEnv(config, num_envs=args.batch_size)
     process, rng = psutil.Process(), np.random.default_rng(0)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, batch {args.batch_size}, "
-          f"{args.steps} steps, episodes of {args.episode_length} steps")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, batch {args.batch_size}, "
+        f"{args.steps} steps, episodes of {args.episode_length} steps"
+    )
     print(f"{'step':>6} {'RSS MiB':>9} {'resets':>7} {'s/step':>7}")
     env.reset(seed=0)
     resets, started, readings = 1, time.perf_counter(), {}
@@ -60,8 +66,10 @@ def main():
             rate = (time.perf_counter() - started) / step
             print(f"{step:>6} {readings[step]:>9.1f} {resets:>7} {rate:>7.3f}")
     later = [rss for step, rss in readings.items() if step >= 100]
-    print(f"RSS at step 1: {readings[1]:.1f} MiB; from step 100 to {args.steps}: {min(later):.1f}-{max(later):.1f} "
-          f"MiB (growth {max(later) - later[0]:+.1f} MiB)")
+    print(
+        f"RSS at step 1: {readings[1]:.1f} MiB; from step 100 to {args.steps}: {min(later):.1f}-{max(later):.1f} "
+        f"MiB (growth {max(later) - later[0]:+.1f} MiB)"
+    )
 
 
 if __name__ == "__main__":

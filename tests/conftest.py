@@ -14,9 +14,18 @@ def demo_dataset(tmp_path_factory):
     """A small real collection: two families on one scene, one optimal, one suboptimal and one deliberately failed
     episode each (episodes 0-2 pick and place, 3-5 push; the failed ones are 2 and 3)."""
     root = tmp_path_factory.mktemp("collect") / "demos"
-    cfg = CollectConfig(repo_id="test/demos", root=str(root), families=["pick_place", "push"], max_scenes=1,
-                        episodes_per_scene=3, failed_fraction=1 / 3, suboptimal_fraction=0.5, image_size=IMAGE_SIZE,
-                        workers=2, seed=3)
+    cfg = CollectConfig(
+        repo_id="test/demos",
+        root=str(root),
+        families=["pick_place", "push"],
+        max_scenes=1,
+        episodes_per_scene=3,
+        failed_fraction=1 / 3,
+        suboptimal_fraction=0.5,
+        image_size=IMAGE_SIZE,
+        workers=2,
+        seed=3,
+    )
     return collect(cfg), root
 
 
@@ -25,10 +34,22 @@ def record_maniskill_file(out_dir, obs_mode="rgb", episodes=2, steps=6, env_id="
     import mani_skill.envs  # noqa: F401  registers PickCube-v1
     from mani_skill.utils.wrappers.record import RecordEpisode
 
-    env = gym.make(env_id, obs_mode=obs_mode, control_mode="pd_ee_delta_pose", max_episode_steps=steps,
-                   sensor_configs=dict(width=IMAGE_SIZE, height=IMAGE_SIZE))
-    env = RecordEpisode(env, str(out_dir), save_trajectory=True, trajectory_name="traj", save_video=False,
-                        source_type="test", source_desc="random actions")
+    env = gym.make(
+        env_id,
+        obs_mode=obs_mode,
+        control_mode="pd_ee_delta_pose",
+        max_episode_steps=steps,
+        sensor_configs=dict(width=IMAGE_SIZE, height=IMAGE_SIZE),
+    )
+    env = RecordEpisode(
+        env,
+        str(out_dir),
+        save_trajectory=True,
+        trajectory_name="traj",
+        save_video=False,
+        source_type="test",
+        source_desc="random actions",
+    )
     rng = np.random.default_rng(0)
     for k in range(episodes):
         env.reset(seed=k)
@@ -60,8 +81,10 @@ def trained_tokenizer(demo_dataset, tmp_path_factory):
         dataset=DatasetConfig(repo_id="test/demos", root=str(root)),
         tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER),
         train=TrainingConfig(steps=8, batch_size=8, save_freq=8, log_freq=4),
-        output_dir=out, num_workers=0, allow_random_lpips=True,
-    )  # fmt: skip
+        output_dir=out,
+        num_workers=0,
+        allow_random_lpips=True,
+    )
     train_tokenizer(cfg)
     return out / FINAL
 
@@ -73,13 +96,25 @@ def token_cache(demo_dataset, trained_tokenizer, tmp_path_factory):
     from lerobot_roboscape.world_model.train import prepare_token_cache
 
     _, root = demo_dataset
-    return prepare_token_cache(DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer),
-                               tmp_path_factory.mktemp("token_cache"))
+    return prepare_token_cache(
+        DatasetConfig(repo_id="test/demos", root=str(root)),
+        str(trained_tokenizer),
+        tmp_path_factory.mktemp("token_cache"),
+    )
 
 
 # A world model small enough to train in seconds on the tests' token cache.
-TEST_WM_ARGS = ["--wm.d_model=64", "--wm.n_head=2", "--wm.n_layer=2", "--wm.window=4", "--wm.prompt_frames=1",
-                "--train.batch_size=4", "--train.log_freq=5", "--train.warmup_steps=5", "--train.mixed_precision=no"]
+TEST_WM_ARGS = [
+    "--wm.d_model=64",
+    "--wm.n_head=2",
+    "--wm.n_layer=2",
+    "--wm.window=4",
+    "--wm.prompt_frames=1",
+    "--train.batch_size=4",
+    "--train.log_freq=5",
+    "--train.warmup_steps=5",
+    "--train.mixed_precision=no",
+]
 
 
 @pytest.fixture(scope="session")
@@ -94,9 +129,17 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     dirs = {}
     for control in ("action", "text"):
         out = tmp_path_factory.mktemp(f"wm_{control}")
-        args = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
-                f"--token_cache={token_cache.root}", f"--output_dir={out}", f"--wm.control={control}",
-                "--train.steps=20", "--train.save_freq=20", *TEST_WM_ARGS]
+        args = [
+            "--dataset.repo_id=test/demos",
+            f"--dataset.root={root}",
+            f"--tokenizer={trained_tokenizer}",
+            f"--token_cache={token_cache.root}",
+            f"--output_dir={out}",
+            f"--wm.control={control}",
+            "--train.steps=20",
+            "--train.save_freq=20",
+            *TEST_WM_ARGS,
+        ]
         train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
         dirs[control] = out / FINAL
     return dirs
@@ -107,9 +150,21 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
     import subprocess
     import sys
 
-    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_train", "--dataset.repo_id=test/demos",
-           f"--dataset.root={root}", "--policy.device=cpu", "--policy.push_to_hub=false", f"--steps={steps}",
-           "--batch_size=2", "--num_workers=0", f"--save_freq={steps}", f"--output_dir={out}", *policy_args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "lerobot.scripts.lerobot_train",
+        "--dataset.repo_id=test/demos",
+        f"--dataset.root={root}",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        f"--steps={steps}",
+        "--batch_size=2",
+        "--num_workers=0",
+        f"--save_freq={steps}",
+        f"--output_dir={out}",
+        *policy_args,
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
@@ -119,10 +174,18 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
 def act_checkpoint(demo_dataset, tmp_path_factory):
     """LeRobot's ACT policy after two lerobot-train steps on `demo_dataset`."""
     _, root = demo_dataset
-    return lerobot_train(root, tmp_path_factory.mktemp("act") / "train", 2, "--policy.type=act",
-                         "--policy.pretrained_backbone_weights=null", "--policy.dim_model=32",
-                         "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1", "--policy.chunk_size=4",
-                         "--policy.n_action_steps=4")
+    return lerobot_train(
+        root,
+        tmp_path_factory.mktemp("act") / "train",
+        2,
+        "--policy.type=act",
+        "--policy.pretrained_backbone_weights=null",
+        "--policy.dim_model=32",
+        "--policy.n_encoder_layers=1",
+        "--policy.n_decoder_layers=1",
+        "--policy.chunk_size=4",
+        "--policy.n_action_steps=4",
+    )
 
 
 @pytest.fixture(scope="session")
@@ -130,7 +193,17 @@ def mlp_checkpoint(demo_dataset, tmp_path_factory):
     """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`, evaluated in
     roboscape_maniskill at the end of training (lerobot-train's periodic evaluation)."""
     _, root = demo_dataset
-    return lerobot_train(root, tmp_path_factory.mktemp("mlp") / "train", 4, "--policy.type=roboscape_mlp",
-                         "--policy.hidden_dim=32", "--policy.image_feature_dim=32", "--env_eval_freq=4",
-                         "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}", "--env.episode_length=2",
-                         "--eval.n_episodes=1", "--eval.batch_size=1")
+    return lerobot_train(
+        root,
+        tmp_path_factory.mktemp("mlp") / "train",
+        4,
+        "--policy.type=roboscape_mlp",
+        "--policy.hidden_dim=32",
+        "--policy.image_feature_dim=32",
+        "--env_eval_freq=4",
+        "--env.type=roboscape_maniskill",
+        f"--env.image_size={IMAGE_SIZE}",
+        "--env.episode_length=2",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+    )

@@ -29,8 +29,9 @@ def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -
     try:
         while not ready():
             if process.poll() is not None:
-                raise AssertionError(f"{cmd[2]} ended (exit {process.returncode}) before the kill point: "
-                                     f"{process.stderr.read()[-2000:]}")  # fmt: skip
+                raise AssertionError(
+                    f"{cmd[2]} ended (exit {process.returncode}) before the kill point: {process.stderr.read()[-2000:]}"
+                )
             if time.time() > deadline:
                 raise AssertionError(f"{cmd[2]} did not reach the kill point in {timeout} s")
             time.sleep(0.01)

@@ -25,16 +25,32 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
         assert path.exists(), f"{name}: {path}"
         assert f"{name} " in summary and str(path) in summary  # named, with what it loaded as
     hub = out / "hub"
-    assert {"dataset repo", "world models repo", "roboscape_mlp sft repo", "roboscape_mlp ppo_maniskill repo",
-            "roboscape_mlp ppo_world_model repo", "Table 1", "fidelity report", "reward report", "experiment report",
-            "roboscape_mlp lerobot-eval in roboscape_wm"} <= set(artifacts)
+    assert {
+        "dataset repo",
+        "world models repo",
+        "roboscape_mlp sft repo",
+        "roboscape_mlp ppo_maniskill repo",
+        "roboscape_mlp ppo_world_model repo",
+        "Table 1",
+        "fidelity report",
+        "reward report",
+        "experiment report",
+        "roboscape_mlp lerobot-eval in roboscape_wm",
+    } <= set(artifacts)
 
     # The pushed dataset and world models drive a roboscape_wm env on their own.
     dataset_repo = hub / "datasets" / "local" / "roboscape_demos"
     assert len(LeRobotDataset("local/roboscape_demos", root=dataset_repo)) > 0
-    env = RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(
-        world_models=str(hub / "local" / "roboscape_world_models"), dataset_root=str(dataset_repo),
-        allow_random_lpips=True, episode_length=2, max_goal_steps=2), num_envs=1)  # fmt: skip
+    env = RoboscapeWorldModelEnv(
+        RoboscapeWorldModelEnvConfig(
+            world_models=str(hub / "local" / "roboscape_world_models"),
+            dataset_root=str(dataset_repo),
+            allow_random_lpips=True,
+            episode_length=2,
+            max_goal_steps=2,
+        ),
+        num_envs=1,
+    )
     obs, _ = env.reset(seed=0)
     _, reward, *_ = env.step(np.zeros((1, 7), np.float32))
     assert np.isfinite(reward).all()

@@ -42,8 +42,16 @@ def assert_same_dataset(expected, got) -> None:
 
 
 def test_collect(tmp_path):
-    args = ["--repo_id=test/demos", "--families=[push]", "--max_scenes=1", "--episodes_per_scene=2",
-            "--failed_fraction=0.5", f"--image_size={IMAGE_SIZE}", "--workers=0", "--seed=11"]  # fmt: skip
+    args = [
+        "--repo_id=test/demos",
+        "--families=[push]",
+        "--max_scenes=1",
+        "--episodes_per_scene=2",
+        "--failed_fraction=0.5",
+        f"--image_size={IMAGE_SIZE}",
+        "--workers=0",
+        "--seed=11",
+    ]
     collect(draccus.parse(CollectConfig, args=[*args, f"--root={tmp_path / 'reference'}"]))
     root, work = tmp_path / "demos", tmp_path / ".demos.episodes"
     kill_when(command("collect", *args, f"--root={root}"), lambda: any(work.glob("*.npz")))
@@ -70,18 +78,36 @@ def test_convert(tmp_path):
 @pytest.mark.parametrize("trainer", ["tokenizer", "reward"])
 def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_models, tmp_path):
     _, root = demo_dataset
-    common = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", "--train.steps=24", "--train.save_freq=4",
-              "--train.log_freq=4", "--train.mixed_precision=no"]  # fmt: skip
+    common = [
+        "--dataset.repo_id=test/demos",
+        f"--dataset.root={root}",
+        "--train.steps=24",
+        "--train.save_freq=4",
+        "--train.log_freq=4",
+        "--train.mixed_precision=no",
+    ]
     if trainer == "tokenizer":
         name, config, train = "train_tokenizer", TrainTokenizerConfig, train_tokenizer
-        args = [*common, f"--tokenizer.image_size={IMAGE_SIZE}", "--tokenizer.base_channels=8",
-                "--tokenizer.channel_multipliers=[1,2,2,2]", "--tokenizer.codebook_bits=6", "--train.batch_size=4",
-                "--num_workers=0", "--allow_random_lpips=true"]  # fmt: skip
+        args = [
+            *common,
+            f"--tokenizer.image_size={IMAGE_SIZE}",
+            "--tokenizer.base_channels=8",
+            "--tokenizer.channel_multipliers=[1,2,2,2]",
+            "--tokenizer.codebook_bits=6",
+            "--train.batch_size=4",
+            "--num_workers=0",
+            "--allow_random_lpips=true",
+        ]
     else:
         name, config, train = "train_reward", TrainRewardConfig, train_reward_model
-        args = [*common, "--reward.kind=embedding", f"--tokenizer={trained_tokenizer}",
-                f"--action_world_model={world_models['action']}", f"--token_cache={token_cache.root}",
-                "--train.batch_size=4"]  # fmt: skip
+        args = [
+            *common,
+            "--reward.kind=embedding",
+            f"--tokenizer={trained_tokenizer}",
+            f"--action_world_model={world_models['action']}",
+            f"--token_cache={token_cache.root}",
+            "--train.batch_size=4",
+        ]
     train(draccus.parse(config, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
     killed = tmp_path / "killed"
     kill_when(command(name, *args, f"--output_dir={killed}"), lambda: last_checkpoint(killed) is not None)
@@ -91,10 +117,21 @@ def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_m
 
 
 def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
-    args = [f"--policy_path={mlp_checkpoint}", "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}",
-            "--env.families=[push]", "--env.episode_length=3", "--num_envs=1", "--iterations=2", "--save_freq=1",
-            "--critic_warmup_iterations=1", "--minibatch_size=3", "--device=cpu", "--mixed_precision=no",
-            "--seed=7"]  # fmt: skip
+    args = [
+        f"--policy_path={mlp_checkpoint}",
+        "--env.type=roboscape_maniskill",
+        f"--env.image_size={IMAGE_SIZE}",
+        "--env.families=[push]",
+        "--env.episode_length=3",
+        "--num_envs=1",
+        "--iterations=2",
+        "--save_freq=1",
+        "--critic_warmup_iterations=1",
+        "--minibatch_size=3",
+        "--device=cpu",
+        "--mixed_precision=no",
+        "--seed=7",
+    ]
     reference = train_ppo(draccus.parse(PPOConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
     killed = tmp_path / "killed"
     kill_when(command("ppo", *args, f"--output_dir={killed}"), lambda: (killed / "checkpoints" / "last").is_file())
@@ -107,8 +144,15 @@ def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
 
 
 def test_eval(mlp_checkpoint, tmp_path):
-    args = [f"--policy_path={mlp_checkpoint}", "--families=[push]", "--episodes=1", "--batch_size=1",
-            "--episode_length=2", "--device=cpu", "--videos=1"]  # fmt: skip
+    args = [
+        f"--policy_path={mlp_checkpoint}",
+        "--families=[push]",
+        "--episodes=1",
+        "--batch_size=1",
+        "--episode_length=2",
+        "--device=cpu",
+        "--videos=1",
+    ]
     reference = evaluate_success(draccus.parse(EvalConfig, args=[*args, f"--output_dir={tmp_path / 'reference'}"]))
     for split in ("ind", "ood"):
         cells = reference["splits"][split]
@@ -128,12 +172,20 @@ def test_eval(mlp_checkpoint, tmp_path):
 def test_token_cache(demo_dataset, trained_tokenizer, token_cache, tmp_path):
     _, root = demo_dataset
     cache_dir = tmp_path / "cache"
-    args = ["--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
-            f"--cache_dir={cache_dir}", f"--output_dir={tmp_path / 'wm'}", "--train.steps=1", *TEST_WM_ARGS]
+    args = [
+        "--dataset.repo_id=test/demos",
+        f"--dataset.root={root}",
+        f"--tokenizer={trained_tokenizer}",
+        f"--cache_dir={cache_dir}",
+        f"--output_dir={tmp_path / 'wm'}",
+        "--train.steps=1",
+        *TEST_WM_ARGS,
+    ]
     kill_when(command("train_wm", *args), lambda: any(cache_dir.glob(".v*")))  # killed while tokenizing
     assert not [p for p in cache_dir.iterdir() if not p.name.startswith(".")]  # no cache a later run would open
-    rebuilt = prepare_token_cache(DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer),
-                                  cache_dir)  # fmt: skip
+    rebuilt = prepare_token_cache(
+        DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer), cache_dir
+    )
     assert [p.name for p in cache_dir.iterdir()] == [rebuilt.root.name]  # the killed build's leftovers are gone
     rebuilt = open_token_cache(rebuilt.root)
     assert np.array_equal(rebuilt.tokens, token_cache.tokens) and np.array_equal(rebuilt.actions, token_cache.actions)

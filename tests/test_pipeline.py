@@ -42,15 +42,26 @@ def cell(rate: float, n: int = 10) -> dict:
 
 
 def test_targets_compare_the_measured_values_with_the_goals():
-    fidelity = {"mean": {"reconstruction_psnr": 27.0},
-                "per_step": {"prediction_psnr": [25.0] * 8 + [10.0] * 8, "reconstruction_psnr": [27.0] * 16},
-                "done_whole_episode_open_loop": {"roc_auc": 0.85}}  # fmt: skip
-    rewards = {"summary": {"world_model": {"roc_auc_of_return": 0.9}, "embedding": {"roc_auc_of_return": 0.95},
-                           "proxy": {"roc_auc_of_return": 0.5}}}  # fmt: skip
+    fidelity = {
+        "mean": {"reconstruction_psnr": 27.0},
+        "per_step": {"prediction_psnr": [25.0] * 8 + [10.0] * 8, "reconstruction_psnr": [27.0] * 16},
+        "done_whole_episode_open_loop": {"roc_auc": 0.85},
+    }
+    rewards = {
+        "summary": {
+            "world_model": {"roc_auc_of_return": 0.9},
+            "embedding": {"roc_auc_of_return": 0.95},
+            "proxy": {"roc_auc_of_return": 0.5},
+        }
+    }
     split = lambda rate: {"push": cell(rate), "all": cell(rate)}  # noqa: E731
-    table = {"roboscape_mlp": {stages.SFT: {"ind": split(0.4), "ood": split(0.2)},
-                               stages.RL_WORLD_MODEL: {"ind": split(0.5), "ood": split(0.2)},
-                               stages.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)}}}  # fmt: skip
+    table = {
+        "roboscape_mlp": {
+            stages.SFT: {"ind": split(0.4), "ood": split(0.2)},
+            stages.RL_WORLD_MODEL: {"ind": split(0.5), "ood": split(0.2)},
+            stages.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)},
+        }
+    }
     met = {name: t["met"] for name, t in measure_targets(fidelity, rewards, table, ["push"]).items()}
     assert met["tokenizer held-out reconstruction PSNR (dB)"]
     assert met["action WM open-loop PSNR, first 8 steps (dB; tokenizer 27.00)"]  # 25 is within 3 dB of 27

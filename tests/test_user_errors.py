@@ -56,12 +56,15 @@ def copy_of(recorded, folder, name="bad"):
     return h5
 
 
-@pytest.mark.parametrize(("argv", "expected"), [
-    (["--failed_fraction=2"], "roboscape-collect: error: failed_fraction must be in [0, 1], got 2"),
-    (["--episodes_per_scene=abc"], "`episodes_per_scene`: Couldn't parse 'abc' into an int"),
-    (["--families=[fly]"], "Unknown task families ['fly']"),
-    (["--split=moon"], "Unknown split 'moon'"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--failed_fraction=2"], "roboscape-collect: error: failed_fraction must be in [0, 1], got 2"),
+        (["--episodes_per_scene=abc"], "`episodes_per_scene`: Couldn't parse 'abc' into an int"),
+        (["--families=[fly]"], "Unknown task families ['fly']"),
+        (["--split=moon"], "Unknown split 'moon'"),
+    ],
+)
 def test_bad_flag_values(capsys, argv, expected):
     assert expected in one_line(capsys, collect_cli.main, argv)
 
@@ -78,9 +81,14 @@ def test_convert_refuses_non_finite_actions_and_names_where(capsys, recorded, tm
 @pytest.mark.parametrize("fault", ["no_h5", "no_json", "truncated", "bad_json", "short_success", "state_only"])
 def test_convert_refuses_malformed_files(capsys, recorded, tmp_path, fault):
     h5 = copy_of(recorded, tmp_path)
-    expected = {"no_h5": "no such trajectory file", "no_json": "bad.json: missing", "truncated": "cannot be read",
-                "bad_json": "not a ManiSkill trajectory .json", "short_success": "episode 0: 'success' has 2 entries",
-                "state_only": "replay_trajectory"}[fault]  # fmt: skip
+    expected = {
+        "no_h5": "no such trajectory file",
+        "no_json": "bad.json: missing",
+        "truncated": "cannot be read",
+        "bad_json": "not a ManiSkill trajectory .json",
+        "short_success": "episode 0: 'success' has 2 entries",
+        "state_only": "replay_trajectory",
+    }[fault]
     if fault == "no_h5":
         h5 = tmp_path / "absent.h5"
     elif fault == "no_json":
@@ -111,13 +119,17 @@ def test_datasets_with_non_finite_values_are_refused_where_read(demo_dataset, tm
     table = pq.read_table(table_path)
     rewards = table.column("next.reward").to_numpy().copy()
     rewards[7] = np.inf
-    pq.write_table(table.set_column(table.column_names.index("next.reward"), "next.reward", pa.array(rewards)),
-                   table_path)  # fmt: skip
+    pq.write_table(
+        table.set_column(table.column_names.index("next.reward"), "next.reward", pa.array(rewards)), table_path
+    )
     episode, frame = table.column("episode_index")[7].as_py(), table.column("frame_index")[7].as_py()
     with pytest.raises(InvalidInputError, match=f"episode {episode} frame {frame}: next.reward is not finite"):
         open_dataset("test/bad", bad)
-    line = one_line(capsys, train_tokenizer_cli.main, ["--dataset.repo_id=test/bad", f"--dataset.root={bad}",
-                                                        f"--output_dir={tmp_path / 'tok'}"])  # fmt: skip
+    line = one_line(
+        capsys,
+        train_tokenizer_cli.main,
+        ["--dataset.repo_id=test/bad", f"--dataset.root={bad}", f"--output_dir={tmp_path / 'tok'}"],
+    )
     assert "next.reward is not finite" in line and not (tmp_path / "tok").exists()
 
 
@@ -127,29 +139,50 @@ def test_token_cache_with_non_finite_labels_is_refused(token_cache, tmp_path):
     rewards = np.load(bad / "rewards.npy")
     rewards[token_cache.episodes[1]["start"] + 2] = np.nan
     np.save(bad / "rewards.npy", rewards)
-    with pytest.raises(InvalidInputError, match=f"rewards.npy \\(episode {token_cache.episodes[1]['episode_index']} "
-                                                "frame 2\\): rewards is not finite"):
+    with pytest.raises(
+        InvalidInputError,
+        match=f"rewards.npy \\(episode {token_cache.episodes[1]['episode_index']} frame 2\\): rewards is not finite",
+    ):
         open_token_cache(bad)
 
 
 def test_missing_models_and_paths_are_named(capsys, demo_dataset, tmp_path):
     _, root = demo_dataset
-    line = one_line(capsys, train_wm_cli.main, ["--dataset.repo_id=test/demos", f"--dataset.root={root}",
-                                                f"--tokenizer={tmp_path / 'no_tokenizer'}"])  # fmt: skip
+    line = one_line(
+        capsys,
+        train_wm_cli.main,
+        ["--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={tmp_path / 'no_tokenizer'}"],
+    )
     assert f"no VisualTokenizer at {tmp_path / 'no_tokenizer'}: no such directory" in line
     line = one_line(capsys, train_tokenizer_cli.main, ["--dataset.repo_id=test/x", f"--dataset.root={tmp_path}/x"])
     assert f"no LeRobot dataset at {tmp_path}/x" in line
-    line = one_line(capsys, ppo_cli.main, [f"--policy_path={tmp_path / 'no_policy'}", "--env.type=roboscape_maniskill",
-                                           f"--output_dir={tmp_path / 'ppo'}"])  # fmt: skip
+    line = one_line(
+        capsys,
+        ppo_cli.main,
+        [
+            f"--policy_path={tmp_path / 'no_policy'}",
+            "--env.type=roboscape_maniskill",
+            f"--output_dir={tmp_path / 'ppo'}",
+        ],
+    )
     assert "No LeRobot policy checkpoint at" in line and "no_policy" in line
 
 
 def test_mismatched_camera_is_named(capsys, mlp_checkpoint, tmp_path):
-    line = one_line(capsys, ppo_cli.main, [f"--policy_path={mlp_checkpoint}", "--env.type=roboscape_maniskill",
-                                           "--env.image_size=48", f"--output_dir={tmp_path / 'ppo'}"])  # fmt: skip
+    line = one_line(
+        capsys,
+        ppo_cli.main,
+        [
+            f"--policy_path={mlp_checkpoint}",
+            "--env.type=roboscape_maniskill",
+            "--env.image_size=48",
+            f"--output_dir={tmp_path / 'ppo'}",
+        ],
+    )
     assert "--env.image_size=32" in line
-    assert "unknown task families ['juggle']" in one_line(capsys, evaluate_cli.main,
-                                                          ["--policy_path=x", "--families=[juggle]"])  # fmt: skip
+    assert "unknown task families ['juggle']" in one_line(
+        capsys, evaluate_cli.main, ["--policy_path=x", "--families=[juggle]"]
+    )
 
 
 def test_full_disk_and_read_only_output_say_so(capsys, recorded, tmp_path, monkeypatch):
@@ -157,6 +190,7 @@ def test_full_disk_and_read_only_output_say_so(capsys, recorded, tmp_path, monke
 
     h5 = copy_of(recorded, tmp_path)
     for code, words in ((errno.ENOSPC, "the disk is full"), (errno.EROFS, "the file system is read-only")):
+
         def fail(dataset, episode, code=code):
             raise OSError(code, os.strerror(code), str(dataset.root / "data"))
 
@@ -170,17 +204,23 @@ def test_weights_that_do_not_fit_their_config_are_refused(world_models, mlp_chec
     source = world_models["action"]
     tensors = load_file(source / "model.safetensors")
     name = next(iter(tensors))
-    cases = {"missing": {k: v for k, v in tensors.items() if k != name},
-             "shape": {**tensors, name: tensors[name][..., :1].contiguous()},
-             "dtype": {**tensors, name: tensors[name].to(torch.float16)}}  # fmt: skip
-    expected = {"missing": f"missing tensors {name}", "shape": f"mismatched tensors {name} ",
-                "dtype": f"mismatched tensors {name} {tuple(tensors[name].shape)} F16"}  # fmt: skip
+    cases = {
+        "missing": {k: v for k, v in tensors.items() if k != name},
+        "shape": {**tensors, name: tensors[name][..., :1].contiguous()},
+        "dtype": {**tensors, name: tensors[name].to(torch.float16)},
+    }
+    expected = {
+        "missing": f"missing tensors {name}",
+        "shape": f"mismatched tensors {name} ",
+        "dtype": f"mismatched tensors {name} {tuple(tensors[name].shape)} F16",
+    }
     for case, edited in cases.items():
         bad = tmp_path / case
         shutil.copytree(source, bad)
         save_file(edited, bad / "model.safetensors")
-        with pytest.raises(InvalidInputError, match=re.escape(str(bad / "model.safetensors")) + ".*"
-                           + re.escape(expected[case])):
+        with pytest.raises(
+            InvalidInputError, match=re.escape(str(bad / "model.safetensors")) + ".*" + re.escape(expected[case])
+        ):
             STWorldModel.from_pretrained(bad)
     pickled = tmp_path / "pickled"
     pickled.mkdir()

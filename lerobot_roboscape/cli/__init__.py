@@ -18,9 +18,14 @@ from lerobot_roboscape.errors import UserError
 DEBUG_ENV = "ROBOSCAPE_DEBUG"
 USER_ERROR_EXIT = 2
 # Operating-system errors that the user fixes where the files live, not in the code.
-_DISK_ERRORS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
-                errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
-                errno.EPERM: "permission denied", errno.ENOENT: "no such file or directory"}  # fmt: skip
+_DISK_ERRORS = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is exceeded",
+    errno.EROFS: "the file system is read-only",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+    errno.ENOENT: "no such file or directory",
+}
 
 
 def user_message(error: BaseException) -> str | None:

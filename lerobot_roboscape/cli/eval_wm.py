@@ -19,9 +19,11 @@ def main(argv: list[str] | None = None):
     cfg = draccus.parse(FidelityConfig, args=argv)
     report = evaluate_fidelity(cfg)
     mean = report["mean"]
-    print(f"PSNR {mean['prediction_psnr']:.2f} (tokenizer {mean['reconstruction_psnr']:.2f}), "
-          f"SSIM {mean['prediction_ssim']:.3f}, LPIPS {mean['prediction_lpips']:.3f}, "
-          f"done accuracy {report['done_teacher_forced']['accuracy']:.3f}")
+    print(
+        f"PSNR {mean['prediction_psnr']:.2f} (tokenizer {mean['reconstruction_psnr']:.2f}), "
+        f"SSIM {mean['prediction_ssim']:.3f}, LPIPS {mean['prediction_lpips']:.3f}, "
+        f"done accuracy {report['done_teacher_forced']['accuracy']:.3f}"
+    )
     print(f"Report in {cfg.output_dir.resolve()}: fidelity.md, fidelity.json, fidelity.png, side_by_side.mp4")
 
 

@@ -1,6 +1,6 @@
 """`roboscape-eval`: success rate of a policy in the ManiSkill simulator, IND and OOD, per task family.
 
-    roboscape-eval --policy_path=outputs/ppo/checkpoints/last/pretrained_model --episodes=50 --output_dir=outputs/eval
+roboscape-eval --policy_path=outputs/ppo/checkpoints/last/pretrained_model --episodes=50 --output_dir=outputs/eval
 """
 
 import logging

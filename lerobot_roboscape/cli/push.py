@@ -60,8 +60,11 @@ class PushConfig:
             raise InvalidInputError(f"--artifact must be one of {ARTIFACTS}, got {self.artifact!r}")
         if self.repo_id.count("/") != 1:
             raise InvalidInputError(f"--repo_id must be `user_or_org/name`, got {self.repo_id!r}")
-        needed = {"dataset": ["dataset_root"], "world_models": ["tokenizer", "action_world_model", "text_world_model"],
-                  "policy": ["policy"]}[self.artifact]
+        needed = {
+            "dataset": ["dataset_root"],
+            "world_models": ["tokenizer", "action_world_model", "text_world_model"],
+            "policy": ["policy"],
+        }[self.artifact]
         missing = [f"--{name}" for name in needed if getattr(self, name) is None]
         if missing:
             raise InvalidInputError(f"--artifact={self.artifact} needs {', '.join(missing)}")
@@ -71,11 +74,19 @@ def push(cfg: PushConfig) -> str:
     if cfg.artifact == "dataset":
         return push_dataset(cfg.dataset_root, cfg.repo_id, cfg.local_dir, cfg.private)
     if cfg.artifact == "world_models":
-        return push_world_models(cfg.repo_id, cfg.local_dir, cfg.private, tokenizer=cfg.tokenizer,
-                                 action_world_model=cfg.action_world_model, text_world_model=cfg.text_world_model,
-                                 dataset_repo_id=cfg.dataset_repo_id, fidelity_dir=cfg.fidelity_dir)
-    return push_policy(cfg.repo_id, cfg.policy, cfg.local_dir, cfg.private, eval_dir=cfg.eval_dir,
-                       dataset_repo_id=cfg.dataset_repo_id)
+        return push_world_models(
+            cfg.repo_id,
+            cfg.local_dir,
+            cfg.private,
+            tokenizer=cfg.tokenizer,
+            action_world_model=cfg.action_world_model,
+            text_world_model=cfg.text_world_model,
+            dataset_repo_id=cfg.dataset_repo_id,
+            fidelity_dir=cfg.fidelity_dir,
+        )
+    return push_policy(
+        cfg.repo_id, cfg.policy, cfg.local_dir, cfg.private, eval_dir=cfg.eval_dir, dataset_repo_id=cfg.dataset_repo_id
+    )
 
 
 @one_line_errors("roboscape-push")

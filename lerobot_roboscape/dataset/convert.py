@@ -45,6 +45,10 @@ def convert(cfg: ConvertConfig):
     traj = open_trajectory_file(cfg.h5, cfg.json)
     task = cfg.task or default_task(traj.env_id, traj.env_kwargs)
     return write_dataset(
-        read_episodes(traj, task, camera_names=CAMERA_NAMES), cfg.repo_id, cfg.root, fps=cfg.fps,
-        overwrite=cfg.overwrite, total=len(traj.episodes),
+        read_episodes(traj, task, camera_names=CAMERA_NAMES),
+        cfg.repo_id,
+        cfg.root,
+        fps=cfg.fps,
+        overwrite=cfg.overwrite,
+        total=len(traj.episodes),
     )

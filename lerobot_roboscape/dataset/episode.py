@@ -58,15 +58,22 @@ class Episode:
             require_finite(getattr(self, key), where, key)
         for name, img in self.images.items():
             if img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8:
-                raise InvalidInputError(f"{where}: camera {name!r} must be (T, H, W, 3) uint8, got {img.shape} "
-                                        f"{img.dtype}")
+                raise InvalidInputError(
+                    f"{where}: camera {name!r} must be (T, H, W, 3) uint8, got {img.shape} {img.dtype}"
+                )
 
     def save(self, path: str | Path) -> None:
         """Write to `path` (.npz, no pickled objects), complete or not at all."""
         text = json.dumps({"task": self.task, "info": self.info}).encode()
-        arrays = {"state": self.state, "action": self.action, "reward": self.reward, "success": self.success,
-                  "done": self.done, **{f"{IMAGES}{k}": v for k, v in self.images.items()},
-                  "text": np.frombuffer(text, np.uint8)}  # fmt: skip
+        arrays = {
+            "state": self.state,
+            "action": self.action,
+            "reward": self.reward,
+            "success": self.success,
+            "done": self.done,
+            **{f"{IMAGES}{k}": v for k, v in self.images.items()},
+            "text": np.frombuffer(text, np.uint8),
+        }
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
         with open(tmp, "wb") as f:
@@ -78,6 +85,13 @@ class Episode:
         with np.load(path, allow_pickle=False) as data:
             text = json.loads(data["text"].tobytes())
             images = {k.removeprefix(IMAGES): data[k] for k in data.files if k.startswith(IMAGES)}
-            return cls(images, data["state"], data["action"], data["reward"], data["success"], data["done"],
-                       text["task"], text["info"])  # fmt: skip
-
+            return cls(
+                images,
+                data["state"],
+                data["action"],
+                data["reward"],
+                data["success"],
+                data["done"],
+                text["task"],
+                text["info"],
+            )

@@ -126,9 +126,22 @@ def read_episodes(traj: TrajectoryFile, task: str, camera_names: dict[str, str] 
                 state = _state(group, n)
             except (OSError, RuntimeError, KeyError) as e:
                 raise InvalidInputError(f"{where}: unreadable data (truncated file?): {e}") from e
-            episode = Episode(images, state, actions, reward, success, done, task,
-                              info={"source_file": traj.h5_path.name, "source_episode_id": meta["episode_id"],
-                                    "env_id": traj.env_id, "control_mode": traj.control_mode,
-                                    "seed": meta.get("episode_seed"), "success": bool(success[-1])})
+            episode = Episode(
+                images,
+                state,
+                actions,
+                reward,
+                success,
+                done,
+                task,
+                info={
+                    "source_file": traj.h5_path.name,
+                    "source_episode_id": meta["episode_id"],
+                    "env_id": traj.env_id,
+                    "control_mode": traj.control_mode,
+                    "seed": meta.get("episode_seed"),
+                    "success": bool(success[-1]),
+                },
+            )
             episode.validate(where)
             yield episode

@@ -24,8 +24,9 @@ def open_dataset(repo_id: str, root: str | Path | None = None, episodes: list[in
     if root is not None:
         info_path = Path(root) / "meta" / "info.json"
         if not info_path.is_file():
-            raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json is missing); collect one with "
-                               "roboscape-collect")
+            raise DatasetError(
+                f"no LeRobot dataset at {root} (meta/info.json is missing); collect one with roboscape-collect"
+            )
         # Checked before LeRobotDataset, which would otherwise look for the missing files on the Hub.
         if json.loads(info_path.read_text()).get("total_episodes", 0) == 0:
             raise DatasetError(f"dataset {root} has no episodes ({info_path} says total_episodes is 0)")
@@ -144,8 +145,10 @@ def successful_episodes(dataset: LeRobotDataset) -> list[int]:
         succeeded = episode_facts(dataset, index).get("success")
         if succeeded is None:
             if SUCCESS not in dataset.features:
-                raise DatasetError(f"dataset {dataset.root} records no success of episode {index} (no roboscape "
-                                   f"facts, no '{SUCCESS}' feature)")
+                raise DatasetError(
+                    f"dataset {dataset.root} records no success of episode {index} (no roboscape "
+                    f"facts, no '{SUCCESS}' feature)"
+                )
             meta = dataset.meta.episodes[index]
             _, stop = _local_range(dataset, meta["dataset_from_index"], meta["dataset_to_index"])
             succeeded = bool(np.asarray(dataset.hf_dataset[stop - 1][SUCCESS]).any())
@@ -197,8 +200,9 @@ def family_horizons(dataset: LeRobotDataset) -> dict[str | None, int]:
         entry = (index in successful, int(dataset.meta.episodes[index]["length"]))
         for key in (episode_facts(dataset, index).get("task_family"), None):
             lengths.setdefault(key, []).append(entry)
-    return {key: max(n for ok, n in entries if ok or not any(ok for ok, _ in entries))
-            for key, entries in lengths.items()}  # fmt: skip
+    return {
+        key: max(n for ok, n in entries if ok or not any(ok for ok, _ in entries)) for key, entries in lengths.items()
+    }
 
 
 def action_range(dataset: LeRobotDataset) -> tuple[np.ndarray, np.ndarray]:

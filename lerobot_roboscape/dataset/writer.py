@@ -27,13 +27,16 @@ def _quiet_encoders() -> None:
     os.environ.setdefault("SVT_LOG", "1")
 
 
-def dataset_features(episode: Episode, state_names: list[str] | None = None,
-                     action_names: list[str] | None = None) -> dict:
+def dataset_features(
+    episode: Episode, state_names: list[str] | None = None, action_names: list[str] | None = None
+) -> dict:
     """LeRobot feature spec matching `episode`'s cameras and widths."""
     features = {}
     for camera, frames in episode.images.items():
         features[f"{OBS_IMAGES}.{camera}"] = {
-            "dtype": "video", "shape": tuple(frames.shape[1:]), "names": ["height", "width", "channels"],
+            "dtype": "video",
+            "shape": tuple(frames.shape[1:]),
+            "names": ["height", "width", "channels"],
         }
     features[OBS_STATE] = {"dtype": "float32", "shape": (episode.state.shape[1],), "names": state_names}
     features[ACTION] = {"dtype": "float32", "shape": (episode.action.shape[1],), "names": action_names}
@@ -58,8 +61,9 @@ def check_features(episode: Episode, features: dict, where: str) -> None:
     for key, feature in dataset_features(episode).items():
         if key not in features or tuple(features[key]["shape"]) != tuple(feature["shape"]):
             expected = tuple(features[key]["shape"]) if key in features else "no such feature"
-            raise InvalidInputError(f"{where}: {key} has shape {tuple(feature['shape'])} per frame, the dataset's "
-                                    f"first episode {expected}")
+            raise InvalidInputError(
+                f"{where}: {key} has shape {tuple(feature['shape'])} per frame, the dataset's first episode {expected}"
+            )
 
 
 def check_target(root: Path, overwrite: bool) -> None:
@@ -104,12 +108,14 @@ def write_dataset(
                 continue
             if dataset is None:
                 features = dataset_features(episode, state_names, action_names)
-                dataset = LeRobotDataset.create(repo_id, fps=fps, root=staging, robot_type=robot_type,
-                                                use_videos=True, features=features)  # fmt: skip
+                dataset = LeRobotDataset.create(
+                    repo_id, fps=fps, root=staging, robot_type=robot_type, use_videos=True, features=features
+                )
             check_features(episode, features, where)
             _add_episode(dataset, episode)
-            records.append({"episode_index": len(records), "length": len(episode), "task": episode.task,
-                            **episode.info})
+            records.append(
+                {"episode_index": len(records), "length": len(episode), "task": episode.task, **episode.info}
+            )
         if dataset is None:
             raise InvalidInputError(f"No episode to write to {root} (none produced, or none kept)")
         dataset.finalize()

@@ -110,11 +110,15 @@ def collect(cfg: CollectConfig) -> LeRobotDataset:
     plan = [asdict(job) for job in jobs]
     if work.exists():
         if not cfg.resume:
-            raise OutputExistsError(f"{work} holds an interrupted collection for {root}: pass --resume=true to "
-                                    "continue it, or delete it to start over")
+            raise OutputExistsError(
+                f"{work} holds an interrupted collection for {root}: pass --resume=true to "
+                "continue it, or delete it to start over"
+            )
         if json.loads((work / JOBS).read_text()) != plan:
-            raise InvalidInputError(f"--resume=true: {work} was collected with other settings (families, scenes, "
-                                    "episodes, fractions, seed or image size); use them, or delete it to start over")
+            raise InvalidInputError(
+                f"--resume=true: {work} was collected with other settings (families, scenes, "
+                "episodes, fractions, seed or image size); use them, or delete it to start over"
+            )
     else:
         root.parent.mkdir(parents=True, exist_ok=True)
         staging = make_tmp_dir(root.parent, f"{root.name}.episodes")
@@ -122,14 +126,26 @@ def collect(cfg: CollectConfig) -> LeRobotDataset:
         os.replace(staging, work)
     files = [work / f"{k:06d}.npz" for k in range(len(jobs))]
     todo = [k for k, file in enumerate(files) if not file.exists()]
-    logging.info("Collecting %d of %d episodes over %d families with %d workers", len(todo), len(jobs),
-                 len(cfg.families), cfg.workers)  # fmt: skip
+    logging.info(
+        "Collecting %d of %d episodes over %d families with %d workers",
+        len(todo),
+        len(jobs),
+        len(cfg.families),
+        cfg.workers,
+    )
     episodes = run_jobs([jobs[k] for k in todo], cfg.workers)
     for k, episode in tqdm(zip(todo, episodes, strict=True), total=len(todo), desc="collecting", unit="episode"):
         episode.save(files[k])
     dataset = write_dataset(
-        (Episode.load(file) for file in files), cfg.repo_id, root, fps=CONTROL_FREQ, state_names=STATE_NAMES,
-        action_names=ACTION_NAMES, robot_type="panda", overwrite=cfg.overwrite, total=len(jobs),
+        (Episode.load(file) for file in files),
+        cfg.repo_id,
+        root,
+        fps=CONTROL_FREQ,
+        state_names=STATE_NAMES,
+        action_names=ACTION_NAMES,
+        robot_type="panda",
+        overwrite=cfg.overwrite,
+        total=len(jobs),
         keep=lambda episode: cfg.keep_failed or episode.succeeded,
     )
     shutil.rmtree(work)

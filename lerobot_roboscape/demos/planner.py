@@ -134,14 +134,18 @@ def make_suboptimal(plan: list[Waypoint], rng: np.random.Generator, cfg: Subopti
             midpoint = (previous + waypoint.position) / 2 + rng.normal(0, cfg.detour_noise, 3)
             midpoint[2] = max(midpoint[2] + 0.05, 0.06)  # detours go up, away from the table
             rotation = rng.normal(0, cfg.rotation_noise, 3) * [0.4, 0.4, 1.0]
-            out.append(Waypoint(midpoint, out[-1].gripper if out else waypoint.gripper, rotation,
-                                tolerance=0.03, essential=False))
+            out.append(
+                Waypoint(
+                    midpoint, out[-1].gripper if out else waypoint.gripper, rotation, tolerance=0.03, essential=False
+                )
+            )
         elif moving and rng.random() < cfg.interpolate_prob:
             for fraction in sorted(rng.uniform(0.2, 0.8, size=rng.integers(1, 3))):
                 point = previous + fraction * (waypoint.position - previous) + rng.normal(0, 0.01, 3)
                 point[2] = max(point[2], waypoint.position[2], 0.02)
-                out.append(Waypoint(point, out[-1].gripper if out else waypoint.gripper, tolerance=0.02,
-                                    essential=False))
+                out.append(
+                    Waypoint(point, out[-1].gripper if out else waypoint.gripper, tolerance=0.02, essential=False)
+                )
         if waypoint.hold and rng.random() < cfg.perturb_prob:
             # A near miss just above the grasp/release point, then the real one.
             near = waypoint.position + rng.normal(0, cfg.perturb_noise, 3) * [1, 1, 0.5]
@@ -153,8 +157,9 @@ def make_suboptimal(plan: list[Waypoint], rng: np.random.Generator, cfg: Subopti
     return out
 
 
-def make_failed(plan: list[Waypoint], rng: np.random.Generator, family: str, object_radius: float,
-                cfg: FailureConfig) -> list[Waypoint]:
+def make_failed(
+    plan: list[Waypoint], rng: np.random.Generator, family: str, object_radius: float, cfg: FailureConfig
+) -> list[Waypoint]:
     """A perturbed `essential_waypoints` plan of `family` that does not accomplish the task but otherwise moves like
     a real attempt. `object_radius`: the object's outline seen from above (m)."""
     miss = rng.random() < cfg.miss_prob
@@ -187,8 +192,9 @@ class WaypointFollower:
         timeout: steps after which an unreached waypoint is skipped.
     """
 
-    def __init__(self, waypoints: list[Waypoint], start_quat_wxyz: np.ndarray, max_step: float = 0.035,
-                 timeout: int = 40):
+    def __init__(
+        self, waypoints: list[Waypoint], start_quat_wxyz: np.ndarray, max_step: float = 0.035, timeout: int = 40
+    ):
         self.waypoints = waypoints
         self.start_rotation = Rotation.from_quat(start_quat_wxyz, scalar_first=True)
         self.max_step = max_step
@@ -237,8 +243,13 @@ class WaypointFollower:
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 
 
-def plan_episode(env: RoboscapeTabletopEnv, kind: str, rng: np.random.Generator,
-                 suboptimal: SuboptimalConfig | None = None, failure: FailureConfig | None = None) -> WaypointFollower:
+def plan_episode(
+    env: RoboscapeTabletopEnv,
+    kind: str,
+    rng: np.random.Generator,
+    suboptimal: SuboptimalConfig | None = None,
+    failure: FailureConfig | None = None,
+) -> WaypointFollower:
     """A follower of a `kind` (one of KINDS) plan for the env's freshly reset episode."""
     if kind not in KINDS:
         raise ValueError(f"Unknown plan kind {kind!r}; expected one of {KINDS}")
@@ -252,4 +263,3 @@ def plan_episode(env: RoboscapeTabletopEnv, kind: str, rng: np.random.Generator,
     max_step = 0.035 if kind == "optimal" else float(rng.uniform(0.02, 0.035))
     start_quat = env.agent.tcp_pose.q[0].cpu().numpy()
     return WaypointFollower(plan, start_quat, max_step=max_step)
-

@@ -35,8 +35,9 @@ def observation_images(obs: dict) -> dict[str, np.ndarray]:
     return {CAMERA_NAMES[uid]: data["rgb"][0].cpu().numpy() for uid, data in obs["sensor_data"].items()}
 
 
-def run_planned_episode(env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None,
-                        failure: FailureConfig | None = None) -> Episode:
+def run_planned_episode(
+    env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None, failure: FailureConfig | None = None
+) -> Episode:
     """Reset `env` (a task env of `job.family`) into `job.scene_id` and follow a planned trajectory to its end."""
     obs, _ = env.reset(seed=job.seed, options={"scene_id": job.scene_id})
     task_env: RoboscapeTabletopEnv = env.unwrapped
@@ -92,8 +93,9 @@ def _worker_run(job: EpisodeJob) -> Episode:
 
     key = (job.family, job.image_size)
     if key not in _worker_envs:
-        _worker_envs[key] = make_task_env(job.family, job.scene_id, image_size=job.image_size,
-                                          max_episode_steps=COLLECT_MAX_STEPS)
+        _worker_envs[key] = make_task_env(
+            job.family, job.scene_id, image_size=job.image_size, max_episode_steps=COLLECT_MAX_STEPS
+        )
     return run_planned_episode(_worker_envs[key], job)
 
 

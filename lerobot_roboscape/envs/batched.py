@@ -27,8 +27,10 @@ class BatchedEnv(gym.vector.VectorEnv):
         """Actions as float32 (B, action_dim), clipped to [-1, 1], and the count of clipped values per env."""
         actions = np.asarray(actions.detach().cpu() if torch.is_tensor(actions) else actions, dtype=np.float32)
         if actions.shape != self.action_space.shape:
-            raise ValueError(f"{type(self).__name__} expects actions of shape {self.action_space.shape} "
-                             f"(num_envs, action_dim), got {actions.shape}")
+            raise ValueError(
+                f"{type(self).__name__} expects actions of shape {self.action_space.shape} "
+                f"(num_envs, action_dim), got {actions.shape}"
+            )
         bad = ~np.isfinite(actions).all(axis=1)
         if bad.any():
             raise ValueError(f"actions of envs {np.flatnonzero(bad).tolist()} contain NaN or inf: {actions[bad]}")

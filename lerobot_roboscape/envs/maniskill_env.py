@@ -43,9 +43,16 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         self.slot_families = [families[i % len(families)] for i in range(num_envs)]
         horizons = task_horizons(config, families)
         self.horizons = np.array([horizons[f] for f in self.slot_families])
-        self.envs = [make_task_env(family, self.scenes[0].id, image_size=config.image_size,
-                                   max_episode_steps=horizons[family], reward_mode="normalized_dense")
-                     for family in self.slot_families]  # fmt: skip
+        self.envs = [
+            make_task_env(
+                family,
+                self.scenes[0].id,
+                image_size=config.image_size,
+                max_episode_steps=horizons[family],
+                reward_mode="normalized_dense",
+            )
+            for family in self.slot_families
+        ]
         size = config.image_size
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in config.cameras}
         spaces = {"pixels": gym.spaces.Dict(pixels)}
@@ -58,8 +65,10 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         self.render_mode = "rgb_array"
         self._max_episode_steps = int(self.horizons.max())
         self._max_step_reward = max_step_reward(config.alpha, config.beta, config.sparse_reward)
-        self.reward_description = (f"simulator: {config.alpha} x {config.sparse_reward} while the task is accomplished "
-                                   f"+ {config.beta} x the task's normalised dense reward")
+        self.reward_description = (
+            f"simulator: {config.alpha} x {config.sparse_reward} while the task is accomplished "
+            f"+ {config.beta} x the task's normalised dense reward"
+        )
         self._rng = np.random.default_rng(config.seed)
         self._obs = None
 
@@ -68,8 +77,11 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
         scene_ids = options.get("scene_id")
-        scene_ids = list(np.broadcast_to(scene_ids, (self.num_envs,))) if scene_ids is not None else \
-            [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
+        scene_ids = (
+            list(np.broadcast_to(scene_ids, (self.num_envs,)))
+            if scene_ids is not None
+            else [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
+        )
         episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
         self._obs = []
         self._state = np.zeros((self.num_envs, STATE_DIM), np.float32)

@@ -63,8 +63,10 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
     done, features = env.action_model.teacher_forced(tokens[None], actions[None, :-1])
     world_model, _ = env.replay(episode.index, tokens, done[0])
     done, features = done[0, 1:], features[0, 1:]
-    per_frame = {"world_model_dense": env.reward_fn(decoded[1:], goal[1:], done).dense,
-                 "rule_based": torch.from_numpy(episode.reward_label[1:])}  # fmt: skip
+    per_frame = {
+        "world_model_dense": env.reward_fn(decoded[1:], goal[1:], done).dense,
+        "rule_based": torch.from_numpy(episode.reward_label[1:]),
+    }
     if "embedding" in models:
         per_frame["embedding"] = models["embedding"](features)
     if "proxy" in models:
@@ -77,16 +79,27 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     cfg.env.dataset_repo_id, cfg.env.dataset_root = cfg.dataset.repo_id, cfg.dataset.root
     env = RoboscapeWorldModelEnv(cfg.env, num_envs=1)
     dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
-    models = {kind: load_reward_model(path, env.device) for kind, path in
-              (("embedding", cfg.embedding_reward), ("proxy", cfg.proxy_reward)) if path}  # fmt: skip
-    selected = [s.episode_index for s in env.starts if cfg.dataset.episodes is None
-                or s.episode_index in cfg.dataset.episodes][: cfg.max_episodes]  # fmt: skip
+    models = {
+        kind: load_reward_model(path, env.device)
+        for kind, path in (("embedding", cfg.embedding_reward), ("proxy", cfg.proxy_reward))
+        if path
+    }
+    selected = [
+        s.episode_index for s in env.starts if cfg.dataset.episodes is None or s.episode_index in cfg.dataset.episodes
+    ][: cfg.max_episodes]
     episodes = []
     for index in selected:
         episode = read_episode(dataset, index)
         rewards = episode_rewards(env, episode, models)
-        episodes.append({"episode_index": index, "task": episode.task, "split": episode.info.get("split", ""),
-                         "success": bool(episode.done_label.max() > 0.5), "rewards": rewards})
+        episodes.append(
+            {
+                "episode_index": index,
+                "task": episode.task,
+                "split": episode.info.get("split", ""),
+                "success": bool(episode.done_label.max() > 0.5),
+                "rewards": rewards,
+            }
+        )
     success = np.array([e["success"] for e in episodes])
     summary = {}
     for kind in episodes[0]["rewards"]:
@@ -97,17 +110,25 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
             # (an AUC of 0.5): hand it the returns' ranks scaled into [0, 1], which keeps their order.
             ranks = torch.from_numpy(returns).argsort().argsort().float() / max(len(returns) - 1, 1)
             auc = float(binary_auroc(ranks, torch.from_numpy(success.astype(np.int64))))
-        summary[kind] = {"roc_auc_of_return": auc, "mean_return_success": _mean(returns[success]),
-                         "mean_return_failure": _mean(returns[~success])}
-    report = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "summary": summary,
-              "similarity": env.similarity,
-              "episodes": [{**e, "rewards": {k: v.tolist() for k, v in e["rewards"].items()}} for e in episodes]}
+        summary[kind] = {
+            "roc_auc_of_return": auc,
+            "mean_return_success": _mean(returns[success]),
+            "mean_return_failure": _mean(returns[~success]),
+        }
+    report = {
+        "config": json.loads(json.dumps(asdict(cfg), default=str)),
+        "summary": summary,
+        "similarity": env.similarity,
+        "episodes": [{**e, "rewards": {k: v.tolist() for k, v in e["rewards"].items()}} for e in episodes],
+    }
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "reward_report.json").write_text(json.dumps(report, indent=2))
     (out / "reward_report.md").write_text(_markdown(report, len(episodes), int(success.sum())))
-    _plot([e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],
-          out / "reward_curves.png")
+    _plot(
+        [e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],
+        out / "reward_curves.png",
+    )
     return report
 
 
@@ -117,14 +138,21 @@ def _mean(values: np.ndarray) -> float | None:
 
 def _markdown(report: dict, n: int, n_success: int) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    lines = [f"# Reward report ({n} episodes, {n_success} successful)", "",
-             f"Dense reward's similarity: {report['similarity']}. Returns are summed over each family's fixed "
-             "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
-             "one kind is present).", "",
-             "| reward | ROC-AUC of return | mean return, success | mean return, failure |", "|---|---:|---:|---:|"]
+    lines = [
+        f"# Reward report ({n} episodes, {n_success} successful)",
+        "",
+        f"Dense reward's similarity: {report['similarity']}. Returns are summed over each family's fixed "
+        "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
+        "one kind is present).",
+        "",
+        "| reward | ROC-AUC of return | mean return, success | mean return, failure |",
+        "|---|---:|---:|---:|",
+    ]
     for kind, s in report["summary"].items():
-        lines.append(f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "
-                     f"{fmt(s['mean_return_failure'])} |")
+        lines.append(
+            f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "
+            f"{fmt(s['mean_return_failure'])} |"
+        )
     return "\n".join(lines) + "\n"
 
 

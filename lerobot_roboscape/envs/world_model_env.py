@@ -59,8 +59,9 @@ def load_pretrained(cls, ref: str, what: str, command: str):
     """`cls.from_pretrained` of a local directory or a Hub repo id, with an error naming what is missing."""
     path = snapshot(ref, what, f"train one with `{command}`")
     if not (path / "config.json").is_file():
-        raise MissingInputError(f"no {what} at {ref} (config.json missing); train one with `{command}` or give a "
-                                "Hub repo id")
+        raise MissingInputError(
+            f"no {what} at {ref} (config.json missing); train one with `{command}` or give a Hub repo id"
+        )
     return cls.from_pretrained(str(path))
 
 
@@ -70,13 +71,23 @@ def model_refs(config) -> tuple[str, str, str | None, str]:
     uses_text = config.goal_source == "text_model"
     if config.world_models:
         bundle = pull_world_models(config.world_models)
-        return (str(bundle.tokenizer), str(bundle.action_world_model),
-                str(bundle.text_world_model) if uses_text else None, config.dataset_repo_id or bundle.dataset_repo_id)
+        return (
+            str(bundle.tokenizer),
+            str(bundle.action_world_model),
+            str(bundle.text_world_model) if uses_text else None,
+            config.dataset_repo_id or bundle.dataset_repo_id,
+        )
     if not config.dataset_repo_id:
-        raise InvalidInputError("roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
-                                "world_models (a repo that names it)")
-    return config.tokenizer, config.action_world_model, config.text_world_model if uses_text else None, \
-        config.dataset_repo_id
+        raise InvalidInputError(
+            "roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
+            "world_models (a repo that names it)"
+        )
+    return (
+        config.tokenizer,
+        config.action_world_model,
+        config.text_world_model if uses_text else None,
+        config.dataset_repo_id,
+    )
 
 
 @lru_cache(maxsize=8)
@@ -86,16 +97,18 @@ def load_models(tokenizer: str, action_model: str, text_model: str | None, devic
         load_pretrained(VisualTokenizer, tokenizer, "tokenizer", "roboscape-train-tokenizer"),
         load_pretrained(STWorldModel, action_model, "action world model", "roboscape-train-wm --wm.control=action"),
         load_pretrained(STWorldModel, text_model, "text world model", "roboscape-train-wm --wm.control=text")
-        if text_model else None,
-    ]  # fmt: skip
+        if text_model
+        else None,
+    ]
     return tuple(m.to(device).eval() if m is not None else None for m in loaded)
 
 
 @lru_cache(maxsize=4)
 def load_reward_model(ref: str | None, device: str) -> RewardModel:
     if not ref:
-        raise InvalidInputError("reward_type embedding/proxy needs reward_model (train one with "
-                                "roboscape-train-reward)")
+        raise InvalidInputError(
+            "reward_type embedding/proxy needs reward_model (train one with roboscape-train-reward)"
+        )
     return load_pretrained(RewardModel, ref, "reward model", "roboscape-train-reward").to(device).eval()
 
 
@@ -110,16 +123,22 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.config, self.num_envs = config, num_envs
         self.device = config.resolved_device
         tokenizer, action_model, text_model, self.dataset_repo_id = model_refs(config)
-        self.tokenizer, self.action_model, self.text_model = load_models(tokenizer, action_model, text_model,
-                                                                         self.device)
+        self.tokenizer, self.action_model, self.text_model = load_models(
+            tokenizer, action_model, text_model, self.device
+        )
         if self.action_model.config.control != "action":
-            raise InvalidInputError(f"{action_model} is a {self.action_model.config.control} world model, "
-                                    "not an action world model")
+            raise InvalidInputError(
+                f"{action_model} is a {self.action_model.config.control} world model, not an action world model"
+            )
         self.reward_fn = WorldModelReward(
-            load_reward_distance(config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips,
-                                 self.device),
-            alpha=config.alpha, beta=config.beta, theta_sps=config.theta_sps, sparse_value=config.sparse_reward,
-        )  # fmt: skip
+            load_reward_distance(
+                config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips, self.device
+            ),
+            alpha=config.alpha,
+            beta=config.beta,
+            theta_sps=config.theta_sps,
+            sparse_value=config.sparse_reward,
+        )
         self.similarity = self.reward_fn.distance.name
         self.reward_description = (
             f"world models: {config.alpha} x {config.sparse_reward} while done >= {config.theta_sps} + {config.beta} "
@@ -130,8 +149,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if config.reward_type != "world_model":
             self.reward_model = load_reward_model(config.reward_model, self.device)
             if self.reward_model.config.kind != config.reward_type:
-                raise InvalidInputError(f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
-                                        f"reward_type is {config.reward_type!r}")
+                raise InvalidInputError(
+                    f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
+                    f"reward_type is {config.reward_type!r}"
+                )
         self.starts, self.cameras, self.action_range = self._load_starts()
         self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
 
@@ -157,8 +178,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         dataset = open_dataset(self.dataset_repo_id, cfg.dataset_root)
         cameras = camera_names(dataset)
         if len(cameras) != self.action_model.config.n_cameras:
-            raise InvalidInputError(f"dataset {dataset.root} has cameras {cameras} but the world model expects "
-                                    f"{self.action_model.config.n_cameras} views")
+            raise InvalidInputError(
+                f"dataset {dataset.root} has cameras {cameras} but the world model expects "
+                f"{self.action_model.config.n_cameras} views"
+            )
         horizons = family_horizons(dataset) if cfg.episode_length is None else {}
         starts = []
         for index in episode_indices(dataset):
@@ -175,14 +198,16 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
             starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts, horizon))
         if not starts:
-            raise InvalidInputError(f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} "
-                                    f"scenes={cfg.scenes}")
+            raise InvalidInputError(
+                f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} scenes={cfg.scenes}"
+            )
         return starts, cameras, action_range(dataset)
 
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
-        return self.tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device)
-                                            for f in frames.values()])
+        return self.tokenizer.encode_views(
+            [torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device) for f in frames.values()]
+        )
 
     def _decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
         """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""
@@ -223,9 +248,14 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 break
         for i, s in enumerate(starts):
             if not reached[i]:
-                logger.warning("text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
-                               "its last generated frame is the goal", theta, self.config.max_goal_steps,
-                               s.episode_index, s.task)
+                logger.warning(
+                    "text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
+                    "its last generated frame is the goal",
+                    theta,
+                    self.config.max_goal_steps,
+                    s.episode_index,
+                    s.task,
+                )
             self._goal_cache[s.episode_index] = (goal[i], bool(reached[i]))
 
     # ---- gymnasium API -------------------------------------------------------------------------------------
@@ -245,16 +275,22 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
         goal_tokens, reached = self.goals_for(starts)
         first = torch.stack([s.first_tokens for s in starts])
-        control = self.action_model.episode_control(torch.zeros(self.num_envs, 0, self.action_model.config.action_dim,
-                                                                device=self.device))
+        control = self.action_model.episode_control(
+            torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
+        )
         self._state = self.action_model.start_rollout(first[:, None], control)
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
-        self._book = EpisodeBook(np.array([s.horizon for s in starts]), self.config.terminate_on_success,
-                                 self.reward_fn.max_step_reward)
-        info = {"task": [s.task for s in starts], "episode_index": np.array([s.episode_index for s in starts]),
-                "goal_from_text_model": np.array(reached), "goal": self._pixels(self._goals)}
+        self._book = EpisodeBook(
+            np.array([s.horizon for s in starts]), self.config.terminate_on_success, self.reward_fn.max_step_reward
+        )
+        info = {
+            "task": [s.task for s in starts],
+            "episode_index": np.array([s.episode_index for s in starts]),
+            "goal_from_text_model": np.array(reached),
+            "goal": self._pixels(self._goals),
+        }
         return self._observation(), info
 
     def step(self, actions):
@@ -264,13 +300,15 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if self.config.clip_actions:
             actions = np.clip(actions, *self.action_range)
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
-        tokens, done = self.action_model.predict_next_frame(self._state, control, self.config.temperature,
-                                                                self._generator)
+        tokens, done = self.action_model.predict_next_frame(
+            self._state, control, self.config.temperature, self._generator
+        )
         frames = self._decode(tokens)
         parts = self.reward_fn(frames, self._goals, done)
         live = ~self._book.finished
-        self._frames = torch.where(torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames,
-                                   self._frames)
+        self._frames = torch.where(
+            torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
+        )
         done_np = done.cpu().numpy()
         reward = self._book.step(self.compute_reward(parts, frames).cpu().numpy(), done_np >= self.config.theta)
         info = {
@@ -309,8 +347,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             per_step.append(self.reward_fn(frames, goal.expand_as(frames), done_T[chunk]).reward.cpu().numpy())
         per_step, done = np.concatenate(per_step), done_T[shown].cpu().numpy()
         book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
-        rewards = np.array([book.step(per_step[t : t + 1], done[t : t + 1] >= self.config.theta)[0]
-                            for t in range(start.horizon)])  # fmt: skip
+        rewards = np.array(
+            [book.step(per_step[t : t + 1], done[t : t + 1] >= self.config.theta)[0] for t in range(start.horizon)]
+        )
         return rewards, bool(book.succeeded[0])
 
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:

@@ -119,10 +119,16 @@ def evaluate_success(cfg: EvalConfig) -> dict:
             results["splits"][split] = done[split]
             continue
         # Success at any step is what counts, so an episode can stop at its first success.
-        env_cfg = RoboscapeManiSkillEnvConfig(families=families, split=split, image_size=image_size,
-                                              episode_length=cfg.episode_length, terminate_on_success=True,
-                                              dataset_repo_id=cfg.dataset_repo_id, dataset_root=cfg.dataset_root,
-                                              seed=cfg.seed)  # fmt: skip
+        env_cfg = RoboscapeManiSkillEnvConfig(
+            families=families,
+            split=split,
+            image_size=image_size,
+            episode_length=cfg.episode_length,
+            terminate_on_success=True,
+            dataset_repo_id=cfg.dataset_repo_id,
+            dataset_root=cfg.dataset_root,
+            seed=cfg.seed,
+        )
         check_policy_fits_env(policy, env_cfg, cfg.policy_path)
         env = RoboscapeManiSkillEnv(env_cfg, num_envs=min(cfg.batch_size, cfg.episodes * len(families)))
         outcomes = {family: [] for family in families}
@@ -152,29 +158,46 @@ def completed_splits(cfg: EvalConfig) -> dict[str, dict]:
     written = cfg.output_dir / SPLITS / "eval_config.json"
     if (cfg.output_dir / "eval.json").exists() or written.exists():
         if not cfg.resume:
-            raise OutputExistsError(f"{cfg.output_dir} already holds an evaluation: pass --resume=true to continue "
-                                    "it, or choose another --output_dir")
+            raise OutputExistsError(
+                f"{cfg.output_dir} already holds an evaluation: pass --resume=true to continue "
+                "it, or choose another --output_dir"
+            )
         if written.exists() and written.read_text() != settings:
-            raise InvalidInputError(f"--resume=true: {cfg.output_dir} was evaluated with other settings "
-                                    f"({written}); use them, or choose another --output_dir")
+            raise InvalidInputError(
+                f"--resume=true: {cfg.output_dir} was evaluated with other settings "
+                f"({written}); use them, or choose another --output_dir"
+            )
     write_text_atomically(written, settings)
-    return {split: json.loads((cfg.output_dir / SPLITS / f"{split}.json").read_text()) for split in cfg.splits
-            if (cfg.output_dir / SPLITS / f"{split}.json").exists()}
+    return {
+        split: json.loads((cfg.output_dir / SPLITS / f"{split}.json").read_text())
+        for split in cfg.splits
+        if (cfg.output_dir / SPLITS / f"{split}.json").exists()
+    }
 
 
 def summarise(outcomes: list[bool]) -> dict:
     n, successes = len(outcomes), int(sum(outcomes))
     low, high = wilson_interval(successes, n)
-    return {"success_rate": successes / n if n else 0.0, "successes": successes, "episodes": n,
-            "ci95": [round(low, 4), round(high, 4)]}  # fmt: skip
+    return {
+        "success_rate": successes / n if n else 0.0,
+        "successes": successes,
+        "episodes": n,
+        "ci95": [round(low, 4), round(high, 4)],
+    }
 
 
 def markdown_table(results: dict) -> str:
-    lines = [f"Success rate of `{results['policy']}` in roboscape_maniskill (95% Wilson interval)", "",
-             "| split | family | success | 95% CI | episodes |", "|---|---|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        f"Success rate of `{results['policy']}` in roboscape_maniskill (95% Wilson interval)",
+        "",
+        "| split | family | success | 95% CI | episodes |",
+        "|---|---|---:|---:|---:|",
+    ]
     for split, cells in results["splits"].items():
         for family, cell in cells.items():
             low, high = cell["ci95"]
-            lines.append(f"| {split.upper()} | {family} | {cell['success_rate']:.0%} | {low:.0%}-{high:.0%} | "
-                         f"{cell['episodes']} |")
+            lines.append(
+                f"| {split.upper()} | {family} | {cell['success_rate']:.0%} | {low:.0%}-{high:.0%} | "
+                f"{cell['episodes']} |"
+            )
     return "\n".join(lines) + "\n"

@@ -27,10 +27,20 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
 def format_table(results: dict, families: list[str], title: str) -> str:
     """The paper's layout: rows policy x method, columns IND families then OOD families: success % [95% CI]."""
     names = [SHORT.get(f, f) for f in families]
-    header = "| Policy | Training method | " + " | ".join(f"IND {n}" for n in names) + " | " + \
-        " | ".join(f"OOD {n}" for n in names) + " |"  # fmt: skip
-    lines = [f"{title}: success rate (%) in the ManiSkill simulator [95% Wilson interval], episodes per cell: "
-             f"{_episodes(results)}", "", header, "|---|---|" + "---:|" * (2 * len(families))]  # fmt: skip
+    header = (
+        "| Policy | Training method | "
+        + " | ".join(f"IND {n}" for n in names)
+        + " | "
+        + " | ".join(f"OOD {n}" for n in names)
+        + " |"
+    )
+    lines = [
+        f"{title}: success rate (%) in the ManiSkill simulator [95% Wilson interval], episodes per cell: "
+        f"{_episodes(results)}",
+        "",
+        header,
+        "|---|---|" + "---:|" * (2 * len(families)),
+    ]
     for policy, methods in results.items():
         for method, splits in methods.items():
             cells = [_cell(splits[split][f]) for split in ("ind", "ood") for f in families]
@@ -44,8 +54,14 @@ def _cell(cell: dict) -> str:
 
 
 def _episodes(results: dict) -> str:
-    counts = {cell["episodes"] for methods in results.values() for splits in methods.values()
-              for cells in splits.values() for family, cell in cells.items() if family != "all"}  # fmt: skip
+    counts = {
+        cell["episodes"]
+        for methods in results.values()
+        for splits in methods.values()
+        for cells in splits.values()
+        for family, cell in cells.items()
+        if family != "all"
+    }
     return ", ".join(map(str, sorted(counts)))
 
 
@@ -73,4 +89,3 @@ def bar_chart(results: dict, families: list[str], path: Path, title: str) -> Non
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-

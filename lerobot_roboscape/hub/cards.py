@@ -26,8 +26,9 @@ def templates_dir() -> Path:
 
 def render(template: str, **fields) -> str:
     # StrictUndefined: a field the caller forgot is an error here, not an empty line on the Hub.
-    env = jinja2.Environment(undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
-                             keep_trailing_newline=True)
+    env = jinja2.Environment(
+        undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True
+    )
     return env.from_string((templates_dir() / template).read_text()).render(**fields)
 
 
@@ -41,21 +42,31 @@ def dataset_description(root: Path, repo_id: str) -> str:
     meta = LeRobotDatasetMetadata(repo_id, root=root)
     episodes = read_episode_info(root)
     return render(
-        "dataset.md", repo_id=repo_id, episodes=meta.total_episodes, frames=meta.total_frames, fps=meta.fps,
-        successful=sum(bool(e.get("success")) for e in episodes), optimal=sum(bool(e.get("optimal")) for e in episodes),
+        "dataset.md",
+        repo_id=repo_id,
+        episodes=meta.total_episodes,
+        frames=meta.total_frames,
+        fps=meta.fps,
+        successful=sum(bool(e.get("success")) for e in episodes),
+        optimal=sum(bool(e.get("optimal")) for e in episodes),
         families=sorted({e["task_family"] for e in episodes if "task_family" in e}),
         scenes=sorted({e["scene"] for e in episodes if "scene" in e}),
         splits=", ".join(f"{sum(e.get('split') == s for e in episodes)} episodes {s.upper()}" for s in ("ind", "ood")),
         cameras=[key.split(".")[-1] for key in meta.camera_keys],
         image_size=meta.features[meta.camera_keys[0]]["shape"][0] if meta.camera_keys else 0,
-    )  # fmt: skip
+    )
 
 
 def dataset_card(root: Path, repo_id: str) -> DatasetCard:
     """The card LeRobotDataset.push_to_hub uploads: LeRobot's own, with our description and tags."""
     meta = LeRobotDatasetMetadata(repo_id, root=root)
-    return create_lerobot_dataset_card(tags=DATASET_TAGS, dataset_info=meta.info, license=LICENSE, repo_id=repo_id,
-                                       dataset_description=dataset_description(root, repo_id))
+    return create_lerobot_dataset_card(
+        tags=DATASET_TAGS,
+        dataset_info=meta.info,
+        license=LICENSE,
+        repo_id=repo_id,
+        dataset_description=dataset_description(root, repo_id),
+    )
 
 
 def parameter_count(weights: Path) -> str:

@@ -38,11 +38,14 @@ def snapshot(ref: str, what: str, how_to_make: str, repo_type: str = "model") ->
             raise ArtifactNotFoundError(
                 f"the {what} {ref!r} is not in the Hugging Face cache ({constants.HF_HUB_CACHE}) and HF_HUB_OFFLINE=1: "
                 f"download it once online (`hf download {ref}{' --repo-type dataset' * (repo_type == 'dataset')}`), "
-                f"or {how_to_make}") from error
+                f"or {how_to_make}"
+            ) from error
         raise ArtifactNotFoundError(f"the {what} {ref!r} could not be downloaded ({error}); {how_to_make}") from error
     except RepositoryNotFoundError as error:
-        raise ArtifactNotFoundError(f"there is no {repo_type} repo {ref!r} on the Hub for the {what} (or it is "
-                                    f"private and you are not logged in); {how_to_make}") from error
+        raise ArtifactNotFoundError(
+            f"there is no {repo_type} repo {ref!r} on the Hub for the {what} (or it is "
+            f"private and you are not logged in); {how_to_make}"
+        ) from error
     except HfHubHTTPError as error:
         raise ArtifactNotFoundError(f"the {what} {ref!r} could not be downloaded ({error}); {how_to_make}") from error
 
@@ -59,12 +62,17 @@ class WorldModelBundle:
 
 
 def pull_world_models(ref: str) -> WorldModelBundle:
-    root = snapshot(ref, "world models", "push them with `roboscape-push --artifact=world_models` (the demo "
-                    "writes a local copy under outputs/demo/hub)")
+    root = snapshot(
+        ref,
+        "world models",
+        "push them with `roboscape-push --artifact=world_models` (the demo writes a local copy under outputs/demo/hub)",
+    )
     manifest = root / WORLD_MODELS_MANIFEST
     if not manifest.is_file():
-        raise ArtifactNotFoundError(f"{ref} is not a world-models repo of lerobot-roboscape ({WORLD_MODELS_MANIFEST} "
-                                    "is missing); give the tokenizer and world models one by one instead")
+        raise ArtifactNotFoundError(
+            f"{ref} is not a world-models repo of lerobot-roboscape ({WORLD_MODELS_MANIFEST} "
+            "is missing); give the tokenizer and world models one by one instead"
+        )
     info = json.loads(manifest.read_text())
     paths = {key: root / info[key] for key in ("tokenizer", "action_world_model", "text_world_model")}
     for key, path in paths.items():

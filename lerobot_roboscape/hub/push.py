@@ -26,8 +26,11 @@ from lerobot_roboscape.hub.cards import (
 )
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST, looks_like_repo_id
 
-WORLD_MODEL_FOLDERS = {"tokenizer": "tokenizer", "action_world_model": "action_world_model",
-                       "text_world_model": "text_world_model"}
+WORLD_MODEL_FOLDERS = {
+    "tokenizer": "tokenizer",
+    "action_world_model": "action_world_model",
+    "text_world_model": "text_world_model",
+}
 POLICY_FILES = ("config.json", "model.safetensors", "train_config.json")
 
 
@@ -50,42 +53,60 @@ def _training_config(pretrained_model: Path) -> dict | None:
 
 def _fidelity_summary(report_dir: Path) -> dict:
     report = read_json(report_dir / "fidelity.json")
-    summary = {key: f"{value:.3f}" if "ssim" in key or "lpips" in key else f"{value:.2f}"
-               for key, value in report["mean"].items()}
-    return {**summary, "episodes": len(report.get("episodes", [])) or "-", "prompt_frames": report["prompt_frames"],
-            "lpips": report["lpips_trunk"], "done_accuracy": f"{report['done_teacher_forced']['accuracy']:.3f}"}
+    summary = {
+        key: f"{value:.3f}" if "ssim" in key or "lpips" in key else f"{value:.2f}"
+        for key, value in report["mean"].items()
+    }
+    return {
+        **summary,
+        "episodes": len(report.get("episodes", [])) or "-",
+        "prompt_frames": report["prompt_frames"],
+        "lpips": report["lpips_trunk"],
+        "done_accuracy": f"{report['done_teacher_forced']['accuracy']:.3f}",
+    }
 
 
-def stage_world_models(folder: Path, repo_id: str, tokenizer: Path, action_world_model: Path,
-                       text_world_model: Path, dataset_repo_id: str | None = None,
-                       fidelity_dir: Path | None = None) -> Path:
+def stage_world_models(
+    folder: Path,
+    repo_id: str,
+    tokenizer: Path,
+    action_world_model: Path,
+    text_world_model: Path,
+    dataset_repo_id: str | None = None,
+    fidelity_dir: Path | None = None,
+) -> Path:
     """Build the world-models repo in `folder`: three model folders, a manifest, the fidelity report, the card."""
     sources = {
         "tokenizer": _require(Path(tokenizer), "tokenizer", "train one with roboscape-train-tokenizer"),
-        "action_world_model": _require(Path(action_world_model), "action world model",
-                                       "train one with roboscape-train-wm --wm.control=action"),
-        "text_world_model": _require(Path(text_world_model), "text world model",
-                                     "train one with roboscape-train-wm --wm.control=text"),
-    }  # fmt: skip
+        "action_world_model": _require(
+            Path(action_world_model), "action world model", "train one with roboscape-train-wm --wm.control=action"
+        ),
+        "text_world_model": _require(
+            Path(text_world_model), "text world model", "train one with roboscape-train-wm --wm.control=text"
+        ),
+    }
     configs = {key: read_json(path / "config.json") for key, path in sources.items()}
     for key in ("action_world_model", "text_world_model"):
         control = key.split("_")[0]
         if configs[key].get("control") != control:
-            raise InvalidInputError(f"{sources[key]} is a {configs[key].get('control')} world model, not a "
-                                    f"{control} one")
+            raise InvalidInputError(
+                f"{sources[key]} is a {configs[key].get('control')} world model, not a {control} one"
+            )
     trained = {key: _training_config(path) for key, path in sources.items()}
     if dataset_repo_id is None:
         dataset_repo_id = next((t["dataset"]["repo_id"] for t in trained.values() if t and "dataset" in t), None)
         if dataset_repo_id is None:
-            raise InvalidInputError("dataset_repo_id is needed: no training config beside the models names their "
-                                    "dataset")
+            raise InvalidInputError(
+                "dataset_repo_id is needed: no training config beside the models names their dataset"
+            )
 
     for key, source in sources.items():
         _copy_model(source, folder / WORLD_MODEL_FOLDERS[key])
         if trained[key] is not None:
             (folder / WORLD_MODEL_FOLDERS[key] / "train_config.json").write_text(json.dumps(trained[key], indent=2))
-    (folder / WORLD_MODELS_MANIFEST).write_text(json.dumps(
-        {"dataset_repo_id": dataset_repo_id, **WORLD_MODEL_FOLDERS}, indent=2))  # fmt: skip
+    (folder / WORLD_MODELS_MANIFEST).write_text(
+        json.dumps({"dataset_repo_id": dataset_repo_id, **WORLD_MODEL_FOLDERS}, indent=2)
+    )
     fidelity = None
     if fidelity_dir is not None:
         for name in ("fidelity.md", "fidelity.json", "fidelity.png"):
@@ -98,22 +119,33 @@ def stage_world_models(folder: Path, repo_id: str, tokenizer: Path, action_world
 
     def wm_fields(key):
         c = configs[key]
-        return {"size": f"d_model {c['d_model']}, {c['n_layer']} layers",
-                "parameters": parameter_count(sources[key] / "model.safetensors")}
+        return {
+            "size": f"d_model {c['d_model']}, {c['n_layer']} layers",
+            "parameters": parameter_count(sources[key] / "model.safetensors"),
+        }
 
     card = model_card(
-        "world_models.md", repo_id=repo_id, dataset_repo_id=dataset_repo_id, fidelity=fidelity,
-        tokenizer={"image_size": tok["image_size"], "grid": grid, "codebook": 2 ** tok["codebook_bits"],
-                   "parameters": parameter_count(sources["tokenizer"] / "model.safetensors")},
-        action=wm_fields("action_world_model"), text=wm_fields("text_world_model"),
+        "world_models.md",
+        repo_id=repo_id,
+        dataset_repo_id=dataset_repo_id,
+        fidelity=fidelity,
+        tokenizer={
+            "image_size": tok["image_size"],
+            "grid": grid,
+            "codebook": 2 ** tok["codebook_bits"],
+            "parameters": parameter_count(sources["tokenizer"] / "model.safetensors"),
+        },
+        action=wm_fields("action_world_model"),
+        text=wm_fields("text_world_model"),
         training={key: json.dumps(t, indent=2) for key, t in trained.items() if t is not None},
-    )  # fmt: skip
+    )
     card.save(folder / "README.md")
     return folder
 
 
-def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: Path | None = None,
-                 dataset_repo_id: str | None = None) -> Path:
+def stage_policy(
+    folder: Path, repo_id: str, pretrained_model: Path, eval_dir: Path | None = None, dataset_repo_id: str | None = None
+) -> Path:
     """Build a policy repo in `folder`: what lerobot-eval loads (config, weights, processors) and the card.
 
     `pretrained_model` is a checkpoint of lerobot-train (SFT) or roboscape-ppo; `eval_dir` a roboscape-eval output.
@@ -138,12 +170,20 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
         if method == "sft":
             dataset_repo_id = dataset_repo_id or train["dataset"]["repo_id"]
     method_text, method_details = {
-        "sft": ("supervised fine-tuning",
-                "Trained by behaviour cloning of planner demonstrations with `lerobot-train`."),
-        "roboscape_wm": ("PPO in the world model", "Fine-tuned from its SFT checkpoint by PPO inside the learned world "
-                         "models (`roboscape_wm`), with the world models' own reward, as in RoboScape-R."),
-        "roboscape_maniskill": ("PPO in ManiSkill", "Fine-tuned from its SFT checkpoint by PPO in the ManiSkill "
-                                "simulator (`roboscape_maniskill`), the paper's baseline."),
+        "sft": (
+            "supervised fine-tuning",
+            "Trained by behaviour cloning of planner demonstrations with `lerobot-train`.",
+        ),
+        "roboscape_wm": (
+            "PPO in the world model",
+            "Fine-tuned from its SFT checkpoint by PPO inside the learned world "
+            "models (`roboscape_wm`), with the world models' own reward, as in RoboScape-R.",
+        ),
+        "roboscape_maniskill": (
+            "PPO in ManiSkill",
+            "Fine-tuned from its SFT checkpoint by PPO in the ManiSkill "
+            "simulator (`roboscape_maniskill`), the paper's baseline.",
+        ),
     }.get(method, (f"PPO in {method}", f"Fine-tuned from its SFT checkpoint by PPO in `{method}`."))
     results = None
     if eval_dir is not None:
@@ -153,17 +193,26 @@ def stage_policy(folder: Path, repo_id: str, pretrained_model: Path, eval_dir: P
         shutil.copy2(Path(eval_dir) / "eval.json", folder / "eval.json")
     base_model = config.get("base_model")  # a Hub id, a local folder or a random preset ("tiny")
     card = model_card(
-        "policy.md", repo_id=repo_id, policy_type=config["type"], method=method, method_text=method_text,
-        method_details=method_details, dataset_repo_id=dataset_repo_id, base_model=base_model,
+        "policy.md",
+        repo_id=repo_id,
+        policy_type=config["type"],
+        method=method,
+        method_text=method_text,
+        method_details=method_details,
+        dataset_repo_id=dataset_repo_id,
+        base_model=base_model,
         base_model_repo=base_model if base_model and looks_like_repo_id(base_model) else None,
-        results=results, training=training, reward=reward,
-    )  # fmt: skip
+        results=results,
+        training=training,
+        reward=reward,
+    )
     card.save(folder / "README.md")
     return folder
 
 
-def publish(folder: Path, repo_id: str, local_dir: Path | None = None, private: bool | None = None,
-            repo_type: str = "model") -> str:
+def publish(
+    folder: Path, repo_id: str, local_dir: Path | None = None, private: bool | None = None, repo_type: str = "model"
+) -> str:
     """Upload a staged folder as one commit, or move it to `local_dir/<repo_id>` (replacing an earlier copy)."""
     if local_dir is not None:
         target = Path(local_dir) / ("datasets" if repo_type == "dataset" else "") / repo_id
@@ -176,8 +225,9 @@ def publish(folder: Path, repo_id: str, local_dir: Path | None = None, private: 
         return str(target)
     api = HfApi()
     repo_id = api.create_repo(repo_id=repo_id, repo_type=repo_type, private=private, exist_ok=True).repo_id
-    api.upload_folder(folder_path=folder, repo_id=repo_id, repo_type=repo_type,
-                      commit_message="Upload with lerobot-roboscape")
+    api.upload_folder(
+        folder_path=folder, repo_id=repo_id, repo_type=repo_type, commit_message="Upload with lerobot-roboscape"
+    )
     return f"https://huggingface.co/{'datasets/' * (repo_type == 'dataset')}{repo_id}"
 
 
@@ -186,8 +236,9 @@ def push_world_models(repo_id: str, local_dir: Path | None = None, private: bool
         return publish(stage_world_models(Path(tmp), repo_id, **sources), repo_id, local_dir, private)
 
 
-def push_policy(repo_id: str, pretrained_model: Path, local_dir: Path | None = None, private: bool | None = None,
-                **card_sources) -> str:
+def push_policy(
+    repo_id: str, pretrained_model: Path, local_dir: Path | None = None, private: bool | None = None, **card_sources
+) -> str:
     with tempfile.TemporaryDirectory() as tmp:
         folder = stage_policy(Path(tmp) / "repo", repo_id, pretrained_model, **card_sources)
         return publish(folder, repo_id, local_dir, private)
@@ -200,7 +251,8 @@ def push_dataset(root: Path, repo_id: str, local_dir: Path | None = None, privat
         raise MissingInputError(f"no LeRobot dataset at {root} (meta/info.json is missing)")
     if local_dir is None:
         LeRobotDataset(repo_id, root=root).push_to_hub(
-            tags=DATASET_TAGS, license=LICENSE, private=private, dataset_description=dataset_description(root, repo_id))
+            tags=DATASET_TAGS, license=LICENSE, private=private, dataset_description=dataset_description(root, repo_id)
+        )
         return f"https://huggingface.co/datasets/{repo_id}"
     card = dataset_card(root, repo_id)
     with tempfile.TemporaryDirectory() as tmp:

@@ -30,8 +30,9 @@ def load_artifact(path: Path) -> str:
         with h5py.File(path) as f:
             return f"trajectory file, {len(f.keys())} episodes"
     if (path / "meta" / "info.json").is_file():
-        meta = LeRobotDatasetMetadata(json.loads((path / "meta" / "info.json").read_text()).get("repo_id", "local/x"),
-                                      root=path)
+        meta = LeRobotDatasetMetadata(
+            json.loads((path / "meta" / "info.json").read_text()).get("repo_id", "local/x"), root=path
+        )
         return f"dataset, {meta.total_episodes} episodes"
     if (path / WORLD_MODELS_MANIFEST).is_file():
         bundle = pull_world_models(str(path))

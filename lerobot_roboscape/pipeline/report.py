@@ -41,8 +41,11 @@ SFT_IND_SUCCESS = 0.3
 
 # Stage folders under output_dir, by the stage that makes them (for the time table).
 STAGE_FOLDERS = {
-    "collect (demonstrations, held-out, trajectory file)": ["datasets/roboscape_demos", "datasets/roboscape_heldout",
-                                                           "datasets/maniskill_converted"],
+    "collect (demonstrations, held-out, trajectory file)": [
+        "datasets/roboscape_demos",
+        "datasets/roboscape_heldout",
+        "datasets/maniskill_converted",
+    ],
     "tokenizer": ["tokenizer"],
     "action world model (with the token cache)": ["world_model_action"],
     "text world model": ["world_model_text"],
@@ -61,19 +64,30 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     table = json.loads((out / "tables" / "tables.json").read_text())
     targets = measure_targets(fidelity, rewards, table, cfg.families)
     times = stage_times(cfg, out)
-    results = {"scale": cfg.scale, "families": cfg.families, "date": date.today().isoformat(),
-               "machine": machine(), "targets": targets, "table": table, "stage_seconds": times,
-               "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "done_whole_episode_open_loop")},
-               "reward": rewards["summary"], "similarity": rewards["similarity"]}  # fmt: skip
+    results = {
+        "scale": cfg.scale,
+        "families": cfg.families,
+        "date": date.today().isoformat(),
+        "machine": machine(),
+        "targets": targets,
+        "table": table,
+        "stage_seconds": times,
+        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "done_whole_episode_open_loop")},
+        "reward": rewards["summary"],
+        "similarity": rewards["similarity"],
+    }
     (folder / "results.json").write_text(json.dumps(results, indent=2))
 
     tokenizer_figure(out, folder / "tokenizer_reconstruction.png")
-    world_model_figure(out / "fidelity" / "side_by_side.mp4", fidelity["prompt_frames"],
-                       folder / "world_model_open_loop.png")
+    world_model_figure(
+        out / "fidelity" / "side_by_side.mp4", fidelity["prompt_frames"], folder / "world_model_open_loop.png"
+    )
     ppo_curves(out, table, folder / "ppo_curves.png")
-    for source, name in ((out / "fidelity" / "fidelity.png", "fidelity.png"),
-                         (out / "reward_report" / "reward_curves.png", "reward_curves.png"),
-                         (out / "tables" / "tables.png", "tables.png")):  # fmt: skip
+    for source, name in (
+        (out / "fidelity" / "fidelity.png", "fidelity.png"),
+        (out / "reward_report" / "reward_curves.png", "reward_curves.png"),
+        (out / "tables" / "tables.png", "tables.png"),
+    ):
         shutil.copy2(source, folder / name)
     (folder / "report.md").write_text(markdown(cfg, results, table))
     if report_dir:
@@ -89,27 +103,34 @@ def measure_targets(fidelity: dict, rewards: dict, table: dict, families: list[s
     reconstruction = float(np.mean(per_step["reconstruction_psnr"][:steps]))
     tokenizer_psnr = fidelity["mean"]["reconstruction_psnr"]
     targets = {
-        "tokenizer held-out reconstruction PSNR (dB)": _target(tokenizer_psnr, f">= {TOKENIZER_PSNR_DB}",
-                                                             tokenizer_psnr >= TOKENIZER_PSNR_DB),
+        "tokenizer held-out reconstruction PSNR (dB)": _target(
+            tokenizer_psnr, f">= {TOKENIZER_PSNR_DB}", tokenizer_psnr >= TOKENIZER_PSNR_DB
+        ),
         f"action WM open-loop PSNR, first {steps} steps (dB; tokenizer {reconstruction:.2f})": _target(
-            prediction, f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
-            prediction >= reconstruction - WM_PSNR_GAP_DB),
+            prediction,
+            f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
+            prediction >= reconstruction - WM_PSNR_GAP_DB,
+        ),
     }
     done = fidelity["done_whole_episode_open_loop"]["roc_auc"]
     targets["done ROC-AUC, held-out episodes generated open loop"] = _target(
-        done, f">= {DONE_ROC_AUC}", done is not None and done >= DONE_ROC_AUC)
+        done, f">= {DONE_ROC_AUC}", done is not None and done >= DONE_ROC_AUC
+    )
     summary = rewards["summary"]
     ours = summary["world_model"]["roc_auc_of_return"]
     baselines = {k: summary[k]["roc_auc_of_return"] for k in ("embedding", "proxy") if k in summary}
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _target(
-        ours, f">= {REWARD_ROC_AUC} and above " + ", ".join(f"{k} ({_fmt(v)})" for k, v in baselines.items()),
-        ours is not None and ours >= REWARD_ROC_AUC and beats)
+        ours,
+        f">= {REWARD_ROC_AUC} and above " + ", ".join(f"{k} ({_fmt(v)})" for k, v in baselines.items()),
+        ours is not None and ours >= REWARD_ROC_AUC and beats,
+    )
     for policy, methods in table.items():
         for family in families:
             rate = methods[SFT]["ind"][family]["success_rate"]
-            targets[f"{policy} SFT IND success, {family}"] = _target(rate, f">= {SFT_IND_SUCCESS}",
-                                                                     rate >= SFT_IND_SUCCESS)
+            targets[f"{policy} SFT IND success, {family}"] = _target(
+                rate, f">= {SFT_IND_SUCCESS}", rate >= SFT_IND_SUCCESS
+            )
         wm = methods.get(RL_WORLD_MODEL)
         if wm is None:
             continue
@@ -122,7 +143,8 @@ def measure_targets(fidelity: dict, rewards: dict, table: dict, families: list[s
                 better = rate > theirs if other == SFT else rate >= theirs
                 relation = ">" if other == SFT else ">="
                 targets[f"{policy} PPO in WM vs {other}, {split.upper()} (all families)"] = _target(
-                    rate, f"{relation} {theirs:.3f}", better)
+                    rate, f"{relation} {theirs:.3f}", better
+                )
     return targets
 
 
@@ -188,8 +210,9 @@ def ppo_curves(out: Path, table: dict, path: Path) -> None:
             if not history:
                 continue
             minutes = [row["seconds"] / 60 for row in history]
-            axes[0].plot(minutes, [row["charts/success"] for row in history], "-o", markersize=3,
-                         label=f"{policy}: {method}")
+            axes[0].plot(
+                minutes, [row["charts/success"] for row in history], "-o", markersize=3, label=f"{policy}: {method}"
+            )
             axes[1].plot(minutes, [row["charts/episode_return"] for row in history], "-o", markersize=3)
     axes[0].set_ylabel("success in its own env")
     axes[1].set_ylabel("episode return in its own env")
@@ -204,11 +227,14 @@ def ppo_curves(out: Path, table: dict, path: Path) -> None:
 def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
     targets, times = results["targets"], results["stage_seconds"]
     lines = [
-        f"# RoboScape-R at the {cfg.scale} scale", "",
+        f"# RoboScape-R at the {cfg.scale} scale",
+        "",
         f"{results['machine']}; {results['date']}; the time of each stage is at the end. "
         f"Regenerate with `roboscape-demo --scale={cfg.scale} --output_dir={cfg.output_dir} "
-        f"--report_dir=docs/results/{cfg.scale}` (a rerun skips the stages already complete).", "",
-        "## Protocol", "",
+        f"--report_dir=docs/results/{cfg.scale}` (a rerun skips the stages already complete).",
+        "",
+        "## Protocol",
+        "",
         "As the paper's section 8.1: task families " + ", ".join(cfg.families) + "; IND evaluates the training "
         "scenes with new initial states, OOD the held-out scenes (unseen objects and unseen object-container "
         "combinations). The world models and the MLP policy train on the demonstrations of the IND scenes "
@@ -217,30 +243,72 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         f"{cfg.heldout_scenes} OOD scenes, half of them failed attempts. RL: PPO from the SFT checkpoint, one "
         "multi-task run per env over the families; each run gets the same wall-clock budget "
         f"({cfg.ppo_minutes} min) on the same machine. RL in ManiSkill runs twice: in one scene (the paper's "
-        "baseline: the simulator \"only initializes a single type of environment\", section 3.2) and in every "
+        'baseline: the simulator "only initializes a single type of environment", section 3.2) and in every '
         f"training scene. Success: {cfg.table_episodes} simulator episodes per (split, family), episodes end at "
-        "success or after " + (f"{cfg.table_episode_length or cfg.ppo_episode_length} steps"
-                               if cfg.table_episode_length or cfg.ppo_episode_length
-                               else "the family's horizon (its longest successful demonstration)") + ".", "",
-        "## Targets", "", "| target | measured | goal | met |", "|---|---:|---|:---:|",
-    ]  # fmt: skip
+        "success or after "
+        + (
+            f"{cfg.table_episode_length or cfg.ppo_episode_length} steps"
+            if cfg.table_episode_length or cfg.ppo_episode_length
+            else "the family's horizon (its longest successful demonstration)"
+        )
+        + ".",
+        "",
+        "## Targets",
+        "",
+        "| target | measured | goal | met |",
+        "|---|---:|---|:---:|",
+    ]
     for name, t in targets.items():
         lines.append(f"| {name} | {_fmt(t['value'])} | {t['goal']} | {'yes' if t['met'] else '**no**'} |")
-    lines += ["", "## Table 1", "", format_table(table, cfg.families, f"{cfg.scale} scale"),
-              "![Table 1](tables.png)", "", "## Tokenizer", "",
-              "Held-out frames (top) and their reconstruction (bottom), both views:", "",
-              "![tokenizer](tokenizer_reconstruction.png)", "", "## Action world model", "",
-              f"Open loop from {WM_STEPS} held-out steps' recorded actions (each column: real | predicted, both "
-              "views), and PSNR/SSIM per step against the tokenizer's own reconstruction:", "",
-              "![open loop](world_model_open_loop.png)", "", "![fidelity](fidelity.png)", "",
-              "## Reward", "", f"Dense reward's similarity: {results['similarity']}. ROC-AUC of the episode return "
-              "between successful and failed held-out episodes:", "",
-              "| reward | ROC-AUC | mean return, success | mean return, failure |", "|---|---:|---:|---:|"]  # fmt: skip
+    lines += [
+        "",
+        "## Table 1",
+        "",
+        format_table(table, cfg.families, f"{cfg.scale} scale"),
+        "![Table 1](tables.png)",
+        "",
+        "## Tokenizer",
+        "",
+        "Held-out frames (top) and their reconstruction (bottom), both views:",
+        "",
+        "![tokenizer](tokenizer_reconstruction.png)",
+        "",
+        "## Action world model",
+        "",
+        f"Open loop from {WM_STEPS} held-out steps' recorded actions (each column: real | predicted, both "
+        "views), and PSNR/SSIM per step against the tokenizer's own reconstruction:",
+        "",
+        "![open loop](world_model_open_loop.png)",
+        "",
+        "![fidelity](fidelity.png)",
+        "",
+        "## Reward",
+        "",
+        f"Dense reward's similarity: {results['similarity']}. ROC-AUC of the episode return "
+        "between successful and failed held-out episodes:",
+        "",
+        "| reward | ROC-AUC | mean return, success | mean return, failure |",
+        "|---|---:|---:|---:|",
+    ]
     for kind, s in results["reward"].items():
-        lines.append(f"| {kind} | {_fmt(s['roc_auc_of_return'])} | {_fmt(s['mean_return_success'])} | "
-                     f"{_fmt(s['mean_return_failure'])} |")
-    lines += ["", "Rewards along held-out successful episodes (each scaled to [0, 1], as the paper's Fig. 3):", "",
-              "![reward curves](reward_curves.png)", "", "## PPO", "", "![PPO curves](ppo_curves.png)", "",
-              "## Time per stage", "", "| stage | minutes |", "|---|---:|"]  # fmt: skip
+        lines.append(
+            f"| {kind} | {_fmt(s['roc_auc_of_return'])} | {_fmt(s['mean_return_success'])} | "
+            f"{_fmt(s['mean_return_failure'])} |"
+        )
+    lines += [
+        "",
+        "Rewards along held-out successful episodes (each scaled to [0, 1], as the paper's Fig. 3):",
+        "",
+        "![reward curves](reward_curves.png)",
+        "",
+        "## PPO",
+        "",
+        "![PPO curves](ppo_curves.png)",
+        "",
+        "## Time per stage",
+        "",
+        "| stage | minutes |",
+        "|---|---:|",
+    ]
     lines += [f"| {stage} | {seconds / 60:.1f} |" for stage, seconds in times.items()]
     return "\n".join(lines) + "\n"

@@ -29,8 +29,11 @@ class StageClock:
     def done(self):
         if self.start is not None:
             self.seconds[self.title] = time.time() - self.start
-            print(f"--- stage {self.number} done in {self.seconds[self.title]:.0f}s "
-                  f"({(time.time() - self.began) / 60:.1f} min so far)", flush=True)
+            print(
+                f"--- stage {self.number} done in {self.seconds[self.title]:.0f}s "
+                f"({(time.time() - self.began) / 60:.1f} min so far)",
+                flush=True,
+            )
             self.start = None
 
 
@@ -56,9 +59,11 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
     clock("fidelity report of the action world model on the held-out episodes")
     fidelity = stages.fidelity(cfg, out, data, tokenizer, models)
     mean = fidelity["mean"]
-    print(f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
-          f"SSIM {mean['prediction_ssim']:.2f}, whole-episode done ROC-AUC "
-          f"{fidelity['done_whole_episode_open_loop']['roc_auc']}")
+    print(
+        f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
+        f"SSIM {mean['prediction_ssim']:.2f}, whole-episode done ROC-AUC "
+        f"{fidelity['done_whole_episode_open_loop']['roc_auc']}"
+    )
     artifacts["fidelity report"] = out / "fidelity" / "fidelity.md"
     artifacts["predicted vs real video"] = out / "fidelity" / "side_by_side.mp4"
 
@@ -83,8 +88,10 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
     for name, path in stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
         artifacts[f"{name} lerobot-eval in roboscape_wm"] = path
 
-    clock("PPO in roboscape_wm and in roboscape_maniskill" + (" (each " + f"{cfg.ppo_minutes:g} min)"
-                                                             if cfg.ppo_minutes else ""))  # fmt: skip
+    clock(
+        "PPO in roboscape_wm and in roboscape_maniskill"
+        + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else "")
+    )
     rl = stages.rl(cfg, out, data, wm_env, sft)
     checkpoints = {name: {stages.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
@@ -101,16 +108,28 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
     local_dir = None if cfg.push_to_hub else out / "hub"
     ns = cfg.hub_namespace
     dataset_repo = f"{ns}/roboscape_demos"
-    pushed = {"dataset repo": push_dataset(Path(data.train.root), dataset_repo, local_dir),
-              "world models repo": push_world_models(
-                  f"{ns}/roboscape_world_models", local_dir, tokenizer=tokenizer, action_world_model=models["action"],
-                  text_world_model=models["text"], dataset_repo_id=dataset_repo, fidelity_dir=out / "fidelity")}
+    pushed = {
+        "dataset repo": push_dataset(Path(data.train.root), dataset_repo, local_dir),
+        "world models repo": push_world_models(
+            f"{ns}/roboscape_world_models",
+            local_dir,
+            tokenizer=tokenizer,
+            action_world_model=models["action"],
+            text_world_model=models["text"],
+            dataset_repo_id=dataset_repo,
+            fidelity_dir=out / "fidelity",
+        ),
+    }
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
             tag = stages.method_tag(method)
-            pushed[f"{name} {tag} repo"] = push_policy(f"{ns}/{name}_{tag}", checkpoint, local_dir,
-                                                       eval_dir=out / "eval" / name / tag,
-                                                       dataset_repo_id=dataset_repo)  # fmt: skip
+            pushed[f"{name} {tag} repo"] = push_policy(
+                f"{ns}/{name}_{tag}",
+                checkpoint,
+                local_dir,
+                eval_dir=out / "eval" / name / tag,
+                dataset_repo_id=dataset_repo,
+            )
     for name, where in pushed.items():
         print(f"{name:36s} {where}")
         if local_dir is not None:

@@ -51,15 +51,20 @@ logger = logging.getLogger(__name__)
 STAGE_FILE = "stage.json"
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
 SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
-    "Supervised finetune", "RL w. ManiSkill (one scene)", "RL w. ManiSkill", "RL w. World Model")
+    "Supervised finetune",
+    "RL w. ManiSkill (one scene)",
+    "RL w. ManiSkill",
+    "RL w. World Model",
+)
 
 
 # ---- resuming ----------------------------------------------------------------------------------------------------
 
 
 def _jsonable(settings) -> dict:
-    return json.loads(json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__")
-                                 else str(v)))  # fmt: skip
+    return json.loads(
+        json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__") else str(v))
+    )
 
 
 _began: dict[Path, float] = {}  # when each stage folder's current run started
@@ -97,8 +102,9 @@ def mark_done(folder: Path, settings) -> None:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     seconds = time.time() - _began.pop(folder, time.time())
-    write_text_atomically(folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds},
-                                                         indent=2))  # fmt: skip
+    write_text_atomically(
+        folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2)
+    )
 
 
 def stage_seconds(folder: Path) -> float | None:
@@ -132,29 +138,55 @@ def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
 def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
     """Planner demonstrations in the IND scenes, a held-out collection in OOD scenes, and a recorded ManiSkill
     trajectory file converted to a LeRobotDataset."""
-    train = _collect(CollectConfig(
-        repo_id="local/roboscape_demos", root=str(out / "datasets" / "roboscape_demos"), families=cfg.families,
-        split="ind", max_scenes=cfg.scenes, episodes_per_scene=cfg.episodes_per_scene, image_size=cfg.image_size,
-        workers=cfg.workers, keep_failed=True), cfg.fresh)  # fmt: skip
-    record = {"family": cfg.families[0], "scene": select_scenes("ind")[0].id, "image_size": cfg.image_size,
-              "seed": HELDOUT_SEED}  # fmt: skip
+    train = _collect(
+        CollectConfig(
+            repo_id="local/roboscape_demos",
+            root=str(out / "datasets" / "roboscape_demos"),
+            families=cfg.families,
+            split="ind",
+            max_scenes=cfg.scenes,
+            episodes_per_scene=cfg.episodes_per_scene,
+            image_size=cfg.image_size,
+            workers=cfg.workers,
+            keep_failed=True,
+        ),
+        cfg.fresh,
+    )
+    record = {
+        "family": cfg.families[0],
+        "scene": select_scenes("ind")[0].id,
+        "image_size": cfg.image_size,
+        "seed": HELDOUT_SEED,
+    }
     converted = out / "datasets" / "maniskill_converted"
     h5_dir = out / "maniskill_trajectories"
     if not is_done(converted, record, cfg.fresh):
         start(h5_dir)
-        h5 = record_maniskill_trajectories(h5_dir, record["family"], record["scene"], episodes=1,
-                                           image_size=cfg.image_size, seed=HELDOUT_SEED)
+        h5 = record_maniskill_trajectories(
+            h5_dir, record["family"], record["scene"], episodes=1, image_size=cfg.image_size, seed=HELDOUT_SEED
+        )
         start(converted)
         convert(ConvertConfig(h5=str(h5), root=str(converted), repo_id="local/maniskill_converted", overwrite=True))
         mark_done(converted, record)
     h5 = next(h5_dir.glob("*.h5"))
     heldout = DatasetConfig(repo_id="local/maniskill_converted", root=str(converted))
     if cfg.heldout_scenes:
-        heldout = _collect(CollectConfig(
-            repo_id="local/roboscape_heldout", root=str(out / "datasets" / "roboscape_heldout"),
-            families=cfg.families, split="ood", max_scenes=cfg.heldout_scenes, episodes_per_scene=2,
-            failed_fraction=0.5, seed=HELDOUT_SEED, image_size=cfg.image_size, workers=cfg.workers,
-            keep_failed=True), cfg.fresh)  # fmt: skip
+        heldout = _collect(
+            CollectConfig(
+                repo_id="local/roboscape_heldout",
+                root=str(out / "datasets" / "roboscape_heldout"),
+                families=cfg.families,
+                split="ood",
+                max_scenes=cfg.heldout_scenes,
+                episodes_per_scene=2,
+                failed_fraction=0.5,
+                seed=HELDOUT_SEED,
+                image_size=cfg.image_size,
+                workers=cfg.workers,
+                keep_failed=True,
+            ),
+            cfg.fresh,
+        )
     return Datasets(train, heldout, h5)
 
 
@@ -165,11 +197,15 @@ def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
     """Train the image tokenizer; returns its pretrained_model directory."""
     folder = out / "tokenizer"
     train = TrainTokenizerConfig(
-        dataset=data.train, tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
-        train=TokenizerTrainingConfig(steps=cfg.tokenizer_steps, batch_size=cfg.tokenizer_batch_size,
-                                      save_freq=max(cfg.tokenizer_steps // 4, 1)),
-        output_dir=folder, num_workers=min(cfg.workers, 2), allow_random_lpips=True,
-    )  # fmt: skip
+        dataset=data.train,
+        tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
+        train=TokenizerTrainingConfig(
+            steps=cfg.tokenizer_steps, batch_size=cfg.tokenizer_batch_size, save_freq=max(cfg.tokenizer_steps // 4, 1)
+        ),
+        output_dir=folder,
+        num_workers=min(cfg.workers, 2),
+        allow_random_lpips=True,
+    )
     if not is_done(folder, train, cfg.fresh):
         train_tokenizer(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
         mark_done(folder, train)
@@ -182,12 +218,14 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps)):
         folder = out / f"world_model_{control}"
         train = TrainWorldModelConfig(
-            dataset=data.train, tokenizer=str(tokenizer_path),
+            dataset=data.train,
+            tokenizer=str(tokenizer_path),
             wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
-            train=WorldModelTrainingConfig(steps=steps, batch_size=cfg.wm_batch_size,
-                                           save_freq=max(steps // 4, 1)),
-            output_dir=folder, cache_dir=out / "token_cache", device=cfg.device,
-        )  # fmt: skip
+            train=WorldModelTrainingConfig(steps=steps, batch_size=cfg.wm_batch_size, save_freq=max(steps // 4, 1)),
+            output_dir=folder,
+            cache_dir=out / "token_cache",
+            device=cfg.device,
+        )
         if not is_done(folder, train, cfg.fresh):
             train_world_model(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
             mark_done(folder, train)
@@ -195,16 +233,23 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     return models
 
 
-def reward_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path,
-                  models: dict[str, Path]) -> dict[str, Path]:
+def reward_models(
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
+) -> dict[str, Path]:
     """Train the paper's baseline rewards (embedding-based and proxy-based); {} when reward_model_steps is 0."""
     trained = {}
     for kind in ("embedding", "proxy") if cfg.reward_model_steps else ():
         folder = out / f"reward_{kind}"
-        train = TrainRewardConfig(reward=RewardModelConfig(kind=kind), dataset=data.train,
-                                  tokenizer=str(tokenizer_path), action_world_model=str(models["action"]),
-                                  train=RewardTrainingConfig(steps=cfg.reward_model_steps),
-                                  output_dir=folder, cache_dir=out / "token_cache", device=cfg.device)  # fmt: skip
+        train = TrainRewardConfig(
+            reward=RewardModelConfig(kind=kind),
+            dataset=data.train,
+            tokenizer=str(tokenizer_path),
+            action_world_model=str(models["action"]),
+            train=RewardTrainingConfig(steps=cfg.reward_model_steps),
+            output_dir=folder,
+            cache_dir=out / "token_cache",
+            device=cfg.device,
+        )
         if not is_done(folder, train, cfg.fresh):
             start(folder)
             train_reward_model(train)
@@ -213,14 +258,22 @@ def reward_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path
     return trained
 
 
-def world_model_env(cfg: PipelineConfig, data: Datasets, tokenizer_path: Path,
-                    models: dict[str, Path]) -> RoboscapeWorldModelEnvConfig:
+def world_model_env(
+    cfg: PipelineConfig, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
+) -> RoboscapeWorldModelEnvConfig:
     """The `roboscape_wm` env of these models, starting from the demonstrations' first frames."""
     return RoboscapeWorldModelEnvConfig(
-        dataset_repo_id=data.train.repo_id, dataset_root=data.train.root, tokenizer=str(tokenizer_path),
-        action_world_model=str(models["action"]), text_world_model=str(models["text"]), families=cfg.families,
-        image_size=cfg.image_size, max_goal_steps=cfg.max_goal_steps, allow_random_lpips=True, device=cfg.device,
-    )  # fmt: skip
+        dataset_repo_id=data.train.repo_id,
+        dataset_root=data.train.root,
+        tokenizer=str(tokenizer_path),
+        action_world_model=str(models["action"]),
+        text_world_model=str(models["text"]),
+        families=cfg.families,
+        image_size=cfg.image_size,
+        max_goal_steps=cfg.max_goal_steps,
+        allow_random_lpips=True,
+        device=cfg.device,
+    )
 
 
 def spread(dataset: DatasetConfig, k: int) -> DatasetConfig:
@@ -238,10 +291,15 @@ def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Pat
     """The action world model's fidelity report on the held-out episodes (PSNR per open-loop step against the
     tokenizer's own reconstruction, done scores); returns the report."""
     folder = out / "fidelity"
-    report_cfg = FidelityConfig(dataset=spread(data.heldout, cfg.report_episodes), tokenizer=str(tokenizer_path),
-                                world_model=str(models["action"]), output_dir=folder,
-                                max_episodes=cfg.report_episodes, allow_random_lpips=True,
-                                device=cfg.device)  # fmt: skip
+    report_cfg = FidelityConfig(
+        dataset=spread(data.heldout, cfg.report_episodes),
+        tokenizer=str(tokenizer_path),
+        world_model=str(models["action"]),
+        output_dir=folder,
+        max_episodes=cfg.report_episodes,
+        allow_random_lpips=True,
+        device=cfg.device,
+    )
     if not is_done(folder, report_cfg, cfg.fresh):
         start(folder)
         evaluate_fidelity(report_cfg)
@@ -249,14 +307,19 @@ def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Pat
     return json.loads((folder / "fidelity.json").read_text())
 
 
-def reward_report(cfg: PipelineConfig, out: Path, data: Datasets, env: RoboscapeWorldModelEnvConfig,
-                  baselines: dict[str, Path]) -> dict:
+def reward_report(
+    cfg: PipelineConfig, out: Path, data: Datasets, env: RoboscapeWorldModelEnvConfig, baselines: dict[str, Path]
+) -> dict:
     """Every reward along the held-out episodes and how well its return separates success from failure."""
     folder = out / "reward_report"
-    report_cfg = RewardReportConfig(env=env, dataset=spread(data.heldout, cfg.report_episodes),
-                                    embedding_reward=_str(baselines.get("embedding")),
-                                    proxy_reward=_str(baselines.get("proxy")), output_dir=folder,
-                                    max_episodes=cfg.report_episodes)  # fmt: skip
+    report_cfg = RewardReportConfig(
+        env=env,
+        dataset=spread(data.heldout, cfg.report_episodes),
+        embedding_reward=_str(baselines.get("embedding")),
+        proxy_reward=_str(baselines.get("proxy")),
+        output_dir=folder,
+        max_episodes=cfg.report_episodes,
+    )
     if not is_done(folder, report_cfg, cfg.fresh):
         start(folder)
         # The report points a copy of the env at the held-out data, every episode of it (a converted dataset
@@ -295,8 +358,13 @@ def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episod
     fig.tight_layout()
     fig.savefig(plot, dpi=100)
     plt.close(fig)
-    return {"video": video, "plot": plot, "steps": len(rewards), "episodes": episodes,
-            "returns": [round(float(r), 2) for r in rewards.sum(0)]}
+    return {
+        "video": video,
+        "plot": plot,
+        "steps": len(rewards),
+        "episodes": episodes,
+        "returns": [round(float(r), 2) for r in rewards.sum(0)],
+    }
 
 
 # ---- policies ----------------------------------------------------------------------------------------------------
@@ -317,14 +385,30 @@ def sft_episodes(dataset: DatasetConfig) -> list[int]:
     return episodes
 
 
-def lerobot_sft(output_dir: Path, dataset: DatasetConfig, policy_args: list[str], steps: int, batch_size: int,
-                num_workers: int = 2, fresh: bool = False) -> Path:
+def lerobot_sft(
+    output_dir: Path,
+    dataset: DatasetConfig,
+    policy_args: list[str],
+    steps: int,
+    batch_size: int,
+    num_workers: int = 2,
+    fresh: bool = False,
+) -> Path:
     """SFT with `lerobot-train` on the dataset's successful episodes; returns the final pretrained_model directory."""
     episodes = sft_episodes(dataset)
-    args = [f"--dataset.repo_id={dataset.repo_id}", *([f"--dataset.root={dataset.root}"] if dataset.root else []),
-            f"--dataset.episodes=[{','.join(map(str, episodes))}]", *policy_args, "--policy.push_to_hub=false",
-            f"--steps={steps}", f"--batch_size={batch_size}", f"--save_freq={steps}",
-            f"--log_freq={max(steps // 5, 1)}", f"--num_workers={num_workers}", f"--output_dir={output_dir}"]
+    args = [
+        f"--dataset.repo_id={dataset.repo_id}",
+        *([f"--dataset.root={dataset.root}"] if dataset.root else []),
+        f"--dataset.episodes=[{','.join(map(str, episodes))}]",
+        *policy_args,
+        "--policy.push_to_hub=false",
+        f"--steps={steps}",
+        f"--batch_size={batch_size}",
+        f"--save_freq={steps}",
+        f"--log_freq={max(steps // 5, 1)}",
+        f"--num_workers={num_workers}",
+        f"--output_dir={output_dir}",
+    ]
     if not is_done(output_dir, args, fresh):
         start(output_dir)
         run_lerobot("lerobot_train", args)
@@ -344,30 +428,60 @@ def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
 def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
     """SFT of each policy with `lerobot-train`; returns {policy name: checkpoint}."""
     steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
-    return {name: lerobot_sft(out / f"sft_{name.removeprefix('roboscape_')}", data.train, args, *steps[name],
-                              num_workers=cfg.loader_workers, fresh=cfg.fresh)
-            for name, args in policy_specs(cfg).items()}  # fmt: skip
+    return {
+        name: lerobot_sft(
+            out / f"sft_{name.removeprefix('roboscape_')}",
+            data.train,
+            args,
+            *steps[name],
+            num_workers=cfg.loader_workers,
+            fresh=cfg.fresh,
+        )
+        for name, args in policy_specs(cfg).items()
+    }
 
 
-def lerobot_eval_in_world_model(cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path],
-                                env: RoboscapeWorldModelEnvConfig) -> dict[str, Path]:
+def lerobot_eval_in_world_model(
+    cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path], env: RoboscapeWorldModelEnvConfig
+) -> dict[str, Path]:
     """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
-    flags = [f"--env.{key}={value}" for key, value in asdict(env).items()
-             if key in ("dataset_repo_id", "dataset_root", "tokenizer", "action_world_model", "text_world_model",
-                        "max_goal_steps", "allow_random_lpips", "image_size")]  # fmt: skip
+    flags = [
+        f"--env.{key}={value}"
+        for key, value in asdict(env).items()
+        if key
+        in (
+            "dataset_repo_id",
+            "dataset_root",
+            "tokenizer",
+            "action_world_model",
+            "text_world_model",
+            "max_goal_steps",
+            "allow_random_lpips",
+            "image_size",
+        )
+    ]
     results = {}
     for name, checkpoint in checkpoints.items():
         folder = out / f"eval_{name}_roboscape_wm"
-        args = [f"--policy.path={checkpoint}", "--env.type=roboscape_wm", f"--env.families=[{','.join(cfg.families)}]",
-                f"--env.episode_length={cfg.eval_episode_length}", *flags, f"--eval.n_episodes={cfg.eval_episodes}",
-                f"--eval.batch_size={cfg.eval_episodes}", f"--output_dir={folder}"]  # fmt: skip
+        args = [
+            f"--policy.path={checkpoint}",
+            "--env.type=roboscape_wm",
+            f"--env.families=[{','.join(cfg.families)}]",
+            f"--env.episode_length={cfg.eval_episode_length}",
+            *flags,
+            f"--eval.n_episodes={cfg.eval_episodes}",
+            f"--eval.batch_size={cfg.eval_episodes}",
+            f"--output_dir={folder}",
+        ]
         if not is_done(folder, args, cfg.fresh):
             start(folder)
             run_lerobot("lerobot_eval", args)
             mark_done(folder, args)
         result = json.loads((folder / "eval_info.json").read_text())["overall"]
-        print(f"{name} in roboscape_wm: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
-              f"mean return {result['avg_sum_reward']:.2f}")
+        print(
+            f"{name} in roboscape_wm: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
+            f"mean return {result['avg_sum_reward']:.2f}"
+        )
         results[name] = folder / "eval_info.json"
     return results
 
@@ -376,9 +490,14 @@ def rl_envs(cfg: PipelineConfig, data: Datasets, wm_env: RoboscapeWorldModelEnvC
     """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
     training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
     environment"), the simulator in one scene."""
-    sim = RoboscapeManiSkillEnvConfig(families=cfg.families, split="ind", image_size=cfg.image_size,
-                                      episode_length=cfg.ppo_episode_length, dataset_repo_id=data.train.repo_id,
-                                      dataset_root=data.train.root)  # fmt: skip
+    sim = RoboscapeManiSkillEnvConfig(
+        families=cfg.families,
+        split="ind",
+        image_size=cfg.image_size,
+        episode_length=cfg.ppo_episode_length,
+        dataset_repo_id=data.train.repo_id,
+        dataset_root=data.train.root,
+    )
     envs = {RL_WORLD_MODEL: replace(wm_env, split="ind", episode_length=cfg.ppo_episode_length), RL_MANISKILL: sim}
     if cfg.ppo_one_scene:
         envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[select_scenes("ind")[0].id])
@@ -387,8 +506,12 @@ def rl_envs(cfg: PipelineConfig, data: Datasets, wm_env: RoboscapeWorldModelEnvC
 
 def method_tag(method: str) -> str:
     """The method's name in folders and Hub repos."""
-    return {SFT: "sft", RL_WORLD_MODEL: "ppo_world_model", RL_MANISKILL: "ppo_maniskill",
-            RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene"}[method]  # fmt: skip
+    return {
+        SFT: "sft",
+        RL_WORLD_MODEL: "ppo_world_model",
+        RL_MANISKILL: "ppo_maniskill",
+        RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene",
+    }[method]
 
 
 def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
@@ -402,19 +525,29 @@ def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
     return checkpoint
 
 
-def rl(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig,
-       checkpoints: dict[str, Path]) -> dict[str, dict[str, Path]]:
+def rl(
+    cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig, checkpoints: dict[str, Path]
+) -> dict[str, dict[str, Path]]:
     """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock);
     returns {policy: {method: checkpoint}}."""
     runs = {}
     for name, sft_checkpoint in checkpoints.items():
         runs[name] = {}
         for method, env in rl_envs(cfg, data, wm_env).items():
-            runs[name][method] = ppo(PPOConfig(
-                policy_path=str(sft_checkpoint), env=env, output_dir=out / "rl" / name / method_tag(method),
-                num_envs=cfg.ppo_envs, iterations=cfg.ppo_iterations, critic_warmup_iterations=cfg.ppo_critic_warmup,
-                time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
-                save_freq=max(min(cfg.ppo_iterations, 5), 1), device=cfg.device), cfg.fresh)  # fmt: skip
+            runs[name][method] = ppo(
+                PPOConfig(
+                    policy_path=str(sft_checkpoint),
+                    env=env,
+                    output_dir=out / "rl" / name / method_tag(method),
+                    num_envs=cfg.ppo_envs,
+                    iterations=cfg.ppo_iterations,
+                    critic_warmup_iterations=cfg.ppo_critic_warmup,
+                    time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
+                    save_freq=max(min(cfg.ppo_iterations, 5), 1),
+                    device=cfg.device,
+                ),
+                cfg.fresh,
+            )
     return runs
 
 
@@ -429,8 +562,7 @@ def _evaluate_quietly(cfg: EvalConfig) -> dict:
         return evaluate_success(cfg)
 
 
-def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets,
-                   checkpoints: dict[str, dict[str, Path]]) -> dict:
+def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
     """Success of every checkpoint in the simulator, IND and OOD (95% Wilson intervals); evaluations run
     `workers` at a time, one per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
@@ -438,12 +570,19 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets,
         for method, checkpoint in methods.items():
             for split in ("ind", "ood"):
                 jobs[name, method, split] = EvalConfig(
-                    policy_path=str(checkpoint), families=cfg.families, splits=[split], episodes=cfg.table_episodes,
+                    policy_path=str(checkpoint),
+                    families=cfg.families,
+                    splits=[split],
+                    episodes=cfg.table_episodes,
                     batch_size=min(8, len(cfg.families) * cfg.table_episodes),
                     episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
-                    dataset_repo_id=data.train.repo_id, dataset_root=data.train.root, image_size=cfg.image_size,
-                    videos=2, output_dir=out / "eval" / name / method_tag(method) / split,
-                    device=cfg.device)  # fmt: skip
+                    dataset_repo_id=data.train.repo_id,
+                    dataset_root=data.train.root,
+                    image_size=cfg.image_size,
+                    videos=2,
+                    output_dir=out / "eval" / name / method_tag(method) / split,
+                    device=cfg.device,
+                )
     pending = {key: job for key, job in jobs.items() if not is_done(job.output_dir, job, cfg.fresh)}
     for job in pending.values():
         start(job.output_dir)

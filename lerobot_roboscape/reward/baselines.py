@@ -40,8 +40,9 @@ class RewardModelConfig:
             raise InvalidInputError(f"kind must be one of {REWARD_KINDS}, got {self.kind!r}")
 
 
-class RewardModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
-                  tags=["lerobot", "reward-model", "robotics"]):
+class RewardModel(
+    nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "reward-model", "robotics"]
+):
     """Predicts the rule-based reward of a frame, from world-model features (B, d_model) or images
     (B, n_cameras, 3, H, W) in [0, 1], depending on `config.kind`."""
 
@@ -56,9 +57,15 @@ class RewardModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         else:
             c = config.channels
             self.encoder = nn.Sequential(  # shared over views; the views' features are concatenated
-                nn.Conv2d(3, c, 4, 2, 1), nn.SiLU(), nn.Conv2d(c, 2 * c, 4, 2, 1), nn.SiLU(),
-                nn.Conv2d(2 * c, 4 * c, 4, 2, 1), nn.SiLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
-            )  # fmt: skip
+                nn.Conv2d(3, c, 4, 2, 1),
+                nn.SiLU(),
+                nn.Conv2d(c, 2 * c, 4, 2, 1),
+                nn.SiLU(),
+                nn.Conv2d(2 * c, 4 * c, 4, 2, 1),
+                nn.SiLU(),
+                nn.AdaptiveAvgPool2d(1),
+                nn.Flatten(),
+            )
             width = 4 * c * config.n_cameras
         self.head = nn.Sequential(nn.Linear(width, config.hidden), nn.SiLU(), nn.Linear(config.hidden, 1))
 
@@ -66,8 +73,10 @@ class RewardModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         if self.config.kind == "proxy":
             B, n = inputs.shape[:2]
             if n != self.config.n_cameras or inputs.shape[-1] != self.config.image_size:
-                raise ValueError(f"proxy reward expects (B, {self.config.n_cameras}, 3, {self.config.image_size}, "
-                                 f"{self.config.image_size}) images, got {tuple(inputs.shape)}")
+                raise ValueError(
+                    f"proxy reward expects (B, {self.config.n_cameras}, 3, {self.config.image_size}, "
+                    f"{self.config.image_size}) images, got {tuple(inputs.shape)}"
+                )
             return self.head(self.encoder(inputs.flatten(0, 1) * 2 - 1).reshape(B, -1)).squeeze(-1)
         return self.head(self.encoder(inputs)).squeeze(-1)
 

@@ -60,8 +60,9 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
     world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).eval().requires_grad_(False)
     if world_model.config.control != "action":
-        raise InvalidInputError(f"{cfg.action_world_model} is a {world_model.config.control} world model, not an "
-                                "action one")
+        raise InvalidInputError(
+            f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one"
+        )
     cfg.reward.d_model = world_model.config.d_model
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)

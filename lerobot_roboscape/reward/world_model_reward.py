@@ -30,8 +30,14 @@ class RewardParts:
 
 
 class WorldModelReward(nn.Module):
-    def __init__(self, distance: nn.Module, alpha: float = 0.5, beta: float = 0.5, theta_sps: float = 0.9,
-                 sparse_value: float = 10.0):
+    def __init__(
+        self,
+        distance: nn.Module,
+        alpha: float = 0.5,
+        beta: float = 0.5,
+        theta_sps: float = 0.9,
+        sparse_value: float = 10.0,
+    ):
         super().__init__()
         self.distance = distance
         self.alpha, self.beta, self.theta_sps, self.sparse_value = alpha, beta, theta_sps, sparse_value

@@ -59,12 +59,14 @@ def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
     }
     for key, feature in policy.config.input_features.items():
         if feature.type is not FeatureType.VISUAL:
-            raise InvalidInputError(f"The policy at {path} reads {key!r}, which the {env_cfg.type} env does not "
-                                    "provide")
+            raise InvalidInputError(
+                f"The policy at {path} reads {key!r}, which the {env_cfg.type} env does not provide"
+            )
         channels_first = tuple(feature.shape)
         if key not in env_images:
-            raise InvalidInputError(f"The policy at {path} reads camera {key!r}; the {env_cfg.type} env gives "
-                                    f"{sorted(env_images)}")
+            raise InvalidInputError(
+                f"The policy at {path} reads camera {key!r}; the {env_cfg.type} env gives {sorted(env_images)}"
+            )
         height, width, channels = env_images[key]
         if channels_first != (channels, height, width):
             raise InvalidInputError(

@@ -37,11 +37,29 @@ HISTORY = "history.jsonl"
 
 # Per policy type: RL4VLA's settings for OpenVLA; ours (tuned on the tiny tasks) for the MLP.
 PPO_DEFAULTS = {
-    "openvla": dict(policy_lr=1e-4, value_lr=3e-3, update_epochs=1, minibatch_size=8, grad_accum_steps=20,
-                    max_grad_norm=10.0, value_loss="huber", vf_coef=1.0, critic_warmup_iterations=5),
-    "roboscape_mlp": dict(policy_lr=3e-4, value_lr=1e-3, update_epochs=4, minibatch_size=64, grad_accum_steps=1,
-                          max_grad_norm=0.5, value_loss="mse", vf_coef=0.5, critic_warmup_iterations=2),
-}  # fmt: skip
+    "openvla": dict(
+        policy_lr=1e-4,
+        value_lr=3e-3,
+        update_epochs=1,
+        minibatch_size=8,
+        grad_accum_steps=20,
+        max_grad_norm=10.0,
+        value_loss="huber",
+        vf_coef=1.0,
+        critic_warmup_iterations=5,
+    ),
+    "roboscape_mlp": dict(
+        policy_lr=3e-4,
+        value_lr=1e-3,
+        update_epochs=4,
+        minibatch_size=64,
+        grad_accum_steps=1,
+        max_grad_norm=0.5,
+        value_loss="mse",
+        vf_coef=0.5,
+        critic_warmup_iterations=2,
+    ),
+}
 
 
 @dataclass
@@ -118,8 +136,10 @@ class PPOConfig:
         if not self.policy_path:
             raise InvalidInputError("--policy_path is required: the SFT checkpoint (or Hub repo id) PPO starts from")
         if self.num_envs < 1 or self.iterations < 1 or self.save_freq < 1:
-            raise InvalidInputError(f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
-                                    f"{self.iterations}, {self.save_freq}")
+            raise InvalidInputError(
+                f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
+                f"{self.iterations}, {self.save_freq}"
+            )
         if self.value_loss not in (None, "mse", "huber"):
             raise InvalidInputError(f"value_loss must be mse or huber, got {self.value_loss!r}")
         self.output_dir = Path(self.output_dir)
@@ -129,8 +149,10 @@ class PPOConfig:
         if policy_type not in PPO_DEFAULTS:
             unset = [name for name in PPO_DEFAULTS["roboscape_mlp"] if getattr(self, name) is None]
             if unset:
-                raise InvalidInputError(f"PPO has no defaults for policy type {policy_type!r} (it knows "
-                                        f"{sorted(PPO_DEFAULTS)}): set {', '.join(f'--{n}' for n in unset)}")
+                raise InvalidInputError(
+                    f"PPO has no defaults for policy type {policy_type!r} (it knows "
+                    f"{sorted(PPO_DEFAULTS)}): set {', '.join(f'--{n}' for n in unset)}"
+                )
             return self
         for name, value in PPO_DEFAULTS[policy_type].items():
             if getattr(self, name) is None:
@@ -141,8 +163,15 @@ class PPOConfig:
 # GAE, reward scaling and the PPO losses.
 
 
-def compute_gae(rewards: Tensor, values: Tensor, terminated: Tensor, truncated: Tensor, last_value: Tensor,
-                gamma: float, gae_lambda: float) -> tuple[Tensor, Tensor]:
+def compute_gae(
+    rewards: Tensor,
+    values: Tensor,
+    terminated: Tensor,
+    truncated: Tensor,
+    last_value: Tensor,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[Tensor, Tensor]:
     """Advantages and returns (T, B). An episode that ends by termination bootstraps nothing; one truncated by its
     horizon bootstraps from the value of the observation after its last step (`values[t + 1]`, or `last_value`
     (B,) after the rollout's last step). Either way the recursion stops there, so the steps after an episode's end
@@ -198,9 +227,19 @@ class PPOLosses(NamedTuple):
     clip_fraction: Tensor
 
 
-def ppo_losses(new_log_prob: Tensor, old_log_prob: Tensor, advantages: Tensor, new_value: Tensor,
-               old_value: Tensor, returns: Tensor, entropy: Tensor, clip_coef: float,
-               value_clip_coef: float | None, value_loss: str = "mse", huber_delta: float = 10.0) -> PPOLosses:
+def ppo_losses(
+    new_log_prob: Tensor,
+    old_log_prob: Tensor,
+    advantages: Tensor,
+    new_value: Tensor,
+    old_value: Tensor,
+    returns: Tensor,
+    entropy: Tensor,
+    clip_coef: float,
+    value_clip_coef: float | None,
+    value_loss: str = "mse",
+    huber_delta: float = 10.0,
+) -> PPOLosses:
     """Clipped surrogate, (clipped) value loss and diagnostics, averaged over the samples."""
     log_ratio = new_log_prob - old_log_prob
     ratio = log_ratio.exp()
@@ -274,9 +313,21 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
             break
     last_value = policy.predict_value(io.batch(observation["pixels"], tasks))
     T = t + 1
-    return Rollout({cam: array[:T] for cam, array in pixels.items()}, tasks, raw_actions[:T], log_probs[:T],
-                   values[:T], rewards[:T], terminated[:T], truncated[:T], alive_at[:T], last_value, returns,
-                   successes, frames)  # fmt: skip
+    return Rollout(
+        {cam: array[:T] for cam, array in pixels.items()},
+        tasks,
+        raw_actions[:T],
+        log_probs[:T],
+        values[:T],
+        rewards[:T],
+        terminated[:T],
+        truncated[:T],
+        alive_at[:T],
+        last_value,
+        returns,
+        successes,
+        frames,
+    )
 
 
 # Update.
@@ -293,13 +344,23 @@ class ActionScorer(nn.Module):
         return self.policy.evaluate_actions(batch, raw_action)
 
 
-def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: PolicyIO, rollout: Rollout,
-           generator: torch.Generator, return_stats: RunningReturnStats, critic_only: bool) -> dict[str, float]:
+def update(
+    cfg: PPOConfig,
+    accelerator: Accelerator,
+    scorer,
+    optimizer,
+    io: PolicyIO,
+    rollout: Rollout,
+    generator: torch.Generator,
+    return_stats: RunningReturnStats,
+    critic_only: bool,
+) -> dict[str, float]:
     rewards = rollout.rewards
     if cfg.normalize_reward:
         rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
-    advantages, returns = compute_gae(rewards, rollout.values, rollout.terminated, rollout.truncated,
-                                      rollout.last_value, cfg.gamma, cfg.gae_lambda)
+    advantages, returns = compute_gae(
+        rewards, rollout.values, rollout.terminated, rollout.truncated, rollout.last_value, cfg.gamma, cfg.gae_lambda
+    )
     t_index, b_index = rollout.alive.nonzero(as_tuple=True)  # samples: the steps episodes were running
     b_advantages = advantages[t_index, b_index]
     if cfg.norm_adv and len(b_advantages) > 1:
@@ -311,13 +372,22 @@ def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: Poli
         minibatches = order.split(cfg.minibatch_size)
         for k, minibatch in enumerate(minibatches):
             t, b = t_index[minibatch].cpu().numpy(), b_index[minibatch].cpu().numpy()
-            batch = io.batch({cam: array[t, b] for cam, array in rollout.pixels.items()},
-                             [rollout.tasks[i] for i in b])  # fmt: skip
+            batch = io.batch({cam: array[t, b] for cam, array in rollout.pixels.items()}, [rollout.tasks[i] for i in b])
             with accelerator.autocast():
                 evaluation = scorer(batch, rollout.raw_actions[t, b])
-                losses = ppo_losses(evaluation.log_prob, rollout.log_probs[t, b], b_advantages[minibatch],
-                                    evaluation.value, rollout.values[t, b], returns[t, b], evaluation.entropy,
-                                    cfg.clip_coef, cfg.value_clip_coef, cfg.value_loss, cfg.huber_delta)  # fmt: skip
+                losses = ppo_losses(
+                    evaluation.log_prob,
+                    rollout.log_probs[t, b],
+                    b_advantages[minibatch],
+                    evaluation.value,
+                    rollout.values[t, b],
+                    returns[t, b],
+                    evaluation.entropy,
+                    cfg.clip_coef,
+                    cfg.value_clip_coef,
+                    cfg.value_loss,
+                    cfg.huber_delta,
+                )
                 loss = cfg.vf_coef * losses.value
                 if not critic_only:
                     loss = loss + losses.policy - cfg.ent_coef * losses.entropy
@@ -327,17 +397,24 @@ def update(cfg: PPOConfig, accelerator: Accelerator, scorer, optimizer, io: Poli
                     for p in policy_group["params"]:
                         p.grad = None
                 # Clipped apart: the value head's early, large gradients must not shrink the policy's step.
-                grad_norms = {name: float(accelerator.clip_grad_norm_(group["params"], cfg.max_grad_norm))
-                              for name, group in (("policy", policy_group), ("value", value_group))
-                              if any(p.grad is not None for p in group["params"])}  # fmt: skip
+                grad_norms = {
+                    name: float(accelerator.clip_grad_norm_(group["params"], cfg.max_grad_norm))
+                    for name, group in (("policy", policy_group), ("value", value_group))
+                    if any(p.grad is not None for p in group["params"])
+                }
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
                 stats.append({f"grad_norm/{name}": norm for name, norm in grad_norms.items()})
             stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
     summary = {key: float(np.mean([s[key] for s in stats if key in s])) for key in {k for s in stats for k in s}}
     explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
-    return {**summary, "losses/explained_variance": float(explained), "charts/samples": n_samples,
-            "charts/critic_only": float(critic_only), "charts/return_std": math.sqrt(return_stats.var)}
+    return {
+        **summary,
+        "losses/explained_variance": float(explained),
+        "charts/samples": n_samples,
+        "charts/critic_only": float(critic_only),
+        "charts/return_std": math.sqrt(return_stats.var),
+    }
 
 
 # Training loop with checkpoints.
@@ -347,12 +424,22 @@ def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
     """AdamW with two groups, in this order: the policy's parameters, then the value head's."""
     value_head = [p for name, p in policy.named_parameters() if p.requires_grad and name.startswith("value_head.")]
     rest = [p for name, p in policy.named_parameters() if p.requires_grad and not name.startswith("value_head.")]
-    return torch.optim.AdamW([{"params": rest, "lr": cfg.policy_lr}, {"params": value_head, "lr": cfg.value_lr}],
-                             eps=1e-5, weight_decay=0.0)  # fmt: skip
+    return torch.optim.AdamW(
+        [{"params": rest, "lr": cfg.policy_lr}, {"params": value_head, "lr": cfg.value_lr}], eps=1e-5, weight_decay=0.0
+    )
 
 
-def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, optimizer, cfg: PPOConfig,
-                    return_stats: RunningReturnStats, reward: str, seconds: float) -> Path:
+def save_checkpoint(
+    output_dir: Path,
+    iteration: int,
+    policy,
+    io: PolicyIO,
+    optimizer,
+    cfg: PPOConfig,
+    return_stats: RunningReturnStats,
+    reward: str,
+    seconds: float,
+) -> Path:
     """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state,
     ppo_config.json, reward.txt (the reward it was trained on, its similarity resolved)}, written to a temporary
     folder and moved into place; `checkpoints/last` names the newest (lerobot_roboscape.checkpoints)."""
@@ -375,9 +462,12 @@ def save_checkpoint(output_dir: Path, iteration: int, policy, io: PolicyIO, opti
 
 def train_ppo(cfg: PPOConfig) -> Path:
     """Run PPO; returns the final checkpoint's pretrained_model directory."""
-    accelerator = Accelerator(mixed_precision=resolve_mixed_precision(cfg.mixed_precision),
-                              cpu=cfg.device == "cpu", log_with=["tensorboard"] + (["wandb"] if cfg.wandb else []),
-                              project_dir=cfg.output_dir)  # fmt: skip
+    accelerator = Accelerator(
+        mixed_precision=resolve_mixed_precision(cfg.mixed_precision),
+        cpu=cfg.device == "cpu",
+        log_with=["tensorboard"] + (["wandb"] if cfg.wandb else []),
+        project_dir=cfg.output_dir,
+    )
     device = str(accelerator.device)
     start_iteration, start_path, return_stats, elapsed = 0, cfg.policy_path, RunningReturnStats(), 0.0
     checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
@@ -387,8 +477,10 @@ def train_ppo(cfg: PPOConfig) -> Path:
         elapsed = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
-        raise OutputExistsError(f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
-                                f"or choose another --output_dir")
+        raise OutputExistsError(
+            f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
+            f"or choose another --output_dir"
+        )
     policy, preprocessor, postprocessor = load_policy(start_path, device)
     check_actor_critic(policy, start_path)
     check_policy_fits_env(policy, cfg.env, start_path)
@@ -407,8 +499,13 @@ def train_ppo(cfg: PPOConfig) -> Path:
     logger.info("PPO reward: %s", reward)
     accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})
     history = History(cfg.output_dir / HISTORY, start_iteration) if accelerator.is_main_process else None
-    progress = tqdm(range(start_iteration, cfg.iterations), initial=start_iteration, total=cfg.iterations,
-                    desc="PPO", disable=not accelerator.is_main_process)  # fmt: skip
+    progress = tqdm(
+        range(start_iteration, cfg.iterations),
+        initial=start_iteration,
+        total=cfg.iterations,
+        desc="PPO",
+        disable=not accelerator.is_main_process,
+    )
     final = None
     for iteration in progress:
         # One random stream per (iteration, process): a resumed run draws what an uninterrupted one would.
@@ -420,29 +517,59 @@ def train_ppo(cfg: PPOConfig) -> Path:
         rollout = collect_rollout(env, policy, io, seed=stream % 2**31, record=record)
         rollout_seconds = time.perf_counter() - started
         policy.train()  # dropout is 0 in both policies; train mode keeps OpenVLA's gradient checkpointing on
-        metrics = update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(stream),
-                         return_stats, critic_only=iteration < cfg.critic_warmup_iterations)
+        metrics = update(
+            cfg,
+            accelerator,
+            scorer,
+            optimizer,
+            io,
+            rollout,
+            torch.Generator().manual_seed(stream),
+            return_stats,
+            critic_only=iteration < cfg.critic_warmup_iterations,
+        )
         episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
         successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
         seconds = time.perf_counter() - started
-        metrics |= {"charts/episode_return": float(episodes.mean()), "charts/success": float(successes.mean()),
-                    "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
-                    "charts/episodes_per_s": len(episodes) / seconds,
-                    "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds}  # fmt: skip
+        metrics |= {
+            "charts/episode_return": float(episodes.mean()),
+            "charts/success": float(successes.mean()),
+            "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
+            "charts/episodes_per_s": len(episodes) / seconds,
+            "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds,
+        }
         elapsed += seconds
         accelerator.log(metrics, step=iteration + 1)
         if history is not None:
             history.append({"iteration": iteration + 1, "seconds": elapsed} | metrics)
-        progress.set_postfix(ret=f"{episodes.mean():.2f}", success=f"{successes.mean():.0%}",
-                             episodes_per_s=f"{len(episodes) / seconds:.2f}")  # fmt: skip
+        progress.set_postfix(
+            ret=f"{episodes.mean():.2f}",
+            success=f"{successes.mean():.0%}",
+            episodes_per_s=f"{len(episodes) / seconds:.2f}",
+        )
         if record:
-            write_video(cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4", rollout.frames,
-                        env.metadata.get("render_fps", CONTROL_FREQ))  # fmt: skip
+            write_video(
+                cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4",
+                rollout.frames,
+                env.metadata.get("render_fps", CONTROL_FREQ),
+            )
         out_of_time = cfg.time_budget_s is not None and elapsed >= cfg.time_budget_s
         done = iteration + 1 == cfg.iterations or out_of_time
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:
-            final = save_checkpoint(cfg.output_dir, iteration + 1, accelerator.unwrap_model(scorer).policy, io,
-                                    optimizer, cfg, return_stats, reward, elapsed) / FINAL  # fmt: skip
+            final = (
+                save_checkpoint(
+                    cfg.output_dir,
+                    iteration + 1,
+                    accelerator.unwrap_model(scorer).policy,
+                    io,
+                    optimizer,
+                    cfg,
+                    return_stats,
+                    reward,
+                    elapsed,
+                )
+                / FINAL
+            )
         accelerator.wait_for_everyone()
         if out_of_time:
             logger.info("time budget of %.0f s spent after %d iterations", cfg.time_budget_s, iteration + 1)
@@ -460,8 +587,11 @@ class History:
         self.path = path
         kept = []
         if path.is_file():
-            kept = [line for line in path.read_text().splitlines()
-                    if line and json.loads(line)["iteration"] <= start_iteration]  # fmt: skip
+            kept = [
+                line
+                for line in path.read_text().splitlines()
+                if line and json.loads(line)["iteration"] <= start_iteration
+            ]
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("".join(line + "\n" for line in kept))
 

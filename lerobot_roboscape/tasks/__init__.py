@@ -13,10 +13,21 @@ from lerobot_roboscape.tasks.push import PushEnv
 from lerobot_roboscape.tasks.scenes import SCENES, TASK_FAMILIES, Scene, get_scene, select_scenes
 
 # Task family -> ManiSkill env id, from the task classes registered above (a new family needs only its class).
-ENV_IDS: dict[str, str] = {spec.cls.family: env_id for env_id, spec in REGISTERED_ENVS.items()
-                           if issubclass(spec.cls, RoboscapeTabletopEnv) and spec.cls.family}  # fmt: skip
+ENV_IDS: dict[str, str] = {
+    spec.cls.family: env_id
+    for env_id, spec in REGISTERED_ENVS.items()
+    if issubclass(spec.cls, RoboscapeTabletopEnv) and spec.cls.family
+}
 
 __all__ = [
-    "ENV_IDS", "SCENES", "TASK_FAMILIES", "Scene", "get_scene", "select_scenes",
-    "PickPlaceEnv", "PushEnv", "PullEnv", "MoveToAimEnv",
+    "ENV_IDS",
+    "SCENES",
+    "TASK_FAMILIES",
+    "Scene",
+    "get_scene",
+    "select_scenes",
+    "PickPlaceEnv",
+    "PushEnv",
+    "PullEnv",
+    "MoveToAimEnv",
 ]

@@ -25,8 +25,11 @@ from lerobot_roboscape.tasks.scenes import SCENES, ContainerSpec, ObjectSpec, Ta
 # ManiSkill sensor uid -> camera name used in datasets and env observations.
 CAMERA_NAMES: dict[str, str] = {"third_view": "third_view", "hand_camera": "wrist"}
 # `observation.state`: joint positions (7 arm + 2 fingers), then the TCP pose (position, quaternion wxyz).
-STATE_NAMES = [f"joint_{i}" for i in range(7)] + ["finger_left", "finger_right"] + [
-    "tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]  # fmt: skip
+STATE_NAMES = (
+    [f"joint_{i}" for i in range(7)]
+    + ["finger_left", "finger_right"]
+    + ["tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
+)
 # `action` of the pd_ee_delta_pose controller, each in [-1, 1]: position and rotation deltas, gripper.
 ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 CONTROL_FREQ = 20  # Hz, ManiSkill's tabletop default: the fps of datasets, envs and videos
@@ -113,8 +116,9 @@ class RoboscapeTabletopEnv(BaseEnv):
     object_spawn_x = (-0.08, 0.06)
     object_spawn_y = (-0.14, 0.14)
 
-    def __init__(self, *args, scene_id: str = SCENES[0].id, robot_uids="panda_wristcam", robot_init_qpos_noise=0.02,
-                 **kwargs):
+    def __init__(
+        self, *args, scene_id: str = SCENES[0].id, robot_uids="panda_wristcam", robot_init_qpos_noise=0.02, **kwargs
+    ):
         self.scene_spec = get_scene(scene_id)
         self.robot_init_qpos_noise = robot_init_qpos_noise
         super().__init__(*args, robot_uids=robot_uids, **kwargs)

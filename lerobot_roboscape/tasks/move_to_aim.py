@@ -29,8 +29,13 @@ class MoveToAimEnv(RoboscapeTabletopEnv):
 
     def _load_task_extras(self):
         self.carpet = actors.build_red_white_target(
-            self.scene, radius=self.carpet_radius, thickness=0.002, name="carpet", body_type="kinematic",
-            add_collision=False, initial_pose=sapien.Pose(p=[0, -0.2, 0.001]),
+            self.scene,
+            radius=self.carpet_radius,
+            thickness=0.002,
+            name="carpet",
+            body_type="kinematic",
+            add_collision=False,
+            initial_pose=sapien.Pose(p=[0, -0.2, 0.001]),
         )
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):

@@ -97,8 +97,10 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
         )
     manifest = json.loads(manifest_path.read_text())
     if manifest.get("format_version") != FORMAT_VERSION:
-        raise TokenCacheMismatchError(f"token cache {path} has format {manifest.get('format_version')}, this version "
-                                      f"reads {FORMAT_VERSION}; delete it to rebuild it")
+        raise TokenCacheMismatchError(
+            f"token cache {path} has format {manifest.get('format_version')}, this version "
+            f"reads {FORMAT_VERSION}; delete it to rebuild it"
+        )
     for name, expected in (("dataset", dataset_fp), ("tokenizer", tokenizer_fp)):
         if expected is not None and manifest[f"{name}_fingerprint"] != expected:
             raise TokenCacheMismatchError(
@@ -128,12 +130,19 @@ def _check_values(path: Path, arrays: dict[str, np.ndarray], episodes: list[dict
         require_finite(arrays[name], str(path / f"{name}.npy"), name, row_name)
     if len(arrays["tokens"]) and int(arrays["tokens"].max()) >= vocab_size:
         row = int(np.argmax(arrays["tokens"].reshape(len(arrays["tokens"]), -1).max(axis=1) >= vocab_size))
-        raise TokenCacheMismatchError(f"{path / 'tokens.npy'} {row_name(row)}: a code is outside the vocabulary of "
-                                      f"{vocab_size}; delete the cache to rebuild it")
+        raise TokenCacheMismatchError(
+            f"{path / 'tokens.npy'} {row_name(row)}: a code is outside the vocabulary of "
+            f"{vocab_size}; delete the cache to rebuild it"
+        )
 
 
-def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path: str | Path,
-                      batch_size: int = 256, device: str | torch.device = "cpu") -> TokenCache:
+def build_token_cache(
+    dataset: LeRobotDataset,
+    tokenizer: VisualTokenizer,
+    path: str | Path,
+    batch_size: int = 256,
+    device: str | torch.device = "cpu",
+) -> TokenCache:
     """Tokenize every frame of every episode of `dataset` into a cache at `path` (written atomically)."""
     path = Path(path)
     size = image_size(dataset)
@@ -189,8 +198,9 @@ def build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, path:
     return open_token_cache(path)
 
 
-def load_or_build_token_cache(dataset: LeRobotDataset, tokenizer: VisualTokenizer, cache_dir: str | Path,
-                              device: str | torch.device = "cpu") -> TokenCache:
+def load_or_build_token_cache(
+    dataset: LeRobotDataset, tokenizer: VisualTokenizer, cache_dir: str | Path, device: str | torch.device = "cpu"
+) -> TokenCache:
     """The cache of (`dataset`, `tokenizer`) under `cache_dir`, built on first use and reused afterwards."""
     dataset_fp, tokenizer_fp = dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer)
     path = Path(cache_dir) / f"v{FORMAT_VERSION}-{dataset_fp[:16]}-{tokenizer_fp[:16]}"

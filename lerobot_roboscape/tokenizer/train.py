@@ -56,8 +56,12 @@ class RandomFrameBatches:
 
     def __call__(self, step: int, process_index: int = 0) -> dict:
         if step != self._next_step:
-            loader = torch.utils.data.DataLoader(self.frames, batch_sampler=self._indices(step, process_index),
-                                                 num_workers=self.num_workers, persistent_workers=False)
+            loader = torch.utils.data.DataLoader(
+                self.frames,
+                batch_sampler=self._indices(step, process_index),
+                num_workers=self.num_workers,
+                persistent_workers=False,
+            )
             self._iterator = iter(loader)
         self._next_step = step + 1
         views = next(self._iterator)  # (B, n_cameras, 3, H, W)
@@ -68,8 +72,10 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
     dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
     size = image_size(dataset)
     if size != cfg.tokenizer.image_size:
-        raise DatasetError(f"dataset {dataset.root} has {size}x{size} images but --tokenizer.image_size is "
-                           f"{cfg.tokenizer.image_size}; collect at that size or set --tokenizer.image_size={size}")
+        raise DatasetError(
+            f"dataset {dataset.root} has {size}x{size} images but --tokenizer.image_size is "
+            f"{cfg.tokenizer.image_size}; collect at that size or set --tokenizer.image_size={size}"
+        )
     set_seed(cfg.train.seed)  # before the LPIPS trunk too, which is random when no weights are found
     lpips_metric = None
     if cfg.tokenizer.perceptual_weight > 0:

@@ -7,14 +7,16 @@ from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.token_cache import TokenCache
 
 
-def select_episodes(cache: TokenCache, episodes: list[int] | None = None, only_optimal: bool = False,
-                    only_successful: bool = False) -> list[dict]:
+def select_episodes(
+    cache: TokenCache, episodes: list[int] | None = None, only_optimal: bool = False, only_successful: bool = False
+) -> list[dict]:
     """Episodes of the cache kept for training. Episodes without roboscape facts (converted datasets) count as
     optimal; their success is read from the done labels."""
     known = {row["episode_index"] for row in cache.episodes}
     if episodes is not None and (missing := sorted(set(episodes) - known)):
-        raise InvalidInputError(f"episodes {missing} are not in the token cache {cache.root} (it has {len(known)} "
-                                "episodes)")
+        raise InvalidInputError(
+            f"episodes {missing} are not in the token cache {cache.root} (it has {len(known)} episodes)"
+        )
     rows = []
     for row in cache.episodes:
         if episodes is not None and row["episode_index"] not in episodes:
@@ -26,8 +28,10 @@ def select_episodes(cache: TokenCache, episodes: list[int] | None = None, only_o
             continue
         rows.append(row)
     if not rows:
-        raise InvalidInputError(f"no episodes of {cache.root} left for training (episodes={episodes}, "
-                                f"only_optimal={only_optimal}, only_successful={only_successful})")
+        raise InvalidInputError(
+            f"no episodes of {cache.root} left for training (episodes={episodes}, "
+            f"only_optimal={only_optimal}, only_successful={only_successful})"
+        )
     return rows
 
 

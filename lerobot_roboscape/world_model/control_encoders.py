@@ -27,9 +27,10 @@ class ActionEncoder(nn.Module):
         super().__init__()
         self.action_dim, self.d_model = config.action_dim, config.d_model
         self.mlp = nn.Sequential(
-            nn.Linear(config.action_dim, config.d_model), nn.GELU(),
+            nn.Linear(config.action_dim, config.d_model),
+            nn.GELU(),
             nn.Linear(config.d_model, ACTION_TOKENS * config.d_model),
-        )  # fmt: skip
+        )
         self.null = nn.Parameter(torch.zeros(ACTION_TOKENS * config.d_model))
 
     def forward(self, actions: torch.Tensor, no_action: torch.Tensor | None = None) -> Control:
@@ -70,8 +71,9 @@ class TextEncoder(nn.Module):
     def _t5_states(self, instructions: list[str], device) -> tuple[torch.Tensor, torch.Tensor]:
         missing = sorted({s for s in instructions if s not in self._cache})
         if missing:
-            batch = self.tokenizer(missing, padding="max_length", max_length=self.max_length, truncation=True,
-                                   return_tensors="pt").to(device)
+            batch = self.tokenizer(
+                missing, padding="max_length", max_length=self.max_length, truncation=True, return_tensors="pt"
+            ).to(device)
             states = self.t5(**batch).last_hidden_state.float()
             for i, s in enumerate(missing):
                 self._cache[s] = (states[i], batch["attention_mask"][i].bool())

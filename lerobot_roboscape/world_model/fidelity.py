@@ -81,8 +81,11 @@ def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
 
 def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
     positives = label > 0.5
-    scores = {"accuracy": float(((prob >= threshold) == positives).mean()), "frames": int(len(label)),
-              "positive_frames": int(positives.sum())}
+    scores = {
+        "accuracy": float(((prob >= threshold) == positives).mean()),
+        "frames": int(len(label)),
+        "positive_frames": int(positives.sum()),
+    }
     if 0 < positives.sum() < len(label):
         scores["roc_auc"] = float(binary_auroc(torch.from_numpy(prob), torch.from_numpy(positives.astype(np.int64))))
     else:
@@ -90,8 +93,9 @@ def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
     return scores
 
 
-def _false_positives(episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: list[np.ndarray],
-                     threshold: float) -> dict | None:
+def _false_positives(
+    episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: list[np.ndarray], threshold: float
+) -> dict | None:
     """How often the done head calls a failed attempt (an episode never recorded done) done: over its frames,
     teacher-forced and open-loop, and per episode (`predicted_success`: its highest teacher-forced probability).
     None without a failed episode."""
@@ -112,8 +116,9 @@ def _false_positives(episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: l
 
 
 @torch.no_grad()
-def _whole_episode_done(model: STWorldModel, episodes: list[tuple], rows: list[dict], prompt: int,
-                        batch_size: int = 16) -> dict:
+def _whole_episode_done(
+    model: STWorldModel, episodes: list[tuple], rows: list[dict], prompt: int, batch_size: int = 16
+) -> dict:
     """Success as the world model imagines it: each episode generated open loop from its prompt frames and its
     recorded actions to its end (as in a rollout of `roboscape_wm`); its score is the highest done probability.
     ROC-AUC of that score against the recorded success (None with one kind of episode only)."""
@@ -122,8 +127,7 @@ def _whole_episode_done(model: STWorldModel, episodes: list[tuple], rows: list[d
         chunk = episodes[start : start + batch_size]
         length = max(len(actions) for _, actions in chunk)  # frames; shorter episodes repeat their last action
         actions = torch.stack([torch.cat([a, a[-1:].expand(length - len(a), -1)]) for _, a in chunk])
-        _, done = model.generate(torch.stack([p for p, _ in chunk]), length - prompt,
-                                 actions=actions[:, : length - 1])
+        _, done = model.generate(torch.stack([p for p, _ in chunk]), length - prompt, actions=actions[:, : length - 1])
         scores += [float(d[: len(a) - prompt].max()) for d, (_, a) in zip(done, chunk, strict=True)]
     labels = np.array([row["recorded_success"] for row in rows])
     auc = None
@@ -146,24 +150,29 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
     model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
     if model.config.control != "action":
-        raise InvalidInputError(f"{cfg.world_model} is a {model.config.control} world model; the fidelity report "
-                                "needs the action world model")
+        raise InvalidInputError(
+            f"{cfg.world_model} is a {model.config.control} world model; the fidelity report "
+            "needs the action world model"
+        )
     lpips_metric = load_lpips(tokenizer.config.lpips_net, cfg.lpips_weights, cfg.allow_random_lpips).to(device)
     prompt = cfg.prompt_frames or model.config.prompt_frames
     n_cameras = model.config.n_cameras
 
-    per_step = {f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction")
-                for m in METRICS}
+    per_step = {
+        f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction") for m in METRICS
+    }
     tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos, whole = [], [], [], [], [], [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
         episode = read_episode(dataset, index)
-        tokens = tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(device)
-                                         for f in episode.images.values()])  # (T, S)
+        tokens = tokenizer.encode_views(
+            [torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in episode.images.values()]
+        )  # (T, S)
         actions = torch.from_numpy(episode.action).to(device)
         horizon = min(cfg.horizon, len(tokens) - prompt)
         if horizon < 1:
-            logger.warning("episode %d has %d frames, not more than the %d prompt frames: skipped", index,
-                           len(tokens), prompt)
+            logger.warning(
+                "episode %d has %d frames, not more than the %d prompt frames: skipped", index, len(tokens), prompt
+            )
             continue
         pred_tokens, pred_done = model.generate(
             tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1]
@@ -183,8 +192,16 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         ol_prob.append(pred_done[0].cpu().numpy())
         ol_label.append(episode.done_label[prompt : prompt + horizon])
         recorded = bool(episode.done_label.max() > 0.5)
-        episodes_out.append({"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon,
-                             "recorded_success": recorded, "predicted_success": bool(tf.max() >= cfg.done_threshold)})
+        episodes_out.append(
+            {
+                "episode_index": index,
+                "task": episode.task,
+                "frames": len(tokens),
+                "horizon": horizon,
+                "recorded_success": recorded,
+                "predicted_success": bool(tf.max() >= cfg.done_threshold),
+            }
+        )
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
         whole.append((tokens[:prompt], actions))
@@ -223,11 +240,13 @@ def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: 
 def markdown_table(report: dict) -> str:
     steps = len(report["per_step"]["prediction_psnr"])
     lines = [
-        f"# World-model fidelity ({len(report['episodes'])} episodes, {report['prompt_frames']} prompt frames)", "",
-        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame.", "",
+        f"# World-model fidelity ({len(report['episodes'])} episodes, {report['prompt_frames']} prompt frames)",
+        "",
+        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame.",
+        "",
         "| step | PSNR pred | PSNR recon | SSIM pred | SSIM recon | LPIPS pred | LPIPS recon |",
         "|---:|---:|---:|---:|---:|---:|---:|",
-    ]  # fmt: skip
+    ]
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     per_step = report["per_step"]
     for i in range(steps):
@@ -235,20 +254,31 @@ def markdown_table(report: dict) -> str:
         lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
     for name in ("done_teacher_forced", "done_open_loop"):
         d = report[name]
-        lines.append(f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
-                     f"({d['positive_frames']}/{d['frames']} done frames)")
+        lines.append(
+            f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
+            f"({d['positive_frames']}/{d['frames']} done frames)"
+        )
     lines.append(f"\nepisode success predicted correctly: {report['episode_success_accuracy']:.3f}")
     whole = report["done_whole_episode_open_loop"]
-    lines.append(f"\nwhole episodes generated open loop from their actions: ROC-AUC {fmt(whole['roc_auc'])} of the "
-                 f"highest done probability against success ({whole['successful']}/{whole['episodes']} successful)")
+    lines.append(
+        f"\nwhole episodes generated open loop from their actions: ROC-AUC {fmt(whole['roc_auc'])} of the "
+        f"highest done probability against success ({whole['successful']}/{whole['episodes']} successful)"
+    )
     fp = report["done_false_positive"]
     if fp is None:
         lines.append("\ndone false positives: no failed episode among those evaluated")
     else:
-        lines += [f"\ndone false positives on {fp['failed_episodes']} failed episodes (done probability >= "
-                  f"{fp['threshold']}):\n", "| counted over | rate | flagged / total |", "|---|---:|---:|"]
-        rows = {"frames, teacher-forced": "frames_teacher_forced", "frames, open-loop": "frames_open_loop",
-                "episodes (highest teacher-forced)": "episodes"}
+        lines += [
+            f"\ndone false positives on {fp['failed_episodes']} failed episodes (done probability >= "
+            f"{fp['threshold']}):\n",
+            "| counted over | rate | flagged / total |",
+            "|---|---:|---:|",
+        ]
+        rows = {
+            "frames, teacher-forced": "frames_teacher_forced",
+            "frames, open-loop": "frames_open_loop",
+            "episodes (highest teacher-forced)": "episodes",
+        }
         for name, key in rows.items():
             lines.append(f"| {name} | {fp[key]['rate']:.3f} | {fp[key]['flagged']}/{fp[key]['total']} |")
     return "\n".join(lines) + "\n"

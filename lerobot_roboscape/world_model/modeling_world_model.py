@@ -35,8 +35,9 @@ class RolloutState:
     frames_seen: int = 0
 
 
-class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
-                   tags=["lerobot", "world-model", "robotics"]):
+class STWorldModel(
+    nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "world-model", "robotics"]
+):
     def __init__(self, config: WorldModelConfig, text_encoder_dir: str | None = None):
         super().__init__()
         self.config = config
@@ -116,8 +117,12 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         done_rmse = torch.sqrt(F.mse_loss(torch.sigmoid(done_logits.float()), done) + 1e-8)
         loss = token_loss + self.config.done_weight * done_rmse
         accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
-        return loss, {"loss": loss.item(), "token_ce": token_loss.item(), "token_acc": accuracy.item(),
-                      "done_rmse": done_rmse.item()}
+        return loss, {
+            "loss": loss.item(),
+            "token_ce": token_loss.item(),
+            "token_acc": accuracy.item(),
+            "done_rmse": done_rmse.item(),
+        }
 
     def forward(self, batch: dict) -> tuple[torch.Tensor, dict]:
         return self.compute_loss(batch)
@@ -135,8 +140,9 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         return state
 
     @torch.no_grad()
-    def predict_next_frame(self, state: RolloutState, control: Control, temperature: float = 0.0,
-                           generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def predict_next_frame(
+        self, state: RolloutState, control: Control, temperature: float = 0.0, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Generate the next frame under `control` ((B, 1, L, C)) in `maskgit_steps` parallel decoding steps, then
         read it once more to cache its keys/values and its done signal. Returns tokens (B, S) and done (B,)."""
         B, S = state.tokens.shape[0], self.config.tokens_per_frame
@@ -163,8 +169,9 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         if state.cache is not None:
             hidden, _ = self.compute_hidden(frame_B1S, control, state.cache)
         else:
-            hidden, _ = self.compute_hidden(torch.cat([state.tokens, frame_B1S], 1),
-                                            self._concat_controls(state.control, control))
+            hidden, _ = self.compute_hidden(
+                torch.cat([state.tokens, frame_B1S], 1), self._concat_controls(state.control, control)
+            )
         state.features = hidden[:, -1].mean(dim=1)
         self._append(state, frame_B1S, control, torch.sigmoid(self.done_logits(hidden[:, -1:])[:, 0].float()))
         return state.done
@@ -198,8 +205,17 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
             state.control = Control(state.control.tokens[:, -keep:], None)
 
     @torch.no_grad()
-    def generate(self, prompt_BPS, n_frames: int, actions=None, no_action=None, instructions=None,
-                 use_cache: bool = True, temperature: float = 0.0, generator=None):
+    def generate(
+        self,
+        prompt_BPS,
+        n_frames: int,
+        actions=None,
+        no_action=None,
+        instructions=None,
+        use_cache: bool = True,
+        temperature: float = 0.0,
+        generator=None,
+    ):
         """Open-loop generation of `n_frames` frames after the prompt.
 
         Action model: `actions` (B, P + n_frames - 1, A) are the actions of the prompt frames and of each generated
@@ -214,8 +230,9 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
         state = self.start_rollout(prompt_BPS, self.frame_control(control, slice(0, P)), use_cache)
         frames, dones = [], []
         for t in range(P, P + n_frames):
-            frame, done = self.predict_next_frame(state, self.frame_control(control, slice(t, t + 1)), temperature,
-                                                  generator)
+            frame, done = self.predict_next_frame(
+                state, self.frame_control(control, slice(t, t + 1)), temperature, generator
+            )
             frames.append(frame)
             dones.append(done)
         return torch.stack(frames, 1), torch.stack(dones, 1)
@@ -256,16 +273,39 @@ class STWorldModel(nn.Module, CheckedHubMixin, library_name="lerobot-roboscape",
             self.control_encoder.save_tokenizer_and_config(Path(save_directory) / TEXT_ENCODER_DIR)
 
     @classmethod
-    def _from_pretrained(cls, *, model_id: str, revision=None, cache_dir=None, force_download=False,
-                         local_files_only=False, token=None, **kwargs):
+    def _from_pretrained(
+        cls,
+        *,
+        model_id: str,
+        revision=None,
+        cache_dir=None,
+        force_download=False,
+        local_files_only=False,
+        token=None,
+        **kwargs,
+    ):
         # A text model rebuilds its T5 from the saved config and tokenizer (weights come with the world model's).
         if Path(model_id).is_dir():
             root = Path(model_id)
         else:
-            root = Path(snapshot_download(model_id, revision=revision, cache_dir=cache_dir, token=token,
-                                          local_files_only=local_files_only, allow_patterns=[f"{TEXT_ENCODER_DIR}/*"]))
+            root = Path(
+                snapshot_download(
+                    model_id,
+                    revision=revision,
+                    cache_dir=cache_dir,
+                    token=token,
+                    local_files_only=local_files_only,
+                    allow_patterns=[f"{TEXT_ENCODER_DIR}/*"],
+                )
+            )
         if (root / TEXT_ENCODER_DIR).is_dir():
             kwargs["text_encoder_dir"] = str(root / TEXT_ENCODER_DIR)
-        return super()._from_pretrained(model_id=model_id, revision=revision, cache_dir=cache_dir,
-                                        force_download=force_download, local_files_only=local_files_only,
-                                        token=token, **kwargs)
+        return super()._from_pretrained(
+            model_id=model_id,
+            revision=revision,
+            cache_dir=cache_dir,
+            force_download=force_download,
+            local_files_only=local_files_only,
+            token=token,
+            **kwargs,
+        )

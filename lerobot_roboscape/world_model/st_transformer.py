@@ -115,8 +115,9 @@ class Mlp(nn.Module):
     def __init__(self, config: WorldModelConfig):
         super().__init__()
         hidden = config.mlp_ratio * config.d_model
-        self.net = nn.Sequential(nn.Linear(config.d_model, hidden), nn.GELU(), nn.Linear(hidden, config.d_model),
-                                 nn.Dropout(config.dropout))
+        self.net = nn.Sequential(
+            nn.Linear(config.d_model, hidden), nn.GELU(), nn.Linear(hidden, config.d_model), nn.Dropout(config.dropout)
+        )
 
     def forward(self, x):
         return self.net(x)

@@ -59,8 +59,13 @@ class TrainWorldModelConfig:
     device: str = "auto"
 
 
-def prepare_token_cache(dataset_cfg: DatasetConfig, tokenizer_path: str, cache_dir: Path,
-                        token_cache: Path | None = None, device: str = "auto") -> TokenCache:
+def prepare_token_cache(
+    dataset_cfg: DatasetConfig,
+    tokenizer_path: str,
+    cache_dir: Path,
+    token_cache: Path | None = None,
+    device: str = "auto",
+) -> TokenCache:
     """The token cache of every episode of the dataset under this tokenizer, built on first use."""
     dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root)  # the cache covers all episodes
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
@@ -71,8 +76,12 @@ def prepare_token_cache(dataset_cfg: DatasetConfig, tokenizer_path: str, cache_d
 
 def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache) -> WorldModelConfig:
     """Frame layout and action width come from the data; say so when they differ from the preset."""
-    for name, value in (("n_cameras", len(cache.cameras)), ("tokens_per_side", cache.tokens_per_side),
-                        ("vocab_size", cache.vocab_size), ("action_dim", cache.action_dim)):
+    for name, value in (
+        ("n_cameras", len(cache.cameras)),
+        ("tokens_per_side", cache.tokens_per_side),
+        ("vocab_size", cache.vocab_size),
+        ("action_dim", cache.action_dim),
+    ):
         if getattr(wm, name) != value:
             logger.info("wm.%s = %s (from the token cache; the preset had %s)", name, value, getattr(wm, name))
             setattr(wm, name, value)
@@ -83,15 +92,28 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     cache = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
     text = cfg.wm.control == "text"
     episodes = select_episodes(
-        cache, cfg.dataset.episodes,
+        cache,
+        cfg.dataset.episodes,
         only_optimal=text if cfg.only_optimal is None else cfg.only_optimal,
         only_successful=text if cfg.only_successful is None else cfg.only_successful,
-    )  # fmt: skip
-    logger.info("training the %s world model on %d episodes (%d frames) of %s", cfg.wm.control, len(episodes),
-                sum(row["length"] for row in episodes), cache.root)
+    )
+    logger.info(
+        "training the %s world model on %d episodes (%d frames) of %s",
+        cfg.wm.control,
+        len(episodes),
+        sum(row["length"] for row in episodes),
+        cache.root,
+    )
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     model = STWorldModel(fit_config_to_cache(cfg.wm, cache))
     batches = ClipSampler(cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed)
     run_config = {**asdict(cfg), "token_cache": str(cache.root)}
-    return fit(model, lambda m, batch: m(batch), batches, cfg.train, cfg.output_dir, run_config,
-               desc=f"{cfg.wm.control} world model")
+    return fit(
+        model,
+        lambda m, batch: m(batch),
+        batches,
+        cfg.train,
+        cfg.output_dir,
+        run_config,
+        desc=f"{cfg.wm.control} world model",
+    )

@@ -17,8 +17,15 @@ def test_collected_dataset_loads_with_lerobot(demo_dataset):
     _, root = demo_dataset
     ds = LeRobotDataset("test/demos", root=root)
     assert ds.meta.total_episodes == 6
-    for key in ["observation.images.third_view", "observation.images.wrist", "observation.state", "action",
-                "next.reward", "next.done", "next.success"]:
+    for key in [
+        "observation.images.third_view",
+        "observation.images.wrist",
+        "observation.state",
+        "action",
+        "next.reward",
+        "next.done",
+        "next.success",
+    ]:
         assert key in ds.features
     item = ds[0]
     assert tuple(item["observation.images.wrist"].shape) == (3, 32, 32)
@@ -47,8 +54,14 @@ def test_episode_facts_recorded_with_dataset(demo_dataset):
 
 
 def test_job_mix_follows_flags():
-    cfg = CollectConfig(families=["pull", "push"], split="ood", max_scenes=3, episodes_per_scene=4,
-                        failed_fraction=0.25, suboptimal_fraction=0.5)
+    cfg = CollectConfig(
+        families=["pull", "push"],
+        split="ood",
+        max_scenes=3,
+        episodes_per_scene=4,
+        failed_fraction=0.25,
+        suboptimal_fraction=0.5,
+    )
     jobs = make_jobs(cfg)
     assert len(jobs) == 24 and len({j.seed for j in jobs}) == 24
     for family in ("pull", "push"):  # dealt per family: 3 of its 12 failed, half of the other 9 suboptimal
@@ -64,8 +77,17 @@ def failed_collection(tmp_path_factory):
     """Only planned failures: a given-up pick and place and a missed push (the plan's first random draw picks the
     kind of failure; seeds 1 and 2 draw give up and miss)."""
     root = tmp_path_factory.mktemp("failed") / "demos"
-    cfg = CollectConfig(repo_id="test/failed", root=str(root), families=["pick_place", "push"], max_scenes=1,
-                        episodes_per_scene=1, failed_fraction=1.0, image_size=IMAGE_SIZE, workers=2, seed=1)
+    cfg = CollectConfig(
+        repo_id="test/failed",
+        root=str(root),
+        families=["pick_place", "push"],
+        max_scenes=1,
+        episodes_per_scene=1,
+        failed_fraction=1.0,
+        image_size=IMAGE_SIZE,
+        workers=2,
+        seed=1,
+    )
     return collect(cfg), root
 
 

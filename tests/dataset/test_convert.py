@@ -17,8 +17,9 @@ def recorded(tmp_path_factory):
 def _source(h5_path):
     meta = json.loads(h5_path.with_suffix(".json").read_text())
     with h5py.File(h5_path) as f:
-        return [(f[f"traj_{e['episode_id']}/actions"][:], f[f"traj_{e['episode_id']}/success"][:])
-                for e in meta["episodes"]]
+        return [
+            (f[f"traj_{e['episode_id']}/actions"][:], f[f"traj_{e['episode_id']}/success"][:]) for e in meta["episodes"]
+        ]
 
 
 def test_every_episode_and_frame_arrives(recorded, tmp_path):
@@ -85,11 +86,25 @@ def test_file_rendered_by_replay_trajectory_converts(tmp_path):
     import sys
 
     h5 = record_maniskill_file(tmp_path, obs_mode="state", episodes=1, steps=4)
-    subprocess.run([sys.executable, "-m", "mani_skill.trajectory.replay_trajectory", "--traj-path", str(h5),
-                    "--obs-mode", "rgb", "--save-traj", "--use-env-states", "--allow-failure"],
-                   check=True, capture_output=True, timeout=300)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mani_skill.trajectory.replay_trajectory",
+            "--traj-path",
+            str(h5),
+            "--obs-mode",
+            "rgb",
+            "--save-traj",
+            "--use-env-states",
+            "--allow-failure",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     rendered = next(tmp_path.glob("traj.rgb.*.h5"))
     ds = convert(ConvertConfig(h5=str(rendered), root=str(tmp_path / "out"), task="pick up the cube"))
-    (actions, success), = _source(h5)
+    ((actions, success),) = _source(h5)
     assert ds.meta.total_frames == len(actions)
     assert np.allclose(np.array(ds.hf_dataset["action"]), actions, atol=1e-6)

@@ -57,6 +57,10 @@ def test_fixed_horizons_per_family(demo_dataset):
         facts = episode_facts(data, i)
         if facts["success"]:
             longest[facts["task_family"]] = max(longest.get(facts["task_family"], 0), data.meta.episodes[i]["length"])
-    env = RoboscapeManiSkillEnv(make_config(families=["pick_place", "push"], episode_length=None,
-                                            dataset_repo_id="test/demos", dataset_root=str(root)), num_envs=2)
+    env = RoboscapeManiSkillEnv(
+        make_config(
+            families=["pick_place", "push"], episode_length=None, dataset_repo_id="test/demos", dataset_root=str(root)
+        ),
+        num_envs=2,
+    )
     assert env.horizons.tolist() == [longest["pick_place"], longest["push"]]

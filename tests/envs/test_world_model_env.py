@@ -19,9 +19,17 @@ def env_config(demo_dataset, trained_tokenizer, world_models):
     _, root = demo_dataset
 
     def make(**overrides):
-        kwargs = dict(dataset_repo_id="test/demos", dataset_root=str(root), tokenizer=str(trained_tokenizer),
-                      action_world_model=str(world_models["action"]), text_world_model=str(world_models["text"]),
-                      image_size=IMAGE_SIZE, allow_random_lpips=True, episode_length=6, max_goal_steps=4)
+        kwargs = dict(
+            dataset_repo_id="test/demos",
+            dataset_root=str(root),
+            tokenizer=str(trained_tokenizer),
+            action_world_model=str(world_models["action"]),
+            text_world_model=str(world_models["text"]),
+            image_size=IMAGE_SIZE,
+            allow_random_lpips=True,
+            episode_length=6,
+            max_goal_steps=4,
+        )
         return RoboscapeWorldModelEnvConfig(**{**kwargs, **overrides})
 
     return make
@@ -124,16 +132,24 @@ def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, termin
     """The default reward along a real successful episode (done where the recording shows success) against the
     same start standing still: reaching the goal must pay more, whether success ends the episode or not."""
     _, root = demo_dataset
-    config = env_config(goal_source="dataset_last_frame", text_world_model=None, episode_length=None,
-                        terminate_on_success=terminate_on_success)
+    config = env_config(
+        goal_source="dataset_last_frame",
+        text_world_model=None,
+        episode_length=None,
+        terminate_on_success=terminate_on_success,
+    )
     env = RoboscapeWorldModelEnv(config, num_envs=1)
     data = open_dataset("test/demos", root)
-    episode = next(e for e in map(lambda i: read_episode(data, i), range(data.meta.total_episodes))
-                   if e.done_label.max() > 0 and e.info["task_family"] == "push")  # fmt: skip
+    episode = next(
+        e
+        for e in map(lambda i: read_episode(data, i), range(data.meta.total_episodes))
+        if e.done_label.max() > 0 and e.info["task_family"] == "push"
+    )
     start = next(s for s in env.starts if s.episode_index == episode.index)
     facts = [episode_facts(data, i) for i in range(data.meta.total_episodes)]
-    assert start.horizon == max(data.meta.episodes[i]["length"] for i, f in enumerate(facts)
-                                if f["task_family"] == "push" and f["success"])  # the longest successful push
+    assert start.horizon == max(
+        data.meta.episodes[i]["length"] for i, f in enumerate(facts) if f["task_family"] == "push" and f["success"]
+    )  # the longest successful push
     tokens = env._encode({cam: episode.images[cam] for cam in env.cameras})
     reached, reached_success = env.replay(episode.index, tokens, torch.from_numpy(episode.done_label))
     still, still_success = env.replay(episode.index, tokens[:1].expand(2, -1), torch.zeros(2))

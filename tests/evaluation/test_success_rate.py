@@ -1,4 +1,3 @@
-
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -19,9 +18,10 @@ def test_wilson_interval_known_values():
 @pytest.mark.parametrize(("constant_action", "expected"), [(TARGET, True), (-TARGET, False)])
 def test_run_episodes_counts_what_the_env_reports(constant_action, expected):
     config = RoboscapeMLPConfig(
-        device="cpu", input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
+        device="cpu",
+        input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-    )  # fmt: skip
+    )
     policy = RoboscapeMLPPolicy(config)
     with torch.no_grad():  # a policy that always outputs `constant_action`
         policy.action_mean.weight.zero_()

@@ -78,8 +78,9 @@ def recorded_hub(monkeypatch):
 
 
 def _models(trained_tokenizer, world_models):
-    return dict(tokenizer=trained_tokenizer, action_world_model=world_models["action"],
-                text_world_model=world_models["text"])
+    return dict(
+        tokenizer=trained_tokenizer, action_world_model=world_models["action"], text_world_model=world_models["text"]
+    )
 
 
 def test_world_models_repo_and_card(trained_tokenizer, world_models, tmp_path):
@@ -104,18 +105,26 @@ def test_world_models_repo_and_card(trained_tokenizer, world_models, tmp_path):
 
 
 def test_world_models_push_uploads_the_staged_folder(trained_tokenizer, world_models, recorded_hub):
-    assert push_world_models("me/roboscape_wm", **_models(trained_tokenizer, world_models)) == \
-        "https://huggingface.co/me/roboscape_wm"
+    assert (
+        push_world_models("me/roboscape_wm", **_models(trained_tokenizer, world_models))
+        == "https://huggingface.co/me/roboscape_wm"
+    )
     create, upload = recorded_hub
     assert create["call"] == "create_repo" and create["repo_id"] == "me/roboscape_wm"
     assert upload["call"] == "upload_folder" and upload["repo_id"] == "me/roboscape_wm"
-    assert {"README.md", "roboscape_wm.json", "tokenizer/model.safetensors", "action_world_model/config.json",
-            "text_world_model/text_encoder/config.json"} <= set(upload["files"])
+    assert {
+        "README.md",
+        "roboscape_wm.json",
+        "tokenizer/model.safetensors",
+        "action_world_model/config.json",
+        "text_world_model/text_encoder/config.json",
+    } <= set(upload["files"])
     assert "world-model" in ModelCard(upload["card"]).data.tags
 
 
-def test_roboscape_wm_pulls_world_models_offline(demo_dataset, trained_tokenizer, world_models, tmp_path,
-                                                 offline_cache):
+def test_roboscape_wm_pulls_world_models_offline(
+    demo_dataset, trained_tokenizer, world_models, tmp_path, offline_cache
+):
     _, root = demo_dataset
     repo = push_world_models("me/roboscape_wm", local_dir=tmp_path / "hub", **_models(trained_tokenizer, world_models))
     populate_hub_cache(Path(repo), "me/roboscape_wm", offline_cache)
@@ -123,29 +132,49 @@ def test_roboscape_wm_pulls_world_models_offline(demo_dataset, trained_tokenizer
     bundle = pull_world_models("me/roboscape_wm")
     assert str(bundle.root).startswith(str(offline_cache)) and bundle.dataset_repo_id == "test/demos"
     # No dataset_repo_id: the world-models repo names it.
-    env = RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(
-        world_models="me/roboscape_wm", dataset_root=str(root), image_size=IMAGE_SIZE, allow_random_lpips=True,
-        episode_length=3, max_goal_steps=2), num_envs=2)  # fmt: skip
+    env = RoboscapeWorldModelEnv(
+        RoboscapeWorldModelEnvConfig(
+            world_models="me/roboscape_wm",
+            dataset_root=str(root),
+            image_size=IMAGE_SIZE,
+            allow_random_lpips=True,
+            episode_length=3,
+            max_goal_steps=2,
+        ),
+        num_envs=2,
+    )
     obs, _ = env.reset(seed=0)
     assert obs["pixels"]["third_view"].shape == (2, IMAGE_SIZE, IMAGE_SIZE, 3)
     _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
     assert np.isfinite(reward).all()
 
-    with pytest.raises(ArtifactNotFoundError, match=r"'me/absent' is not in the Hugging Face cache .*"
-                                                    r"HF_HUB_OFFLINE=1.*roboscape-push --artifact=world_models"):
+    with pytest.raises(
+        ArtifactNotFoundError,
+        match=r"'me/absent' is not in the Hugging Face cache .*"
+        r"HF_HUB_OFFLINE=1.*roboscape-push --artifact=world_models",
+    ):
         pull_world_models("me/absent")
     with pytest.raises(ArtifactNotFoundError, match=r"tokenizer 'me/absent'.*not in the Hugging Face cache"):
-        RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(
-            tokenizer="me/absent", dataset_repo_id="test/demos", dataset_root=str(root), image_size=IMAGE_SIZE))
+        RoboscapeWorldModelEnv(
+            RoboscapeWorldModelEnvConfig(
+                tokenizer="me/absent", dataset_repo_id="test/demos", dataset_root=str(root), image_size=IMAGE_SIZE
+            )
+        )
 
 
-def test_policy_repo_pulled_offline_and_evaluated_by_lerobot(demo_dataset, trained_tokenizer, world_models,
-                                                             mlp_checkpoint, tmp_path, offline_cache):
+def test_policy_repo_pulled_offline_and_evaluated_by_lerobot(
+    demo_dataset, trained_tokenizer, world_models, mlp_checkpoint, tmp_path, offline_cache
+):
     _, root = demo_dataset
     hub = tmp_path / "hub"
     policy_repo = Path(push_policy("me/mlp_sft", mlp_checkpoint, local_dir=hub))
-    assert {"config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json",
-            "train_config.json"} <= {p.name for p in policy_repo.iterdir()}
+    assert {
+        "config.json",
+        "model.safetensors",
+        "policy_preprocessor.json",
+        "policy_postprocessor.json",
+        "train_config.json",
+    } <= {p.name for p in policy_repo.iterdir()}
     card = ModelCard.load(policy_repo / "README.md")
     assert card.data.library_name == "lerobot" and card.data.datasets == ["test/demos"]
     assert {"lerobot", "robotics", "roboscape_mlp"} <= set(card.data.tags)
@@ -161,12 +190,29 @@ def test_policy_repo_pulled_offline_and_evaluated_by_lerobot(demo_dataset, train
     # LeRobot's own evaluation, policy and world models both given by repo id, offline.
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HUB_CACHE": str(offline_cache)}
     out = tmp_path / "eval"
-    result = subprocess.run([
-        sys.executable, "-m", "lerobot.scripts.lerobot_eval", "--policy.path=me/mlp_sft", "--env.type=roboscape_wm",
-        "--env.world_models=me/roboscape_wm", f"--env.dataset_root={root}", f"--env.image_size={IMAGE_SIZE}",
-        "--env.allow_random_lpips=true", "--env.episode_length=3", "--env.max_goal_steps=2", "--eval.n_episodes=2",
-        "--eval.batch_size=2", "--policy.device=cpu", f"--output_dir={out}",
-    ], capture_output=True, text=True, env=env, timeout=600)  # fmt: skip
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lerobot.scripts.lerobot_eval",
+            "--policy.path=me/mlp_sft",
+            "--env.type=roboscape_wm",
+            "--env.world_models=me/roboscape_wm",
+            f"--env.dataset_root={root}",
+            f"--env.image_size={IMAGE_SIZE}",
+            "--env.allow_random_lpips=true",
+            "--env.episode_length=3",
+            "--env.max_goal_steps=2",
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
+            "--policy.device=cpu",
+            f"--output_dir={out}",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 2
 
@@ -188,8 +234,9 @@ def test_dataset_push_is_lerobots_with_our_card(demo_dataset, recorded_hub, tmp_
     local = Path(push_dataset(root, "me/demos", local_dir=tmp_path / "hub"))
     assert local == tmp_path / "hub" / "datasets" / "me" / "demos"
     assert (local / "README.md").read_text() == calls["upload_file"]["content"]
-    assert sorted(str(p.relative_to(local)) for p in local.rglob("*") if p.is_file() and p.name != "README.md") \
-        == [f for f in upload["files"] if not f.startswith("images/")]
+    assert sorted(str(p.relative_to(local)) for p in local.rglob("*") if p.is_file() and p.name != "README.md") == [
+        f for f in upload["files"] if not f.startswith("images/")
+    ]
 
 
 def test_push_errors_name_what_is_missing(tmp_path, mlp_checkpoint):

@@ -33,8 +33,13 @@ def make_policy(**overrides) -> OpenVLAPolicy:
         "observation.images.wrist": PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)),
         "observation.state": PolicyFeature(FeatureType.STATE, (16,)),
     }
-    kwargs = dict(device="cpu", base_model="tiny", input_features=features, gradient_checkpointing=False,
-                  output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))})
+    kwargs = dict(
+        device="cpu",
+        base_model="tiny",
+        input_features=features,
+        gradient_checkpointing=False,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+    )
     torch.manual_seed(0)
     return OpenVLAPolicy(OpenVLAConfig(**{**kwargs, **overrides}))
 
@@ -46,8 +51,11 @@ def policy():
 
 def make_batch(tasks=TASKS):
     generator = torch.Generator().manual_seed(1)
-    return {CAMERA: torch.rand(len(tasks), 3, IMAGE_SIZE, IMAGE_SIZE, generator=generator), "task": list(tasks),
-            "action": torch.rand(len(tasks), 7, generator=generator) * 2 - 1}
+    return {
+        CAMERA: torch.rand(len(tasks), 3, IMAGE_SIZE, IMAGE_SIZE, generator=generator),
+        "task": list(tasks),
+        "action": torch.rand(len(tasks), 7, generator=generator) * 2 - 1,
+    }
 
 
 def test_action_tokenizer_bins_and_ids():
@@ -60,8 +68,9 @@ def test_action_tokenizer_bins_and_ids():
     centres = tokenizer.decode(all_ids)
     assert torch.equal(tokenizer.encode(centres)[1:], all_ids[1:])  # each centre maps back to its own token
     assert centres[0] == centres[1]  # the top bin shares the last centre, as in OpenVLA
-    assert torch.equal(tokenizer.action_ids_to_slots(tokenizer.slots_to_action_ids(torch.arange(256))),
-                       torch.arange(256))
+    assert torch.equal(
+        tokenizer.action_ids_to_slots(tokenizer.slots_to_action_ids(torch.arange(256))), torch.arange(256)
+    )
 
 
 def test_prompt_format_and_padding_layout(policy):
@@ -130,14 +139,19 @@ def test_checkpoint_in_the_published_layout_loads_exactly(tmp_path):
     index = json.loads((directory / "model.safetensors.index.json").read_text())
     assert len(set(index["weight_map"].values())) > 1  # sharded like the Hub repo
     assert any(key.endswith("ls1.scale_factor") for key in index["weight_map"])  # OpenVLA's LayerScale name
-    assert {"vision_backbone.featurizer.reg_token", "projector.fc3.weight", "language_model.lm_head.weight",
-            "language_model.model.embed_tokens.weight"} <= set(index["weight_map"])
+    assert {
+        "vision_backbone.featurizer.reg_token",
+        "projector.fc3.weight",
+        "language_model.lm_head.weight",
+        "language_model.model.embed_tokens.weight",
+    } <= set(index["weight_map"])
     loaded = read_checkpoint(str(directory))
     assert loaded.config == checkpoint.config
     vla = build_vla(loaded, "cpu", torch.float32)
     state = vla.state_dict()
     assert state["vision_backbone.featurizer.blocks.0.ls1.gamma"].equal(
-        checkpoint.state_dict["vision_backbone.featurizer.blocks.0.ls1.scale_factor"])
+        checkpoint.state_dict["vision_backbone.featurizer.blocks.0.ls1.scale_factor"]
+    )
     assert len(state) == len(checkpoint.state_dict)
     reference = build_vla(checkpoint, "cpu", torch.float32).state_dict()
     assert all(state[key].equal(reference[key]) for key in reference)
@@ -214,8 +228,14 @@ def test_unnormalisation_uses_the_dataset_quantiles(policy):
 def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
     assert get_policy_class("openvla") is OpenVLAPolicy
     _, root = demo_dataset
-    checkpoint = lerobot_train(root, tmp_path / "train", 2, "--policy.type=openvla", "--policy.base_model=tiny",
-                               "--policy.gradient_checkpointing=false")
+    checkpoint = lerobot_train(
+        root,
+        tmp_path / "train",
+        2,
+        "--policy.type=openvla",
+        "--policy.base_model=tiny",
+        "--policy.gradient_checkpointing=false",
+    )
     assert (checkpoint / "policy_postprocessor.json").exists()
     assert (checkpoint / "model.safetensors").stat().st_size < 5e6  # the adapter and value head, not the base
     # lerobot-eval reads the policy from the folder its Hub repo would hold.
@@ -223,10 +243,20 @@ def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
     card = ModelCard.load(f"{repo}/README.md")
     assert "openvla" in card.data.tags and card.data.base_model is None  # "tiny" is a preset, not a Hub repo
     assert "adapter and value head only" in card.text and "`tiny`" in card.text
-    cmd = [sys.executable, "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={repo}",
-           "--policy.device=cpu", "--env.type=roboscape_maniskill", f"--env.image_size={IMAGE_SIZE}",
-           "--env.families=[push]", "--env.episode_length=2", "--eval.n_episodes=1", "--eval.batch_size=1",
-           f"--output_dir={tmp_path / 'eval'}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "lerobot.scripts.lerobot_eval",
+        f"--policy.path={repo}",
+        "--policy.device=cpu",
+        "--env.type=roboscape_maniskill",
+        f"--env.image_size={IMAGE_SIZE}",
+        "--env.families=[push]",
+        "--env.episode_length=2",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        f"--output_dir={tmp_path / 'eval'}",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1

@@ -1,4 +1,3 @@
-
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -14,8 +13,14 @@ CAMERAS = ("observation.images.third_view", "observation.images.wrist")
 def make_policy(**overrides) -> RoboscapeMLPPolicy:
     features = {key: PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)) for key in CAMERAS}
     features["observation.state"] = PolicyFeature(FeatureType.STATE, (16,))
-    config = RoboscapeMLPConfig(device="cpu", input_features=features, hidden_dim=32, image_feature_dim=32,
-                                output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))}, **overrides)
+    config = RoboscapeMLPConfig(
+        device="cpu",
+        input_features=features,
+        hidden_dim=32,
+        image_feature_dim=32,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        **overrides,
+    )
     torch.manual_seed(0)
     return RoboscapeMLPPolicy(config)
 

@@ -18,12 +18,24 @@ def reward_models(demo_dataset, trained_tokenizer, token_cache, world_models, tm
     dirs, losses = {}, {}
     for kind in ("embedding", "proxy"):
         out = tmp_path_factory.mktemp(f"reward_{kind}")
-        cfg = draccus.parse(TrainRewardConfig, args=[
-            f"--reward.kind={kind}", "--dataset.repo_id=test/demos", f"--dataset.root={root}",
-            f"--tokenizer={trained_tokenizer}", f"--action_world_model={world_models['action']}",
-            f"--token_cache={token_cache.root}", f"--output_dir={out}", "--train.steps=500", "--train.save_freq=500",
-            "--train.batch_size=4", "--train.warmup_steps=5", "--train.log_freq=1", "--train.lr=3e-3",
-        ])  # fmt: skip
+        cfg = draccus.parse(
+            TrainRewardConfig,
+            args=[
+                f"--reward.kind={kind}",
+                "--dataset.repo_id=test/demos",
+                f"--dataset.root={root}",
+                f"--tokenizer={trained_tokenizer}",
+                f"--action_world_model={world_models['action']}",
+                f"--token_cache={token_cache.root}",
+                f"--output_dir={out}",
+                "--train.steps=500",
+                "--train.save_freq=500",
+                "--train.batch_size=4",
+                "--train.warmup_steps=5",
+                "--train.log_freq=1",
+                "--train.lr=3e-3",
+            ],
+        )
         train_reward_model(cfg)
         dirs[kind] = out / FINAL
         losses[kind] = _logged_losses(out)
@@ -61,11 +73,21 @@ def test_reward_model_round_trip_and_bad_input(tmp_path):
 def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained_tokenizer, world_models):
     _, root = demo_dataset
     dirs, _ = reward_models
-    common = dict(dataset_repo_id="test/demos", dataset_root=str(root), tokenizer=str(trained_tokenizer),
-                  action_world_model=str(world_models["action"]), text_world_model=str(world_models["text"]),
-                  image_size=IMAGE_SIZE, allow_random_lpips=True, episode_length=3, max_goal_steps=2, theta=1.0)
-    env = RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(reward_type=kind, reward_model=str(dirs[kind]),
-                                                              **common), num_envs=2)
+    common = dict(
+        dataset_repo_id="test/demos",
+        dataset_root=str(root),
+        tokenizer=str(trained_tokenizer),
+        action_world_model=str(world_models["action"]),
+        text_world_model=str(world_models["text"]),
+        image_size=IMAGE_SIZE,
+        allow_random_lpips=True,
+        episode_length=3,
+        max_goal_steps=2,
+        theta=1.0,
+    )
+    env = RoboscapeWorldModelEnv(
+        RoboscapeWorldModelEnvConfig(reward_type=kind, reward_model=str(dirs[kind]), **common), num_envs=2
+    )
     env.reset(seed=0)
     _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
     model = RewardModel.from_pretrained(dirs[kind]).eval()
@@ -84,12 +106,22 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
 
     _, root = demo_dataset
     dirs, _ = reward_models
-    cfg = draccus.parse(RewardReportConfig, args=[
-        "--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--env.tokenizer={trained_tokenizer}",
-        f"--env.action_world_model={world_models['action']}", f"--env.text_world_model={world_models['text']}",
-        f"--env.image_size={IMAGE_SIZE}", "--env.allow_random_lpips=true", "--env.max_goal_steps=3",
-        f"--embedding_reward={dirs['embedding']}", f"--proxy_reward={dirs['proxy']}", f"--output_dir={tmp_path}",
-    ])  # fmt: skip
+    cfg = draccus.parse(
+        RewardReportConfig,
+        args=[
+            "--dataset.repo_id=test/demos",
+            f"--dataset.root={root}",
+            f"--env.tokenizer={trained_tokenizer}",
+            f"--env.action_world_model={world_models['action']}",
+            f"--env.text_world_model={world_models['text']}",
+            f"--env.image_size={IMAGE_SIZE}",
+            "--env.allow_random_lpips=true",
+            "--env.max_goal_steps=3",
+            f"--embedding_reward={dirs['embedding']}",
+            f"--proxy_reward={dirs['proxy']}",
+            f"--output_dir={tmp_path}",
+        ],
+    )
     report = write_reward_report(cfg)
     for name in ("reward_report.json", "reward_report.md", "reward_curves.png"):
         assert (tmp_path / name).stat().st_size > 0

@@ -38,8 +38,11 @@ class GoalEnv(BatchedEnv):
     def reset(self, *, seed=None, options=None):
         self.position = np.full(self.num_envs, START)
         cfg = self.config
-        self.book = EpisodeBook(np.full(self.num_envs, cfg.episode_length), cfg.terminate_on_success,
-                                max_step_reward(cfg.alpha, cfg.beta, cfg.sparse_reward))
+        self.book = EpisodeBook(
+            np.full(self.num_envs, cfg.episode_length),
+            cfg.terminate_on_success,
+            max_step_reward(cfg.alpha, cfg.beta, cfg.sparse_reward),
+        )
         return self._observation(), {"task": self.tasks()}
 
     def step(self, actions):

@@ -40,18 +40,37 @@ def test_ppo_loss_terms_on_known_inputs():
     old = torch.zeros(3)
     new = torch.log(torch.tensor([1.5, 0.5, 1.1]))  # ratios 1.5, 0.5, 1.1
     advantages = torch.tensor([1.0, 1.0, -2.0])
-    losses = ppo_losses(new, old, advantages, new_value=torch.tensor([1.0, 0.0, 3.0]),
-                        old_value=torch.tensor([0.0, 0.0, 0.0]), returns=torch.tensor([1.0, 1.0, 1.0]),
-                        entropy=torch.tensor([0.3, 0.3, 0.3]), clip_coef=0.2, value_clip_coef=0.5,
-                        value_loss="mse")  # fmt: skip
+    losses = ppo_losses(
+        new,
+        old,
+        advantages,
+        new_value=torch.tensor([1.0, 0.0, 3.0]),
+        old_value=torch.tensor([0.0, 0.0, 0.0]),
+        returns=torch.tensor([1.0, 1.0, 1.0]),
+        entropy=torch.tensor([0.3, 0.3, 0.3]),
+        clip_coef=0.2,
+        value_clip_coef=0.5,
+        value_loss="mse",
+    )
     # -min(r*A, clip(r)*A): 1.5 -> -1.2; 0.5 -> -0.5 (unclipped side is smaller); 1.1 with A=-2 -> 2.2
     torch.testing.assert_close(losses.policy, torch.tensor((-1.2 - 0.5 + 2.2) / 3))
     # value: max(0.5*(v-R)^2, 0.5*(clipped-R)^2) with clipped = 0.5, 0, 0.5 -> max(0, .125), max(.5, .5), max(2, .125)
     torch.testing.assert_close(losses.value, torch.tensor((0.125 + 0.5 + 2.0) / 3))
     torch.testing.assert_close(losses.clip_fraction, torch.tensor(2 / 3))
     torch.testing.assert_close(losses.entropy, torch.tensor(0.3))
-    huber = ppo_losses(new, old, advantages, torch.tensor([4.0]), torch.tensor([4.0]), torch.tensor([1.0]),
-                       torch.zeros(1), 0.2, None, value_loss="huber", huber_delta=1.0)  # fmt: skip
+    huber = ppo_losses(
+        new,
+        old,
+        advantages,
+        torch.tensor([4.0]),
+        torch.tensor([4.0]),
+        torch.tensor([1.0]),
+        torch.zeros(1),
+        0.2,
+        None,
+        value_loss="huber",
+        huber_delta=1.0,
+    )
     torch.testing.assert_close(huber.value, torch.tensor(3.0 - 0.5))  # linear beyond delta: delta*(|e| - delta/2)
 
 
@@ -59,10 +78,13 @@ def test_ppo_loss_terms_on_known_inputs():
 def fresh_mlp(tmp_path):
     """A randomly initialised roboscape_mlp checkpoint (with processors) for 32 px third-view images."""
     config = RoboscapeMLPConfig(
-        device="cpu", hidden_dim=32, image_feature_dim=16, init_log_std=-1.0,
+        device="cpu",
+        hidden_dim=32,
+        image_feature_dim=16,
+        init_log_std=-1.0,
         input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-    )  # fmt: skip
+    )
     torch.manual_seed(0)
     policy = RoboscapeMLPPolicy(config)
     stats = {"action": {"min": -torch.ones(7), "max": torch.ones(7)}}
@@ -74,9 +96,19 @@ def fresh_mlp(tmp_path):
 
 
 def ppo_config(policy_path, output_dir, **overrides) -> PPOConfig:
-    kwargs = dict(policy_path=str(policy_path), env=ReachEnvConfig(), output_dir=output_dir, num_envs=8,
-                  iterations=12, policy_lr=3e-3, value_lr=3e-3, minibatch_size=16, device="cpu",
-                  mixed_precision="no", save_freq=4)  # fmt: skip
+    kwargs = dict(
+        policy_path=str(policy_path),
+        env=ReachEnvConfig(),
+        output_dir=output_dir,
+        num_envs=8,
+        iterations=12,
+        policy_lr=3e-3,
+        value_lr=3e-3,
+        minibatch_size=16,
+        device="cpu",
+        mixed_precision="no",
+        save_freq=4,
+    )
     return PPOConfig(**{**kwargs, **overrides})
 
 
@@ -143,8 +175,17 @@ def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_pa
 def test_unknown_policy_type_needs_every_setting(fresh_mlp, tmp_path):
     with pytest.raises(ValueError, match="no defaults for policy type 'act'.*--policy_lr"):
         ppo_config(fresh_mlp, tmp_path / "ppo").with_policy_defaults("act")
-    explicit = dict(policy_lr=1e-4, value_lr=1e-3, update_epochs=1, minibatch_size=4, grad_accum_steps=1,
-                    max_grad_norm=1.0, value_loss="huber", vf_coef=1.0, critic_warmup_iterations=0)  # fmt: skip
+    explicit = dict(
+        policy_lr=1e-4,
+        value_lr=1e-3,
+        update_epochs=1,
+        minibatch_size=4,
+        grad_accum_steps=1,
+        max_grad_norm=1.0,
+        value_loss="huber",
+        vf_coef=1.0,
+        critic_warmup_iterations=0,
+    )
     assert ppo_config(fresh_mlp, tmp_path / "ppo", **explicit).with_policy_defaults("act").value_loss == "huber"
     with pytest.raises(ValueError, match="value_loss must be mse or huber"):
         ppo_config(fresh_mlp, tmp_path / "ppo", value_loss="l1")

@@ -18,13 +18,28 @@ ITERATIONS = 3
 @pytest.fixture
 def ppo_args(demo_dataset, trained_tokenizer, world_models, mlp_checkpoint):
     _, root = demo_dataset
-    return [f"--policy_path={mlp_checkpoint}", "--env.type=roboscape_wm", "--env.dataset_repo_id=test/demos",
-            f"--env.dataset_root={root}", f"--env.tokenizer={trained_tokenizer}",
-            f"--env.action_world_model={world_models['action']}", f"--env.text_world_model={world_models['text']}",
-            f"--env.image_size={IMAGE_SIZE}", "--env.episode_length=3", "--env.max_goal_steps=3",
-            "--env.similarity=tokenizer", "--env.temperature=1.0", "--num_envs=3", f"--iterations={ITERATIONS}",
-            "--save_freq=1", "--critic_warmup_iterations=1", "--minibatch_size=4", "--device=cpu",
-            "--mixed_precision=no", "--seed=5"]  # fmt: skip
+    return [
+        f"--policy_path={mlp_checkpoint}",
+        "--env.type=roboscape_wm",
+        "--env.dataset_repo_id=test/demos",
+        f"--env.dataset_root={root}",
+        f"--env.tokenizer={trained_tokenizer}",
+        f"--env.action_world_model={world_models['action']}",
+        f"--env.text_world_model={world_models['text']}",
+        f"--env.image_size={IMAGE_SIZE}",
+        "--env.episode_length=3",
+        "--env.max_goal_steps=3",
+        "--env.similarity=tokenizer",
+        "--env.temperature=1.0",
+        "--num_envs=3",
+        f"--iterations={ITERATIONS}",
+        "--save_freq=1",
+        "--critic_warmup_iterations=1",
+        "--minibatch_size=4",
+        "--device=cpu",
+        "--mixed_precision=no",
+        "--seed=5",
+    ]
 
 
 def weights(output_dir, iteration: int = ITERATIONS) -> Path:

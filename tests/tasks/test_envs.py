@@ -14,7 +14,9 @@ def test_optimal_plan_succeeds_and_reward_peaks_at_success(family):
     try:
         obs, _ = env.reset(seed=5)
         assert {k: tuple(v["rgb"].shape) for k, v in obs["sensor_data"].items()} == {
-            "third_view": (1, 32, 32, 3), "hand_camera": (1, 32, 32, 3)}
+            "third_view": (1, 32, 32, 3),
+            "hand_camera": (1, 32, 32, 3),
+        }
         assert env.action_space.shape == (7,)
         episode = run_planned_episode(env, EpisodeJob(family, SCENE, seed=5, kind="optimal", image_size=32))
     finally:

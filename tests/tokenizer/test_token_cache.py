@@ -27,8 +27,10 @@ def test_cache_holds_every_frame_with_labels(demo_dataset, trained_tokenizer, to
     frame = dataset[row["start"] + 3]["observation.images.wrist"]
     cached = torch.from_numpy(token_cache.tokens[row["start"] + 3, 1].astype(np.int64))
     assert torch.equal(tokenizer.encode(frame[None])[0], cached)
-    np.testing.assert_array_equal(token_cache.actions[row["start"] : row["start"] + row["length"]],
-                                  np.stack([dataset[row["start"] + t]["action"].numpy() for t in range(row["length"])]))
+    np.testing.assert_array_equal(
+        token_cache.actions[row["start"] : row["start"] + row["length"]],
+        np.stack([dataset[row["start"] + t]["action"].numpy() for t in range(row["length"])]),
+    )
     for row in token_cache.episodes:
         done = token_cache.done[row["start"] : row["start"] + row["length"]]
         assert done[0] == 0 and (done.max() == 1) == row["success"]
@@ -64,9 +66,10 @@ def test_mismatched_or_broken_cache_is_named(token_cache, demo_dataset, tmp_path
 def test_missing_or_empty_dataset_is_named(tmp_path):
     with pytest.raises(DatasetError, match="no LeRobot dataset at"):
         open_dataset("test/none", tmp_path / "nothing")
-    features = {"observation.images.wrist": {"dtype": "video", "shape": (32, 32, 3),
-                                             "names": ["height", "width", "channels"]},
-                "action": {"dtype": "float32", "shape": (7,), "names": None}}
+    features = {
+        "observation.images.wrist": {"dtype": "video", "shape": (32, 32, 3), "names": ["height", "width", "channels"]},
+        "action": {"dtype": "float32", "shape": (7,), "names": None},
+    }
     LeRobotDataset.create("test/empty", fps=20, root=tmp_path / "empty", features=features).finalize()
     with pytest.raises(DatasetError, match="has no episodes"):
         open_dataset("test/empty", tmp_path / "empty")

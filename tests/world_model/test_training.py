@@ -23,19 +23,32 @@ STEPS = 60
 def train_args(demo_dataset, trained_tokenizer, token_cache, output_dir, control="action", steps=STEPS):
     _, root = demo_dataset
     return [
-        "--dataset.repo_id=test/demos", f"--dataset.root={root}", f"--tokenizer={trained_tokenizer}",
-        f"--token_cache={token_cache.root}", f"--output_dir={output_dir}", f"--wm.control={control}",
-        "--wm.d_model=64", "--wm.n_head=2", "--wm.n_layer=2", "--wm.window=4", "--wm.prompt_frames=1",
-        f"--train.steps={steps}", "--train.batch_size=4", "--train.save_freq=20", "--train.log_freq=5",
-        "--train.warmup_steps=5", "--train.mixed_precision=no",
-    ]  # fmt: skip
+        "--dataset.repo_id=test/demos",
+        f"--dataset.root={root}",
+        f"--tokenizer={trained_tokenizer}",
+        f"--token_cache={token_cache.root}",
+        f"--output_dir={output_dir}",
+        f"--wm.control={control}",
+        "--wm.d_model=64",
+        "--wm.n_head=2",
+        "--wm.n_layer=2",
+        "--wm.window=4",
+        "--wm.prompt_frames=1",
+        f"--train.steps={steps}",
+        "--train.batch_size=4",
+        "--train.save_freq=20",
+        "--train.log_freq=5",
+        "--train.warmup_steps=5",
+        "--train.mixed_precision=no",
+    ]
 
 
 @pytest.fixture(scope="module")
 def action_wm(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory):
     out = tmp_path_factory.mktemp("wm_action")
-    train_world_model(draccus.parse(TrainWorldModelConfig,
-                                    args=train_args(demo_dataset, trained_tokenizer, token_cache, out)))
+    train_world_model(
+        draccus.parse(TrainWorldModelConfig, args=train_args(demo_dataset, trained_tokenizer, token_cache, out))
+    )
     return out
 
 
@@ -91,8 +104,11 @@ def test_trained_model_learns_and_loads(action_wm):
 
 
 def test_text_world_model_trains_on_successful_optimal_episodes(demo_dataset, trained_tokenizer, token_cache, tmp_path):
-    model = train_world_model(draccus.parse(
-        TrainWorldModelConfig, args=train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, "text", 4)))
+    model = train_world_model(
+        draccus.parse(
+            TrainWorldModelConfig, args=train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, "text", 4)
+        )
+    )
     loaded = STWorldModel.from_pretrained(tmp_path / FINAL)
     assert loaded.config.control == "text" and (tmp_path / FINAL / "text_encoder").is_dir()
     task = "push the red cube forward"
@@ -104,11 +120,19 @@ def test_text_world_model_trains_on_successful_optimal_episodes(demo_dataset, tr
 
 def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
     _, root = demo_dataset
-    cfg = draccus.parse(FidelityConfig, args=[
-        "--dataset.repo_id=test/demos", f"--dataset.root={root}", "--dataset.episodes=[1,3]",
-        f"--tokenizer={trained_tokenizer}", f"--world_model={action_wm / FINAL}", f"--output_dir={tmp_path}",
-        "--horizon=6", "--allow_random_lpips=true",
-    ])  # fmt: skip
+    cfg = draccus.parse(
+        FidelityConfig,
+        args=[
+            "--dataset.repo_id=test/demos",
+            f"--dataset.root={root}",
+            "--dataset.episodes=[1,3]",
+            f"--tokenizer={trained_tokenizer}",
+            f"--world_model={action_wm / FINAL}",
+            f"--output_dir={tmp_path}",
+            "--horizon=6",
+            "--allow_random_lpips=true",
+        ],
+    )
     report = evaluate_fidelity(cfg)
     for name in ("fidelity.json", "fidelity.md", "fidelity.png", "side_by_side.mp4"):
         assert (tmp_path / name).stat().st_size > 0
@@ -127,8 +151,11 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
     assert fp["failed_episodes"] == len(failed) and fp["threshold"] == cfg.done_threshold
     assert fp["frames_teacher_forced"]["total"] == sum(e["frames"] for e in failed)
     assert fp["frames_open_loop"]["total"] == sum(e["horizon"] for e in failed)
-    assert fp["episodes"] == {"rate": sum(e["predicted_success"] for e in failed) / len(failed),
-                              "flagged": sum(e["predicted_success"] for e in failed), "total": len(failed)}
+    assert fp["episodes"] == {
+        "rate": sum(e["predicted_success"] for e in failed) / len(failed),
+        "flagged": sum(e["predicted_success"] for e in failed),
+        "total": len(failed),
+    }
     for counts in (fp["frames_teacher_forced"], fp["frames_open_loop"]):
         assert 0 <= counts["flagged"] <= counts["total"] and counts["rate"] == counts["flagged"] / counts["total"]
     assert json.loads((tmp_path / "fidelity.json").read_text())["done_false_positive"] == fp
@@ -146,8 +173,11 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
 
 
 def test_false_positives_count_frames_and_episodes_of_failures():
-    episodes = [{"recorded_success": False, "predicted_success": True}, {"recorded_success": True},
-                {"recorded_success": False, "predicted_success": False}]
+    episodes = [
+        {"recorded_success": False, "predicted_success": True},
+        {"recorded_success": True},
+        {"recorded_success": False, "predicted_success": False},
+    ]
     tf = [np.array([0.2, 0.6, 0.5]), np.array([0.9, 0.9]), np.array([0.1])]  # at the threshold counts as done
     fp = _false_positives(episodes, tf, [np.array([0.7]), np.array([0.9]), np.array([0.0])], threshold=0.5)
     assert fp["frames_teacher_forced"] == {"rate": 0.5, "flagged": 2, "total": 4}  # the successful one left out

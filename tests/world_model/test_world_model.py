@@ -4,8 +4,17 @@ import torch
 from lerobot_roboscape.world_model.configuration_world_model import PaperWorldModelConfig, TinyWorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
-MICRO = dict(n_cameras=2, tokens_per_side=2, vocab_size=16, d_model=32, n_head=2, n_layer=2, window=4,
-             prompt_frames=1, done_hidden=32)
+MICRO = dict(
+    n_cameras=2,
+    tokens_per_side=2,
+    vocab_size=16,
+    d_model=32,
+    n_head=2,
+    n_layer=2,
+    window=4,
+    prompt_frames=1,
+    done_hidden=32,
+)
 TASKS = ["push the red cube forward", "pull the red cube back"]
 
 
@@ -33,8 +42,15 @@ def control_kwargs(model, batch, n):
 
 def test_paper_preset_matches_the_paper():
     cfg = PaperWorldModelConfig()
-    assert (cfg.n_layer, cfg.n_head, cfg.d_model, cfg.tokens_per_side, cfg.window, cfg.prompt_frames,
-            cfg.maskgit_steps) == (32, 8, 512, 16, 16, 8, 2)
+    assert (
+        cfg.n_layer,
+        cfg.n_head,
+        cfg.d_model,
+        cfg.tokens_per_side,
+        cfg.window,
+        cfg.prompt_frames,
+        cfg.maskgit_steps,
+    ) == (32, 8, 512, 16, 16, 8, 2)
 
 
 @pytest.mark.parametrize("control", ["action", "text"])

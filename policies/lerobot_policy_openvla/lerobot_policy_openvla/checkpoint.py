@@ -161,6 +161,7 @@ def build_vla(checkpoint: OpenVLACheckpoint, device: str | torch.device, dtype: 
 # Random presets: the published config.json, at its own sizes or at toy sizes. The tiny one's larger
 # initializer_range lets a 64-wide model behind its frozen random LM head reach confident action tokens.
 
+
 def published_config() -> dict:
     """openvla/openvla-7b's config.json without its 25 datasets' norm_stats."""
     return {
@@ -187,14 +188,28 @@ def published_config() -> dict:
 
 
 TINY_VISION = [{"embed_dim": 32, "depth": 3, "num_heads": 2}, {"embed_dim": 48, "depth": 3, "num_heads": 2}]
-TINY_LLM = dict(vocab_size=32064, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
-                num_attention_heads=2, num_key_value_heads=2, max_position_embeddings=512, rms_norm_eps=1e-6,
-                pad_token_id=32000, initializer_range=0.1)  # fmt: skip
+TINY_LLM = dict(
+    vocab_size=32064,
+    hidden_size=64,
+    intermediate_size=128,
+    num_hidden_layers=2,
+    num_attention_heads=2,
+    num_key_value_heads=2,
+    max_position_embeddings=512,
+    rms_norm_eps=1e-6,
+    pad_token_id=32000,
+    initializer_range=0.1,
+)
 
 
 def tiny_config() -> dict:
-    return {**published_config(), "timm_model_kwargs": TINY_VISION, "llm_max_length": 512,
-            "text_config": {"model_type": "llama", **TINY_LLM}, "torch_dtype": "float32"}  # fmt: skip
+    return {
+        **published_config(),
+        "timm_model_kwargs": TINY_VISION,
+        "llm_max_length": 512,
+        "text_config": {"model_type": "llama", **TINY_LLM},
+        "torch_dtype": "float32",
+    }
 
 
 RANDOM_PRESETS = {TINY: tiny_config, RANDOM_7B: published_config}
@@ -224,8 +239,14 @@ def tiny_tokenizer() -> LlamaTokenizerFast:
         [decoders.Replace(SPIECE_SPACE, " "), decoders.ByteFallback(), decoders.Fuse(), decoders.Strip(" ", 1, 0)]
     )
     tokenizer.post_processor = processors.TemplateProcessing(single="<s> $A", special_tokens=[("<s>", 1)])
-    fast = LlamaTokenizerFast(tokenizer_object=tokenizer, bos_token="<s>", eos_token="</s>", unk_token="<unk>",
-                              padding_side="right", model_max_length=512)  # fmt: skip
+    fast = LlamaTokenizerFast(
+        tokenizer_object=tokenizer,
+        bos_token="<s>",
+        eos_token="</s>",
+        unk_token="<unk>",
+        padding_side="right",
+        model_max_length=512,
+    )
     fast.add_special_tokens({"pad_token": "<PAD>"})
     return fast
 

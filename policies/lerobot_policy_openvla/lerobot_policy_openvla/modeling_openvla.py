@@ -64,11 +64,16 @@ class OpenVLAPolicy(PreTrainedPolicy):
         if targets == ["all-linear"]:
             # Every linear layer the forward pass uses; SigLIP's attention-pool head is never read.
             targets = [
-                name for name, module in self.vla.named_modules()
+                name
+                for name, module in self.vla.named_modules()
                 if isinstance(module, nn.Linear) and name != "language_model.lm_head" and "attn_pool" not in name
-            ]  # fmt: skip
-        return LoraConfig(r=self.config.lora_r, lora_alpha=self.config.lora_alpha,
-                          lora_dropout=self.config.lora_dropout, target_modules=targets)  # fmt: skip
+            ]
+        return LoraConfig(
+            r=self.config.lora_r,
+            lora_alpha=self.config.lora_alpha,
+            lora_dropout=self.config.lora_dropout,
+            target_modules=targets,
+        )
 
     # Checkpoints hold the trainable weights only: the LoRA adapter and the value head.
 
@@ -150,8 +155,9 @@ class OpenVLAPolicy(PreTrainedPolicy):
     def predict_value(self, batch: dict) -> Tensor:
         input_ids, mask = self.prompt_ids(batch)
         embeddings, mask, positions = self.vla.embed(self.image(batch), input_ids, mask)
-        output = self.vla.language_model.model(inputs_embeds=embeddings, attention_mask=mask, position_ids=positions,
-                                               use_cache=False)
+        output = self.vla.language_model.model(
+            inputs_embeds=embeddings, attention_mask=mask, position_ids=positions, use_cache=False
+        )
         return self.value(output.last_hidden_state[:, -1])
 
     # Internals.
@@ -171,8 +177,13 @@ class OpenVLAPolicy(PreTrainedPolicy):
         input_ids = torch.cat([input_ids, suffix_ids], dim=1)
         mask = torch.cat([mask, torch.ones_like(suffix_ids)], dim=1)
         embeddings, mask, positions = self.vla.embed(self.image(batch), input_ids, mask)
-        output = self.vla.language_model(inputs_embeds=embeddings, attention_mask=mask, position_ids=positions,
-                                         output_hidden_states=True, use_cache=False)  # fmt: skip
+        output = self.vla.language_model(
+            inputs_embeds=embeddings,
+            attention_mask=mask,
+            position_ids=positions,
+            output_hidden_states=True,
+            use_cache=False,
+        )
         n = suffix_ids.shape[1]
         prompt_end = embeddings.shape[1] - n - 1  # P
         return output.logits[:, prompt_end : prompt_end + n], output.hidden_states[-1][:, prompt_end]
@@ -191,8 +202,13 @@ class OpenVLAPolicy(PreTrainedPolicy):
         input_ids, mask = self.prompt_ids(batch)
         embeddings, mask, positions = self.vla.embed(self.image(batch), input_ids, mask)
         llm = self.vla.language_model
-        output = llm(inputs_embeds=embeddings, attention_mask=mask, position_ids=positions, use_cache=True,
-                     output_hidden_states=True)  # fmt: skip
+        output = llm(
+            inputs_embeds=embeddings,
+            attention_mask=mask,
+            position_ids=positions,
+            use_cache=True,
+            output_hidden_states=True,
+        )
         value = self.value(output.hidden_states[-1][:, -1])
         slots, log_prob = [], torch.zeros(len(input_ids), device=input_ids.device)
         for k in range(ACTION_DIM):
@@ -205,8 +221,13 @@ class OpenVLAPolicy(PreTrainedPolicy):
             token = self.action_tokenizer.slots_to_action_ids(slot)[:, None]
             mask = torch.cat([mask, torch.ones_like(token)], dim=1)
             positions = positions[:, -1:] + 1
-            output = llm(inputs_embeds=llm.get_input_embeddings()(token), attention_mask=mask,
-                         position_ids=positions, past_key_values=output.past_key_values, use_cache=True)  # fmt: skip
+            output = llm(
+                inputs_embeds=llm.get_input_embeddings()(token),
+                attention_mask=mask,
+                position_ids=positions,
+                past_key_values=output.past_key_values,
+                use_cache=True,
+            )
         return torch.stack(slots, dim=1), log_prob, value
 
     def prompt_ids(self, batch: dict) -> tuple[Tensor, Tensor]:

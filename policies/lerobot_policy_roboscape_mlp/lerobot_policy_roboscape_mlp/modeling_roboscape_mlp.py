@@ -27,11 +27,14 @@ class RoboscapeMLPImageEncoder(nn.Module):
         super().__init__()
         c1, c2, c3 = config.conv_channels
         self.convs = nn.Sequential(
-            nn.Conv2d(3, c1, kernel_size=8, stride=4, padding=2), nn.ReLU(),
-            nn.Conv2d(c1, c2, kernel_size=4, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(c2, c3, kernel_size=3, stride=1, padding=1), nn.ReLU(),
+            nn.Conv2d(3, c1, kernel_size=8, stride=4, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(c1, c2, kernel_size=4, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(c2, c3, kernel_size=3, stride=1, padding=1),
+            nn.ReLU(),
             nn.AdaptiveAvgPool2d(4),
-        )  # fmt: skip
+        )
         self.proj = nn.Linear(c3 * 16, config.image_feature_dim)
 
     def forward(self, images_BCHW: Tensor) -> Tensor:
@@ -79,8 +82,9 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         self.trunk = nn.Sequential(*layers)
         self.action_mean = nn.Linear(width, action_dim)
         self.action_log_std = nn.Parameter(torch.full((action_dim,), config.init_log_std))
-        self.value_head = nn.Sequential(nn.Linear(width, config.value_hidden_dim), nn.Tanh(),
-                                        nn.Linear(config.value_hidden_dim, 1))  # fmt: skip
+        self.value_head = nn.Sequential(
+            nn.Linear(width, config.value_hidden_dim), nn.Tanh(), nn.Linear(config.value_hidden_dim, 1)
+        )
 
     # LeRobot's policy API.
 
