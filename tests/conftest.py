@@ -7,6 +7,18 @@ import pytest
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 
 IMAGE_SIZE = 32
+# Session fixtures that run the simulator (a collection, a recorded file) or a command; a test using one is slow.
+SLOW_FIXTURES = {"demo_dataset", "recorded", "mlp_checkpoint", "act_checkpoint"}
+
+
+def pytest_collection_modifyitems(config, items):
+    import torch
+
+    for item in items:
+        if SLOW_FIXTURES & set(item.fixturenames):
+            item.add_marker(pytest.mark.slow)
+        if item.get_closest_marker("gpu") and not torch.cuda.is_available():
+            item.add_marker(pytest.mark.skip(reason="needs a CUDA GPU"))
 
 
 @pytest.fixture(scope="session")

@@ -5,6 +5,7 @@ import json
 
 import draccus
 import numpy as np
+import pytest
 from huggingface_hub import ModelCard
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -13,6 +14,8 @@ from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.run import run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
+
+pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
 
 def test_demo_smoke_scale_end_to_end(tmp_path, capsys):

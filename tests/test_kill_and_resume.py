@@ -26,6 +26,8 @@ from lerobot_roboscape.world_model.train import prepare_token_cache
 from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
 from tests.harness import assert_same_weights, command, kill_when, run
 
+pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
+
 
 def assert_same_dataset(expected, got) -> None:
     """Same tables (every column of every frame), metadata, episode facts and decoded frames."""

@@ -2,7 +2,11 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import IMAGE_SIZE
+
+pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
 
 def test_lerobot_eval_runs_a_lerobot_policy_in_the_simulator_env(act_checkpoint, tmp_path):

@@ -8,6 +8,8 @@ from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.tasks import get_scene
 from tests.conftest import IMAGE_SIZE
 
+pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
+
 
 def make_config(**overrides):
     return RoboscapeManiSkillEnvConfig(**{"image_size": IMAGE_SIZE, "episode_length": 4, **overrides})

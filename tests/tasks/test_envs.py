@@ -5,6 +5,8 @@ from lerobot_roboscape.demos.rollout import EpisodeJob, run_planned_episode
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.tasks.make import make_task_env
 
+pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
+
 SCENE = "green_cube-plate-grey"
 
 
