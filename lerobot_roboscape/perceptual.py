@@ -1,9 +1,9 @@
-"""Perceptual similarity, loaded without network access: LPIPS or the tokenizer-feature distance.
+"""LPIPS, loaded without network access.
 
 The `lpips` wheel ships only the small linear heads; the AlexNet/VGG trunk comes from torchvision's download,
 which is not available offline. `load_lpips` builds the metric with an empty trunk and fills it from the torch
 hub cache or a file the user names. A random trunk (not a perceptual metric) is used only when asked for.
-`load_similarity` picks between LPIPS and `TokenizerPerceptualDistance`, which needs no download.
+`tokenizer.similarity.load_similarity` picks between LPIPS and the tokenizer-feature distance.
 """
 
 import logging
@@ -13,18 +13,14 @@ from pathlib import Path
 import lpips
 import torch
 import torchvision
-from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError, MissingInputError
-from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance
 
 logger = logging.getLogger(__name__)
 
 # torchvision's published trunk weights, as they are named in the torch hub cache.
 TRUNK_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}
 TRUNK_BUILDERS = {"alex": torchvision.models.alexnet, "vgg": torchvision.models.vgg16}
-SIMILARITIES = ("auto", "lpips", "tokenizer")
 
 
 class LPIPSTrunkMissingError(MissingInputError):
@@ -86,42 +82,3 @@ def load_lpips(
     metric.name = f"lpips ({net}, random trunk: not perceptual)" if metric.random_trunk else f"lpips ({net})"
     metric.eval().requires_grad_(False)
     return metric
-
-
-def load_similarity(
-    kind: str,
-    tokenizer: VisualTokenizer | None,
-    lpips_net: str = "alex",
-    lpips_weights: str | Path | None = None,
-    allow_random_lpips: bool = False,
-) -> nn.Module:
-    """The perceptual distance a reward or report should use, frozen and in eval mode.
-
-    Every metric returned takes two (B, 3, H, W) image batches in [-1, 1] and returns (B, 1, 1, 1) distances, 0 for
-    identical images, and has a `name` saying which similarity it is ("lpips (alex)", "tokenizer", ...).
-
-    Args:
-        kind: one of `SIMILARITIES`. "lpips": LPIPS (see `load_lpips`), refused without trunk weights unless
-            `allow_random_lpips`. "tokenizer": `TokenizerPerceptualDistance` on `tokenizer`'s encoder. "auto": LPIPS
-            when its trunk weights are found (`lpips_weights`, else the torch hub cache), else the tokenizer
-            distance; it never picks a random trunk, and a named `lpips_weights` that is missing is an error.
-        tokenizer: the trained tokenizer; needed by "tokenizer", and by "auto" when no LPIPS weights are found.
-        lpips_net: LPIPS trunk, "alex" or "vgg".
-        lpips_weights: torchvision's trunk weights (.pth or .safetensors); default: the torch hub cache.
-        allow_random_lpips: with kind="lpips", use a random trunk when no weights are found (not perceptual).
-    """
-    if kind not in SIMILARITIES:
-        raise InvalidInputError(f"similarity must be one of {SIMILARITIES}, got {kind!r}")
-    if kind == "auto":
-        cached = default_trunk_path(lpips_net)
-        if lpips_weights is not None or cached.is_file():
-            kind = "lpips"
-            logger.info("Perceptual similarity (auto): LPIPS (%s) from %s", lpips_net, lpips_weights or cached)
-        else:
-            kind = "tokenizer"
-            logger.info("Perceptual similarity (auto): tokenizer features (no LPIPS weights at %s)", cached)
-    if kind == "lpips":
-        return load_lpips(lpips_net, lpips_weights, allow_random_lpips)
-    if tokenizer is None:
-        raise InvalidInputError("the tokenizer similarity needs a trained tokenizer, got None")
-    return TokenizerPerceptualDistance(tokenizer)

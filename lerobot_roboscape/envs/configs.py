@@ -110,7 +110,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
 
     def __post_init__(self):
         from lerobot_roboscape.envs.world_model_env import GOAL_SOURCES
-        from lerobot_roboscape.perceptual import SIMILARITIES
+        from lerobot_roboscape.tokenizer.similarity import SIMILARITIES
 
         if self.similarity not in SIMILARITIES:
             raise InvalidInputError(f"similarity must be one of {SIMILARITIES}, got {self.similarity!r}")

@@ -32,10 +32,10 @@ from lerobot_roboscape.dataset.reader import (
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.pull import pull_world_models, snapshot
-from lerobot_roboscape.perceptual import load_similarity
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.similarity import load_similarity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 logger = logging.getLogger(__name__)

@@ -6,7 +6,7 @@ signal and a dense term from the perceptual distance between the current frame a
     dense  = 1 - distance(frame, goal), averaged over the camera views
 
 `distance` is LPIPS (the paper's metric) or the tokenizer-feature distance (no download needed), see
-`lerobot_roboscape.perceptual.load_similarity`. Both are 0 for identical images, so 1 - distance grows as the
+`lerobot_roboscape.tokenizer.similarity.load_similarity`. Both are 0 for identical images, so 1 - distance grows as the
 frame approaches the goal, and 1 is the most a step's dense term can pay.
 """
 

@@ -8,11 +8,18 @@ divided by 4 lies in [0, 1]: 0 for identical images, 0.5 for orthogonal features
 """
 
 import copy
+import logging
+from pathlib import Path
 
 import torch
 from torch import nn
 
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.perceptual import default_trunk_path, load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+
+logger = logging.getLogger(__name__)
+SIMILARITIES = ("auto", "lpips", "tokenizer")  # of the env's reward (`load_similarity`)
 
 
 def _unit_channels(x: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
@@ -52,3 +59,42 @@ class TokenizerPerceptualDistance(nn.Module):
             for f0, f1 in zip(self.stages(images0), self.stages(images1), strict=True)
         ]
         return torch.stack(per_stage).mean(0).view(-1, 1, 1, 1)
+
+
+def load_similarity(
+    kind: str,
+    tokenizer: VisualTokenizer | None,
+    lpips_net: str = "alex",
+    lpips_weights: str | Path | None = None,
+    allow_random_lpips: bool = False,
+) -> nn.Module:
+    """The perceptual distance a reward or report should use, frozen and in eval mode.
+
+    Every metric returned takes two (B, 3, H, W) image batches in [-1, 1] and returns (B, 1, 1, 1) distances, 0 for
+    identical images, and has a `name` saying which similarity it is ("lpips (alex)", "tokenizer", ...).
+
+    Args:
+        kind: one of `SIMILARITIES`. "lpips": LPIPS (see `load_lpips`), refused without trunk weights unless
+            `allow_random_lpips`. "tokenizer": `TokenizerPerceptualDistance` on `tokenizer`'s encoder. "auto": LPIPS
+            when its trunk weights are found (`lpips_weights`, else the torch hub cache), else the tokenizer
+            distance; it never picks a random trunk, and a named `lpips_weights` that is missing is an error.
+        tokenizer: the trained tokenizer; needed by "tokenizer", and by "auto" when no LPIPS weights are found.
+        lpips_net: LPIPS trunk, "alex" or "vgg".
+        lpips_weights: torchvision's trunk weights (.pth or .safetensors); default: the torch hub cache.
+        allow_random_lpips: with kind="lpips", use a random trunk when no weights are found (not perceptual).
+    """
+    if kind not in SIMILARITIES:
+        raise InvalidInputError(f"similarity must be one of {SIMILARITIES}, got {kind!r}")
+    if kind == "auto":
+        cached = default_trunk_path(lpips_net)
+        if lpips_weights is not None or cached.is_file():
+            kind = "lpips"
+            logger.info("Perceptual similarity (auto): LPIPS (%s) from %s", lpips_net, lpips_weights or cached)
+        else:
+            kind = "tokenizer"
+            logger.info("Perceptual similarity (auto): tokenizer features (no LPIPS weights at %s)", cached)
+    if kind == "lpips":
+        return load_lpips(lpips_net, lpips_weights, allow_random_lpips)
+    if tokenizer is None:
+        raise InvalidInputError("the tokenizer similarity needs a trained tokenizer, got None")
+    return TokenizerPerceptualDistance(tokenizer)

@@ -7,10 +7,10 @@ import torchvision
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
-from lerobot_roboscape.perceptual import TRUNK_FILES, LPIPSTrunkMissingError, load_similarity
+from lerobot_roboscape.perceptual import TRUNK_FILES, LPIPSTrunkMissingError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance
+from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance, load_similarity
 from tests.conftest import IMAGE_SIZE, TEST_TOKENIZER
 
 

@@ -1,0 +1,33 @@
+"""Data moves forward through the stages: no module of the library imports from a later stage."""
+
+import ast
+from pathlib import Path
+
+import lerobot_roboscape
+
+# The library's folders and top-level modules, upstream first.
+STAGES = [
+    "errors", "atomic", "weights", "checkpoints", "actor_critic", "training", "perceptual",  # shared foundations
+    "tasks", "dataset", "demos", "tokenizer", "world_model", "reward", "hub", "envs", "rl",
+    "evaluation", "pipeline", "cli",
+]  # fmt: skip
+
+
+def test_no_module_imports_from_a_later_stage():
+    root = Path(lerobot_roboscape.__file__).parent
+    rank = {stage: i for i, stage in enumerate(STAGES)}
+    backwards, unknown = [], set()
+    for path in root.rglob("*.py"):
+        stage = path.relative_to(root).parts[0].removesuffix(".py")
+        if stage == "__init__":
+            continue
+        if stage not in rank:
+            unknown.add(stage)
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("lerobot_roboscape."):
+                target = node.module.split(".")[1]
+                if rank.get(target, len(STAGES)) > rank[stage]:
+                    backwards.append(f"{path.relative_to(root)} imports {node.module}")
+    assert not unknown, f"place these in STAGES: {sorted(unknown)}"
+    assert not backwards, "\n".join(sorted(backwards))
