@@ -1,6 +1,8 @@
 """The kill-and-resume harness: a command runs as a user runs it (`python -m lerobot_roboscape.cli.<name>`), is
-SIGKILLed at a point inside its work, and is rerun; what it ends with is compared with an uninterrupted run."""
+SIGKILLed at a point inside its work, and is rerun (in the test's process: what the killed run left crosses the
+process boundary); what it ends with is compared with an uninterrupted run."""
 
+import importlib
 import signal
 import subprocess
 import sys
@@ -20,6 +22,11 @@ def run(cmd: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     assert result.returncode == 0, result.stderr[-3000:]
     return result
+
+
+def rerun(name: str, *args: str) -> None:
+    """Rerun a command in this process (its `main`), as the resumption of a run killed in another process."""
+    importlib.import_module(f"lerobot_roboscape.cli.{name}").main(list(args))
 
 
 def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -> None:

@@ -24,7 +24,7 @@ from lerobot_roboscape.tokenizer.token_cache import open_token_cache
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.world_model.train import prepare_token_cache
 from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
-from tests.harness import assert_same_weights, command, kill_when, run
+from tests.harness import assert_same_weights, command, kill_when, rerun
 
 pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
@@ -60,7 +60,7 @@ def test_collect(tmp_path):
     assert not root.exists() and len(list(work.glob("*.npz"))) == 1
     with pytest.raises(OutputExistsError, match="--resume=true"):  # a plain rerun neither starts over nor resumes
         collect(draccus.parse(CollectConfig, args=[*args, f"--root={root}"]))
-    run(command("collect", *args, f"--root={root}", "--resume=true"))
+    rerun("collect", *args, f"--root={root}", "--resume=true")
     assert not work.exists()
     assert_same_dataset(tmp_path / "reference", root)
 
@@ -71,7 +71,7 @@ def test_convert(tmp_path):
     args = [f"--h5={h5}", f"--root={root}", "--task=pick up the cube"]
     kill_when(command("convert", *args), lambda: any(tmp_path.glob(".converted.partial-*/converted/meta")))
     assert not root.exists()  # nothing, not a partial dataset
-    run(command("convert", *args))
+    rerun("convert", *args)
     assert not any(tmp_path.glob(".converted.partial-*"))  # the killed run's leftovers are gone
     convert(ConvertConfig(h5=str(h5), root=str(tmp_path / "reference"), task="pick up the cube"))
     assert_same_dataset(tmp_path / "reference", root)
@@ -114,7 +114,7 @@ def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_m
     killed = tmp_path / "killed"
     kill_when(command(name, *args, f"--output_dir={killed}"), lambda: last_checkpoint(killed) is not None)
     assert not (killed / FINAL).exists()
-    run(command(name, *args, f"--output_dir={killed}", "--train.resume=true"))
+    rerun(name, *args, f"--output_dir={killed}", "--train.resume=true")
     assert_same_weights(tmp_path / "reference" / FINAL / "model.safetensors", killed / FINAL / "model.safetensors")
 
 
@@ -138,7 +138,7 @@ def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
     killed = tmp_path / "killed"
     kill_when(command("ppo", *args, f"--output_dir={killed}"), lambda: (killed / "checkpoints" / "last").is_file())
     assert not (killed / "checkpoints" / "00000002").exists()
-    run(command("ppo", *args, f"--output_dir={killed}", "--resume=true"))
+    rerun("ppo", *args, f"--output_dir={killed}", "--resume=true")
     resumed = killed / "checkpoints" / "00000002"
     assert_same_weights(reference / "model.safetensors", resumed / FINAL / "model.safetensors")
     state = "training_state/iteration.json"
@@ -167,7 +167,7 @@ def test_eval(mlp_checkpoint, tmp_path):
     assert not (killed / "eval.json").exists()  # no table reported as complete
     with pytest.raises(OutputExistsError, match="--resume=true"):
         evaluate_success(draccus.parse(EvalConfig, args=[*args, f"--output_dir={killed}"]))
-    run(command("evaluate", *args, f"--output_dir={killed}", "--resume=true"))
+    rerun("evaluate", *args, f"--output_dir={killed}", "--resume=true")
     assert json.loads((killed / "eval.json").read_text()) == reference
 
 

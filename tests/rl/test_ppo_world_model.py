@@ -10,7 +10,7 @@ from safetensors.torch import load_file
 
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from tests.conftest import IMAGE_SIZE
-from tests.harness import assert_same_weights, command, kill_when, run
+from tests.harness import assert_same_weights, command, kill_when, rerun
 
 ITERATIONS = 3
 
@@ -60,5 +60,5 @@ def test_seeded_runs_are_identical_and_a_killed_run_resumes_exactly(ppo_args, tm
     state = Path("checkpoints", "00000001", "training_state", "iteration.json")
     assert (reference / state).read_text() == (killed / state).read_text()
 
-    run(command("ppo", *ppo_args, f"--output_dir={killed}", "--resume=true"))
+    rerun("ppo", *ppo_args, f"--output_dir={killed}", "--resume=true")
     assert_same_weights(weights(reference), weights(killed))
