@@ -173,7 +173,7 @@ def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_pa
 
 
 def test_unknown_policy_type_needs_every_setting(fresh_mlp, tmp_path):
-    with pytest.raises(ValueError, match="no defaults for policy type 'act'.*--policy_lr"):
+    with pytest.raises(ValueError, match="no defaults for policy type 'act'.*--update_epochs"):
         ppo_config(fresh_mlp, tmp_path / "ppo").with_policy_defaults("act")
     explicit = dict(
         policy_lr=1e-4,

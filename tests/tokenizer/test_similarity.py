@@ -57,7 +57,7 @@ def test_a_random_tokenizer_still_gives_a_metric():
 def test_auto_picks_lpips_only_when_its_weights_are_found(tmp_path, monkeypatch, caplog):
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))  # an empty torch hub cache
     tokenizer = random_tokenizer()
-    with caplog.at_level(logging.INFO, logger="lerobot_roboscape.perceptual"):
+    with caplog.at_level(logging.INFO, logger="lerobot_roboscape.tokenizer.similarity"):
         metric = load_similarity("auto", tokenizer)
     assert isinstance(metric, TokenizerPerceptualDistance) and "tokenizer features" in caplog.text
     with pytest.raises(LPIPSTrunkMissingError):
