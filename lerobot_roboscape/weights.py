@@ -16,6 +16,24 @@ from torch import nn
 from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 
 _SHOWN = 3  # tensors named per kind of fault; the count says how many more
+# safetensors' dtype names -> torch's.
+_DTYPES = {
+    "F32": "float32",
+    "F16": "float16",
+    "BF16": "bfloat16",
+    "F64": "float64",
+    "I64": "int64",
+    "I32": "int32",
+    "I16": "int16",
+    "I8": "int8",
+    "U8": "uint8",
+    "BOOL": "bool",
+}
+
+
+def looks_like_repo_id(ref: str) -> bool:
+    """`user/name` that is not a local path: a Hub repo id."""
+    return ref.count("/") == 1 and not ref.startswith((".", "/", "~")) and not Path(ref).exists()
 
 
 def check_tensors(model: nn.Module, model_file: str) -> None:
@@ -53,19 +71,7 @@ def check_tensors(model: nn.Module, model_file: str) -> None:
 
 def _fits(found: tuple[tuple, str], tensor) -> bool:
     shape, dtype = found
-    names = {
-        "F32": "float32",
-        "F16": "float16",
-        "BF16": "bfloat16",
-        "F64": "float64",
-        "I64": "int64",
-        "I32": "int32",
-        "I16": "int16",
-        "I8": "int8",
-        "U8": "uint8",
-        "BOOL": "bool",
-    }
-    return shape == tuple(tensor.shape) and names.get(dtype, dtype) == str(tensor.dtype).removeprefix("torch.")
+    return shape == tuple(tensor.shape) and _DTYPES.get(dtype, dtype) == str(tensor.dtype).removeprefix("torch.")
 
 
 class CheckedHubMixin(PyTorchModelHubMixin):
@@ -78,7 +84,7 @@ class CheckedHubMixin(PyTorchModelHubMixin):
         path = Path(ref).expanduser()
         if path.is_dir() and not (path / constants.CONFIG_NAME).is_file():
             raise MissingInputError(f"no {cls.__name__} at {ref}: the directory has no {constants.CONFIG_NAME}")
-        if not path.is_dir() and (path.exists() or ref.count("/") != 1 or ref.startswith((".", "/", "~"))):
+        if not path.is_dir() and not looks_like_repo_id(ref):
             raise MissingInputError(f"no {cls.__name__} at {ref}: no such directory")
         try:
             return super().from_pretrained(ref, **kwargs)

@@ -7,10 +7,26 @@ import lerobot_roboscape
 
 # The library's folders and top-level modules, upstream first.
 STAGES = [
-    "errors", "atomic", "weights", "checkpoints", "actor_critic", "training", "perceptual",  # shared foundations
-    "tasks", "dataset", "demos", "tokenizer", "world_model", "reward", "hub", "envs", "rl",
-    "evaluation", "pipeline", "cli",
-]  # fmt: skip
+    "errors",
+    "atomic",
+    "weights",
+    "checkpoints",
+    "actor_critic",
+    "training",
+    "perceptual",  # shared foundations
+    "tasks",
+    "dataset",
+    "demos",
+    "tokenizer",
+    "world_model",
+    "reward",
+    "hub",
+    "envs",
+    "rl",
+    "evaluation",
+    "pipeline",
+    "cli",
+]
 
 
 def test_no_module_imports_from_a_later_stage():

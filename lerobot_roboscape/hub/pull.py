@@ -12,16 +12,13 @@ from huggingface_hub import constants, snapshot_download
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, RepositoryNotFoundError
 
 from lerobot_roboscape.errors import MissingInputError
+from lerobot_roboscape.weights import looks_like_repo_id
 
 WORLD_MODELS_MANIFEST = "roboscape_wm.json"
 
 
 class ArtifactNotFoundError(MissingInputError):
     pass
-
-
-def looks_like_repo_id(ref: str) -> bool:
-    return ref.count("/") == 1 and not ref.startswith((".", "/", "~")) and not Path(ref).exists()
 
 
 def snapshot(ref: str, what: str, how_to_make: str, repo_type: str = "model") -> Path:
