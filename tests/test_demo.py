@@ -24,9 +24,9 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
     artifacts = run_pipeline(draccus.parse(PipelineConfig, args=args))
     summary = capsys.readouterr().out.split("=== results")[1]
 
-    for name, path in artifacts.items():
-        assert path.exists(), f"{name}: {path}"
-        assert f"{name} " in summary and str(path) in summary  # named, with what it loaded as
+    for name, artifact in artifacts.items():
+        assert artifact.path.exists(), f"{name}: {artifact.path}"
+        assert f"{name} " in summary and str(artifact.path) in summary  # named, with what it loaded as
     hub = out / "hub"
     assert {
         "dataset repo",

@@ -9,6 +9,7 @@ scored over its family's fixed horizon: past the recording's end its last frame 
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -166,6 +167,19 @@ def _plot(episodes: list[dict], path: Path) -> None:
         ax.set_xlabel("step")
     axes[0][0].set_ylabel("reward (scaled to [0, 1])")
     axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_rollout_rewards(rewards: np.ndarray, tasks: Sequence[str], path: Path) -> None:
+    """The reward curve of each episode of a rollout, `rewards` of shape (steps, episodes), labelled by its task."""
+    fig, ax = plt.subplots(figsize=(6, 3))
+    for curve, task in zip(rewards.T, tasks, strict=True):
+        ax.plot(curve, label=task)
+    ax.set_xlabel("step")
+    ax.set_ylabel("reward")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

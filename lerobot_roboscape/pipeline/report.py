@@ -18,12 +18,25 @@ from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.stages import (
+    CONVERTED_DIR,
+    DEMOS_DIR,
+    EVAL_DIR,
+    FIDELITY_DIR,
+    HELDOUT_DIR,
+    POLICIES,
+    REWARD_BASELINES,
+    REWARD_REPORT_DIR,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
     SFT,
-    method_tag,
+    TABLES_DIR,
+    TOKENIZER_DIR,
+    reward_model_dir,
+    rl_dir,
+    sft_dir,
     stage_seconds,
+    world_model_dir,
 )
 from lerobot_roboscape.rl.ppo import read_history
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -39,19 +52,15 @@ DONE_ROC_AUC = 0.9
 REWARD_ROC_AUC = 0.8
 SFT_IND_SUCCESS = 0.3
 
-# Stage folders under output_dir, by the stage that makes them (for the time table).
+# The folders under output_dir (as stages.py names them), by the stage that makes them (for the time table).
 STAGE_FOLDERS = {
-    "collect (demonstrations, held-out, trajectory file)": [
-        "datasets/roboscape_demos",
-        "datasets/roboscape_heldout",
-        "datasets/maniskill_converted",
-    ],
-    "tokenizer": ["tokenizer"],
-    "action world model (with the token cache)": ["world_model_action"],
-    "text world model": ["world_model_text"],
-    "fidelity report": ["fidelity"],
-    "reward models and reward report": ["reward_embedding", "reward_proxy", "reward_report"],
-    "SFT (lerobot-train)": ["sft_mlp", "sft_openvla"],
+    "collect (demonstrations, held-out, trajectory file)": [DEMOS_DIR, HELDOUT_DIR, CONVERTED_DIR],
+    "tokenizer": [TOKENIZER_DIR],
+    "action world model (with the token cache)": [world_model_dir("action")],
+    "text world model": [world_model_dir("text")],
+    "fidelity report": [FIDELITY_DIR],
+    "reward models and reward report": [*map(reward_model_dir, REWARD_BASELINES), REWARD_REPORT_DIR],
+    "SFT (lerobot-train)": [*map(sft_dir, POLICIES)],
 }
 
 
@@ -59,9 +68,9 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     """Write report.md, results.json and the figures into out/report (and report_dir); returns report.md."""
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
-    fidelity = json.loads((out / "fidelity" / "fidelity.json").read_text())
-    rewards = json.loads((out / "reward_report" / "reward_report.json").read_text())
-    table = json.loads((out / "tables" / "tables.json").read_text())
+    fidelity = json.loads((out / FIDELITY_DIR / "fidelity.json").read_text())
+    rewards = json.loads((out / REWARD_REPORT_DIR / "reward_report.json").read_text())
+    table = json.loads((out / TABLES_DIR / "tables.json").read_text())
     targets = measure_targets(fidelity, rewards, table, cfg.families)
     times = stage_times(cfg, out)
     results = {
@@ -80,13 +89,13 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
 
     tokenizer_figure(out, folder / "tokenizer_reconstruction.png")
     world_model_figure(
-        out / "fidelity" / "side_by_side.mp4", fidelity["prompt_frames"], folder / "world_model_open_loop.png"
+        out / FIDELITY_DIR / "side_by_side.mp4", fidelity["prompt_frames"], folder / "world_model_open_loop.png"
     )
     ppo_curves(out, table, folder / "ppo_curves.png")
     for source, name in (
-        (out / "fidelity" / "fidelity.png", "fidelity.png"),
-        (out / "reward_report" / "reward_curves.png", "reward_curves.png"),
-        (out / "tables" / "tables.png", "tables.png"),
+        (out / FIDELITY_DIR / "fidelity.png", "fidelity.png"),
+        (out / REWARD_REPORT_DIR / "reward_curves.png", "reward_curves.png"),
+        (out / TABLES_DIR / "tables.png", "tables.png"),
     ):
         shutil.copy2(source, folder / name)
     (folder / "report.md").write_text(markdown(cfg, results, table))
@@ -161,12 +170,12 @@ def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
     times = {}
     for stage, folders in STAGE_FOLDERS.items():
         times[stage] = sum(stage_seconds(out / f) or 0.0 for f in folders)
-    for policy in ("roboscape_mlp", "openvla"):
+    for policy in POLICIES:
         for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
-            seconds = stage_seconds(out / "rl" / policy / method_tag(method))
+            seconds = stage_seconds(out / rl_dir(policy, method))
             if seconds is not None:
                 times[f"PPO {policy}: {method}"] = seconds
-    evals = [stage_seconds(p.parent) for p in (out / "eval").glob("*/*/*/stage.json")]
+    evals = [stage_seconds(p.parent) for p in (out / EVAL_DIR).glob("*/*/*/stage.json")]
     label = f"simulator evaluation (sum over its {len(evals)} jobs, {cfg.workers} at a time)"
     times[label] = sum(s for s in evals if s)
     return {k: round(v, 1) for k, v in times.items() if v}
@@ -179,9 +188,9 @@ def machine() -> str:
 
 def tokenizer_figure(out: Path, path: Path, frames: int = 4) -> None:
     """Held-out frames (top) and the tokenizer's reconstruction (bottom), every view, at 3x size."""
-    stage = json.loads((out / "fidelity" / "stage.json").read_text())["settings"]
+    stage = json.loads((out / FIDELITY_DIR / "stage.json").read_text())["settings"]
     dataset = open_dataset(stage["dataset"]["repo_id"], stage["dataset"]["root"])
-    tokenizer = VisualTokenizer.from_pretrained(str(out / "tokenizer" / FINAL)).eval()
+    tokenizer = VisualTokenizer.from_pretrained(str(out / TOKENIZER_DIR / FINAL)).eval()
     rows = [[], []]
     for index in episode_indices(dataset)[:frames]:
         episode = read_episode(dataset, index)
@@ -206,7 +215,7 @@ def ppo_curves(out: Path, table: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
     for policy in table:
         for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
-            history = read_history(out / "rl" / policy / method_tag(method))
+            history = read_history(out / rl_dir(policy, method))
             if not history:
                 continue
             minutes = [row["seconds"] / 60 for row in history]

@@ -8,7 +8,7 @@ from pathlib import Path
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
 from lerobot_roboscape.pipeline import stages
-from lerobot_roboscape.pipeline.artifacts import load_artifact
+from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
 
@@ -37,24 +37,27 @@ class StageClock:
             self.start = None
 
 
-def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
-    """Run every stage (skipping those already complete in output_dir); returns {artifact name: path}."""
+def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
+    """Run every stage (skipping those already complete in output_dir); returns {artifact name: artifact}."""
     out = Path(cfg.output_dir).resolve()
-    artifacts: dict[str, Path] = {}
+    artifacts: dict[str, Artifact] = {}
     clock = StageClock(12)
 
     clock("collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = stages.demonstrations(cfg, out)
-    artifacts["demonstrations (LeRobotDataset)"] = Path(data.train.root)
-    artifacts["held-out episodes (LeRobotDataset)"] = Path(data.heldout.root)
-    artifacts["ManiSkill trajectory file"] = data.trajectory_file
+    artifacts["demonstrations (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.train.root))
+    artifacts["held-out episodes (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.heldout.root))
+    artifacts["ManiSkill trajectory file"] = Artifact(ArtifactKind.TRAJECTORY_FILE, data.trajectory_file)
 
     clock(f"train the image tokenizer ({cfg.tokenizer_preset} preset)")
-    tokenizer = artifacts["tokenizer"] = stages.tokenizer(cfg, out, data)
+    tokenizer = stages.tokenizer(cfg, out, data)
+    artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
 
     clock(f"train the action and the text world models ({cfg.wm_preset} preset)")
     models = stages.world_models(cfg, out, data, tokenizer)
-    artifacts |= {f"{control} world model": path for control, path in models.items()}
+    artifacts |= {
+        f"{control} world model": Artifact(ArtifactKind.WORLD_MODEL, path) for control, path in models.items()
+    }
 
     clock("fidelity report of the action world model on the held-out episodes")
     fidelity = stages.fidelity(cfg, out, data, tokenizer, models)
@@ -64,29 +67,29 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
         f"SSIM {mean['prediction_ssim']:.2f}, whole-episode done ROC-AUC "
         f"{fidelity['done_whole_episode_open_loop']['roc_auc']}"
     )
-    artifacts["fidelity report"] = out / "fidelity" / "fidelity.md"
-    artifacts["predicted vs real video"] = out / "fidelity" / "side_by_side.mp4"
+    artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.FIDELITY_DIR / "fidelity.md")
+    artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / stages.FIDELITY_DIR / "side_by_side.mp4")
 
     clock("reward models and the reward report (held-out episodes)")
     baselines = stages.reward_models(cfg, out, data, tokenizer, models)
     wm_env = stages.world_model_env(cfg, data, tokenizer, models)
     rewards = stages.reward_report(cfg, out, data, wm_env, baselines)
     print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
-    artifacts["reward report"] = out / "reward_report" / "reward_report.md"
+    artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.REWARD_REPORT_DIR / "reward_report.md")
 
     clock("random actions in the roboscape_wm environment (world-model reward)")
     rollout = stages.world_model_rollout(out, wm_env)
     print(f"{rollout['steps']} steps of {rollout['episodes']} episodes, return {rollout['returns']}")
-    artifacts["roboscape_wm rollout video (frame | goal)"] = rollout["video"]
-    artifacts["roboscape_wm reward curve"] = rollout["plot"]
+    artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout["video"])
+    artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout["plot"])
 
     clock("SFT with lerobot-train: " + " and ".join(stages.policy_specs(cfg)))
     sft = stages.sft(cfg, out, data)
-    artifacts |= {f"{name} after SFT": path for name, path in sft.items()}
+    artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
 
     clock("lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
     for name, path in stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
-        artifacts[f"{name} lerobot-eval in roboscape_wm"] = path
+        artifacts[f"{name} lerobot-eval in roboscape_wm"] = Artifact(ArtifactKind.JSON, path)
 
     clock(
         "PPO in roboscape_wm and in roboscape_maniskill"
@@ -95,54 +98,60 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Path]:
     rl = stages.rl(cfg, out, data, wm_env, sft)
     checkpoints = {name: {stages.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
-        artifacts |= {f"{name} after {method}": path for method, path in runs.items()}
+        artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 
     clock("success in the simulator, IND and OOD (Table 1)")
     table = stages.simulator_eval(cfg, out, data, checkpoints)
-    write_table(table, cfg.families, out / "tables")
-    print((out / "tables" / "tables.md").read_text())
-    artifacts["Table 1"] = out / "tables" / "tables.md"
-    artifacts["Table 1 bar chart"] = out / "tables" / "tables.png"
+    tables = out / stages.TABLES_DIR
+    write_table(table, cfg.families, tables)
+    print((tables / "tables.md").read_text())
+    artifacts["Table 1"] = Artifact(ArtifactKind.MARKDOWN, tables / "tables.md")
+    artifacts["Table 1 bar chart"] = Artifact(ArtifactKind.IMAGE, tables / "tables.png")
 
-    clock("push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({out / 'hub'})")
-    local_dir = None if cfg.push_to_hub else out / "hub"
+    hub = out / "hub"
+    clock("push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({hub})")
+    local_dir = None if cfg.push_to_hub else hub
     ns = cfg.hub_namespace
     dataset_repo = f"{ns}/roboscape_demos"
-    pushed = {
-        "dataset repo": push_dataset(Path(data.train.root), dataset_repo, local_dir),
-        "world models repo": push_world_models(
+    pushed = {"dataset repo": (ArtifactKind.DATASET, push_dataset(Path(data.train.root), dataset_repo, local_dir))}
+    pushed["world models repo"] = (
+        ArtifactKind.WORLD_MODELS_BUNDLE,
+        push_world_models(
             f"{ns}/roboscape_world_models",
             local_dir,
             tokenizer=tokenizer,
             action_world_model=models["action"],
             text_world_model=models["text"],
             dataset_repo_id=dataset_repo,
-            fidelity_dir=out / "fidelity",
+            fidelity_dir=out / stages.FIDELITY_DIR,
         ),
-    }
+    )
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
             tag = stages.method_tag(method)
-            pushed[f"{name} {tag} repo"] = push_policy(
-                f"{ns}/{name}_{tag}",
-                checkpoint,
-                local_dir,
-                eval_dir=out / "eval" / name / tag,
-                dataset_repo_id=dataset_repo,
+            pushed[f"{name} {tag} repo"] = (
+                ArtifactKind.POLICY,
+                push_policy(
+                    f"{ns}/{name}_{tag}",
+                    checkpoint,
+                    local_dir,
+                    eval_dir=out / stages.eval_dir(name, method),
+                    dataset_repo_id=dataset_repo,
+                ),
             )
-    for name, where in pushed.items():
+    for name, (kind, where) in pushed.items():
         print(f"{name:36s} {where}")
         if local_dir is not None:
-            artifacts[name] = Path(where)
+            artifacts[name] = Artifact(kind, Path(where))
 
     clock("the experiment's report")
     report = write_report(cfg, out, cfg.report_dir)
-    artifacts["experiment report"] = report
+    artifacts["experiment report"] = Artifact(ArtifactKind.MARKDOWN, report)
     clock.done()
 
     print(f"\n=== results ({(time.time() - clock.began) / 60:.1f} min) ===")
-    for name, path in artifacts.items():
+    for name, artifact in artifacts.items():
         with contextlib.redirect_stdout(io.StringIO()):  # LeRobot's from_pretrained prints where it loads from
-            loaded = load_artifact(path)
-        print(f"{name:44s} {loaded:34s} {path}")
+            loaded = load_artifact(artifact)
+        print(f"{name:44s} {loaded:34s} {artifact.path}")
     return artifacts

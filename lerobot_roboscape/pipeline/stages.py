@@ -17,7 +17,6 @@ from pathlib import Path
 
 import av
 import imageio.v3 as iio
-import matplotlib
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
@@ -28,8 +27,9 @@ from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
+from lerobot_roboscape.envs.reward_report import RewardReportConfig, plot_rollout_rewards, write_reward_report
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success, markdown_table
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.reward.baselines import RewardModelConfig
@@ -42,11 +42,6 @@ from lerobot_roboscape.world_model.configuration_world_model import WorldModelCo
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from lerobot_roboscape.errors import InvalidInputError
-
 logger = logging.getLogger(__name__)
 STAGE_FILE = "stage.json"
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
@@ -56,6 +51,48 @@ SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
     "RL w. ManiSkill",
     "RL w. World Model",
 )
+POLICIES = ("roboscape_mlp", "openvla")
+REWARD_BASELINES = ("embedding", "proxy")
+
+
+# ---- where the stages write: folders under output_dir (the report and the run's summary read them here) ---------
+
+DEMOS_DIR = "datasets/roboscape_demos"
+HELDOUT_DIR = "datasets/roboscape_heldout"
+CONVERTED_DIR = "datasets/maniskill_converted"
+TRAJECTORIES_DIR = "maniskill_trajectories"
+TOKENIZER_DIR = "tokenizer"
+TOKEN_CACHE_DIR = "token_cache"
+FIDELITY_DIR = "fidelity"
+REWARD_REPORT_DIR = "reward_report"
+TABLES_DIR = "tables"
+RL_DIR = "rl"
+EVAL_DIR = "eval"
+
+
+def world_model_dir(control: str) -> str:
+    return f"world_model_{control}"
+
+
+def reward_model_dir(kind: str) -> str:
+    return f"reward_{kind}"
+
+
+def sft_dir(policy: str) -> str:
+    return f"sft_{policy.removeprefix('roboscape_')}"
+
+
+def lerobot_eval_dir(policy: str) -> str:
+    return f"eval_{policy}_roboscape_wm"
+
+
+def rl_dir(policy: str, method: str) -> Path:
+    return Path(RL_DIR) / policy / method_tag(method)
+
+
+def eval_dir(policy: str, method: str) -> Path:
+    """The simulator evaluation of one checkpoint (a folder per split inside)."""
+    return Path(EVAL_DIR) / policy / method_tag(method)
 
 
 # ---- resuming ----------------------------------------------------------------------------------------------------
@@ -141,7 +178,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
     train = _collect(
         CollectConfig(
             repo_id="local/roboscape_demos",
-            root=str(out / "datasets" / "roboscape_demos"),
+            root=str(out / DEMOS_DIR),
             families=cfg.families,
             split="ind",
             max_scenes=cfg.scenes,
@@ -158,8 +195,8 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
         "image_size": cfg.image_size,
         "seed": HELDOUT_SEED,
     }
-    converted = out / "datasets" / "maniskill_converted"
-    h5_dir = out / "maniskill_trajectories"
+    converted = out / CONVERTED_DIR
+    h5_dir = out / TRAJECTORIES_DIR
     if not is_done(converted, record, cfg.fresh):
         start(h5_dir)
         h5 = record_maniskill_trajectories(
@@ -174,7 +211,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
         heldout = _collect(
             CollectConfig(
                 repo_id="local/roboscape_heldout",
-                root=str(out / "datasets" / "roboscape_heldout"),
+                root=str(out / HELDOUT_DIR),
                 families=cfg.families,
                 split="ood",
                 max_scenes=cfg.heldout_scenes,
@@ -195,7 +232,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
 
 def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
     """Train the image tokenizer; returns its pretrained_model directory."""
-    folder = out / "tokenizer"
+    folder = out / TOKENIZER_DIR
     train = TrainTokenizerConfig(
         dataset=data.train,
         tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
@@ -216,14 +253,14 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     """Train the action and the text world models (each with its done head); returns {control: directory}."""
     models = {}
     for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps)):
-        folder = out / f"world_model_{control}"
+        folder = out / world_model_dir(control)
         train = TrainWorldModelConfig(
             dataset=data.train,
             tokenizer=str(tokenizer_path),
             wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
             train=WorldModelTrainingConfig(steps=steps, batch_size=cfg.wm_batch_size, save_freq=max(steps // 4, 1)),
             output_dir=folder,
-            cache_dir=out / "token_cache",
+            cache_dir=out / TOKEN_CACHE_DIR,
             device=cfg.device,
         )
         if not is_done(folder, train, cfg.fresh):
@@ -238,8 +275,8 @@ def reward_models(
 ) -> dict[str, Path]:
     """Train the paper's baseline rewards (embedding-based and proxy-based); {} when reward_model_steps is 0."""
     trained = {}
-    for kind in ("embedding", "proxy") if cfg.reward_model_steps else ():
-        folder = out / f"reward_{kind}"
+    for kind in REWARD_BASELINES if cfg.reward_model_steps else ():
+        folder = out / reward_model_dir(kind)
         train = TrainRewardConfig(
             reward=RewardModelConfig(kind=kind),
             dataset=data.train,
@@ -247,7 +284,7 @@ def reward_models(
             action_world_model=str(models["action"]),
             train=RewardTrainingConfig(steps=cfg.reward_model_steps),
             output_dir=folder,
-            cache_dir=out / "token_cache",
+            cache_dir=out / TOKEN_CACHE_DIR,
             device=cfg.device,
         )
         if not is_done(folder, train, cfg.fresh):
@@ -290,7 +327,7 @@ def spread(dataset: DatasetConfig, k: int) -> DatasetConfig:
 def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]) -> dict:
     """The action world model's fidelity report on the held-out episodes (PSNR per open-loop step against the
     tokenizer's own reconstruction, done scores); returns the report."""
-    folder = out / "fidelity"
+    folder = out / FIDELITY_DIR
     report_cfg = FidelityConfig(
         dataset=spread(data.heldout, cfg.report_episodes),
         tokenizer=str(tokenizer_path),
@@ -311,7 +348,7 @@ def reward_report(
     cfg: PipelineConfig, out: Path, data: Datasets, env: RoboscapeWorldModelEnvConfig, baselines: dict[str, Path]
 ) -> dict:
     """Every reward along the held-out episodes and how well its return separates success from failure."""
-    folder = out / "reward_report"
+    folder = out / REWARD_REPORT_DIR
     report_cfg = RewardReportConfig(
         env=env,
         dataset=spread(data.heldout, cfg.report_episodes),
@@ -349,15 +386,7 @@ def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episod
     video, plot = out / "wm_rollout.mp4", out / "wm_rollout_reward.png"
     av.logging.set_level(av.logging.ERROR)
     iio.imwrite(video, np.stack(frames), plugin="pyav", codec="libx264", fps=env.metadata["render_fps"])
-    fig, ax = plt.subplots(figsize=(6, 3))
-    for i in range(episodes):
-        ax.plot(rewards[:, i], label=env.tasks()[i])
-    ax.set_xlabel("step")
-    ax.set_ylabel("reward")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(plot, dpi=100)
-    plt.close(fig)
+    plot_rollout_rewards(rewards, env.tasks(), plot)
     return {
         "video": video,
         "plot": plot,
@@ -416,6 +445,29 @@ def lerobot_sft(
     return output_dir / "checkpoints" / "last" / "pretrained_model"
 
 
+def lerobot_eval(
+    output_dir: Path,
+    policy_path: Path,
+    env_args: list[str],
+    n_episodes: int,
+    batch_size: int,
+    fresh: bool = False,
+) -> Path:
+    """Evaluation with `lerobot-eval` of the policy in the env of `env_args`; returns its eval_info.json."""
+    args = [
+        f"--policy.path={policy_path}",
+        *env_args,
+        f"--eval.n_episodes={n_episodes}",
+        f"--eval.batch_size={batch_size}",
+        f"--output_dir={output_dir}",
+    ]
+    if not is_done(output_dir, args, fresh):
+        start(output_dir)
+        run_lerobot("lerobot_eval", args)
+        mark_done(output_dir, args)
+    return output_dir / "eval_info.json"
+
+
 def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
     """{policy name: its lerobot-train arguments} of the policies this run trains."""
     device = [f"--policy.device={cfg.device}"] if cfg.device != "auto" else []
@@ -430,7 +482,7 @@ def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
     steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
     return {
         name: lerobot_sft(
-            out / f"sft_{name.removeprefix('roboscape_')}",
+            out / sft_dir(name),
             data.train,
             args,
             *steps[name],
@@ -441,48 +493,44 @@ def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
     }
 
 
+# The settings of the world-model env that lerobot-eval is given (the others keep their defaults).
+_LEROBOT_EVAL_ENV_KEYS = (
+    "dataset_repo_id",
+    "dataset_root",
+    "tokenizer",
+    "action_world_model",
+    "text_world_model",
+    "max_goal_steps",
+    "allow_random_lpips",
+    "image_size",
+)
+
+
 def lerobot_eval_in_world_model(
     cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path], env: RoboscapeWorldModelEnvConfig
 ) -> dict[str, Path]:
     """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
-    flags = [
-        f"--env.{key}={value}"
-        for key, value in asdict(env).items()
-        if key
-        in (
-            "dataset_repo_id",
-            "dataset_root",
-            "tokenizer",
-            "action_world_model",
-            "text_world_model",
-            "max_goal_steps",
-            "allow_random_lpips",
-            "image_size",
-        )
+    env_args = [
+        "--env.type=roboscape_wm",
+        f"--env.families=[{','.join(cfg.families)}]",
+        f"--env.episode_length={cfg.eval_episode_length}",
+        *(f"--env.{key}={value}" for key, value in asdict(env).items() if key in _LEROBOT_EVAL_ENV_KEYS),
     ]
     results = {}
     for name, checkpoint in checkpoints.items():
-        folder = out / f"eval_{name}_roboscape_wm"
-        args = [
-            f"--policy.path={checkpoint}",
-            "--env.type=roboscape_wm",
-            f"--env.families=[{','.join(cfg.families)}]",
-            f"--env.episode_length={cfg.eval_episode_length}",
-            *flags,
-            f"--eval.n_episodes={cfg.eval_episodes}",
-            f"--eval.batch_size={cfg.eval_episodes}",
-            f"--output_dir={folder}",
-        ]
-        if not is_done(folder, args, cfg.fresh):
-            start(folder)
-            run_lerobot("lerobot_eval", args)
-            mark_done(folder, args)
-        result = json.loads((folder / "eval_info.json").read_text())["overall"]
+        results[name] = lerobot_eval(
+            out / lerobot_eval_dir(name),
+            checkpoint,
+            env_args,
+            cfg.eval_episodes,
+            cfg.eval_episodes,
+            fresh=cfg.fresh,
+        )
+        result = json.loads(results[name].read_text())["overall"]
         print(
             f"{name} in roboscape_wm: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
             f"mean return {result['avg_sum_reward']:.2f}"
         )
-        results[name] = folder / "eval_info.json"
     return results
 
 
@@ -538,7 +586,7 @@ def rl(
                 PPOConfig(
                     policy_path=str(sft_checkpoint),
                     env=env,
-                    output_dir=out / "rl" / name / method_tag(method),
+                    output_dir=out / rl_dir(name, method),
                     num_envs=cfg.ppo_envs,
                     iterations=cfg.ppo_iterations,
                     critic_warmup_iterations=cfg.ppo_critic_warmup,
@@ -580,7 +628,7 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: 
                     dataset_root=data.train.root,
                     image_size=cfg.image_size,
                     videos=2,
-                    output_dir=out / "eval" / name / method_tag(method) / split,
+                    output_dir=out / eval_dir(name, method) / split,
                     device=cfg.device,
                 )
     pending = {key: job for key, job in jobs.items() if not is_done(job.output_dir, job, cfg.fresh)}
@@ -602,7 +650,7 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: 
         for method, splits in methods.items():
             length = jobs[name, method, "ind"].episode_length or "per family"
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
-            folder = out / "eval" / name / method_tag(method)
+            folder = out / eval_dir(name, method)
             write_text_atomically(folder / "eval.json", json.dumps(merged, indent=2))
             (folder / "eval.md").write_text(markdown_table(merged))
     return results
