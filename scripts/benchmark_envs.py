@@ -10,6 +10,7 @@ scale's 16x16-grid models).
 """
 
 import argparse
+import functools
 import time
 from pathlib import Path
 
@@ -19,13 +20,17 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.world_model.rollout import Rollout
 
 
 class Timed:
-    """Wraps a callable and adds up the seconds spent in it."""
+    """Wraps a callable (or a method, when set on a class) and adds up the seconds spent in it."""
 
     def __init__(self, fn):
         self.fn, self.seconds = fn, 0.0
+
+    def __get__(self, instance, owner=None):
+        return self if instance is None else functools.partial(self, instance)
 
     def __call__(self, *args, **kwargs):
         start = time.perf_counter()
@@ -79,14 +84,15 @@ def main():
         f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
         f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}"
     )
+    predict_next_frame = Rollout.predict_next_frame
     for batch in args.batch_sizes:
         wm = RoboscapeWorldModelEnv(wm_config, num_envs=batch)
         timers = {
-            "generate": Timed(wm.action_model.predict_next_frame),
+            "generate": Timed(predict_next_frame),
             "decode": Timed(wm._decode),
             "reward": Timed(wm.reward_fn.forward),
         }
-        wm.action_model.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
+        Rollout.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
         widths = (9, 7, 7)  # of the generate, decode and reward columns
         shares = " ".join(f"{t.seconds / wm_seconds:>{w}.0%}" for t, w in zip(timers.values(), widths, strict=True))

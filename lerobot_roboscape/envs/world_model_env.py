@@ -37,6 +37,7 @@ from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import load_similarity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.rollout import Rollout
 
 logger = logging.getLogger(__name__)
 GOAL_SOURCES = ("text_model", "dataset_last_frame")
@@ -168,7 +169,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._n_cameras = n
         self._rng = np.random.default_rng(config.seed)
         self._generator = torch.Generator(self.device).manual_seed(config.seed)
-        self._state = None
+        self._rollout = None
 
     # ---- starts and goals ----------------------------------------------------------------------------------
 
@@ -235,11 +236,11 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
         prompt = torch.stack([s.first_tokens for s in padded])[:, None]
         control = model.encode_control(instructions=[s.task for s in padded])
-        state = model.start_rollout(prompt, control)
+        rollout = Rollout.start(model, prompt, control)
         goal = prompt[:, 0].clone()
         reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
         for _ in range(self.config.max_goal_steps):
-            frame, done = model.predict_next_frame(state, control)
+            frame, done = rollout.predict_next_frame(control)
             newly = (done >= theta) & ~reached
             goal[newly] = frame[newly]
             goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
@@ -278,7 +279,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
-        self._state = self.action_model.start_rollout(first[:, None], control)
+        self._rollout = Rollout.start(self.action_model, first[:, None], control)
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
@@ -294,15 +295,13 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return self._observation(), info
 
     def step(self, actions):
-        if self._state is None:
+        if self._rollout is None:
             raise RuntimeError("call reset() before step()")
         actions, clipped = self._check_actions(actions)
         if self.config.clip_actions:
             actions = np.clip(actions, *self.action_range)
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
-        tokens, done = self.action_model.predict_next_frame(
-            self._state, control, self.config.temperature, self._generator
-        )
+        tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
         frames = self._decode(tokens)
         parts = self.reward_fn(frames, self._goals, done)
         live = ~self._book.finished
@@ -327,7 +326,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
     def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:
         """The reward of the configured type for the frames just generated (B,)."""
         if self.config.reward_type == "embedding":
-            return self.reward_model(self._state.features)
+            return self.reward_model(self._rollout.features)
         if self.config.reward_type == "proxy":
             return self.reward_model(frames)
         return parts.reward
@@ -366,4 +365,4 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return tuple(np.concatenate([column(current), column(goal)], axis=2))
 
     def tasks(self) -> tuple[str, ...]:
-        return tuple(s.task for s in self._starts) if self._state is not None else ("",) * self.num_envs
+        return tuple(s.task for s in self._starts) if self._rollout is not None else ("",) * self.num_envs

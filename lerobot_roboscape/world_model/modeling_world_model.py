@@ -5,7 +5,6 @@ the text model, the instruction. Tokens are (B, T, S) integer grids flattened pe
 """
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -16,23 +15,10 @@ from torch import nn
 from lerobot_roboscape.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 
 TEXT_ENCODER_DIR = "text_encoder"
-
-
-@dataclass
-class RolloutState:
-    """What a running generation remembers: the last `window - 1` frames as tokens, their controls, and (with the
-    cache) every layer's keys and values of those frames, so a new frame is computed against them without
-    recomputing them."""
-
-    tokens: torch.Tensor  # (B, T, S) long
-    control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
-    cache: KVCache | None  # None when generating by recomputing the window
-    done: torch.Tensor  # (B,) done probability of the latest frame
-    features: torch.Tensor  # (B, C) the latest frame's final hidden state, averaged over its tokens
-    frames_seen: int = 0
 
 
 class STWorldModel(
@@ -84,17 +70,18 @@ class STWorldModel(
         B, T, S = tokens_BTS.shape
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
-        x = self.token_emb(tokens_BTS) + self.pos_emb  # (B, T, S, C)
+        x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
+        layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         kvs = []
-        for i, block in enumerate(self.blocks):
-            x, kv = block(x, control.tokens, control.mask, cache, i)
+        for block, layer_cache in zip(self.blocks, layer_caches, strict=True):
+            x_BTSC, kv = block(x_BTSC, control.tokens, control.mask, layer_cache)
             kvs.append(kv)
-        return self.ln_f(x), kvs
+        return self.ln_f(x_BTSC), kvs
 
     def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
         """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
-        x, kvs = self.compute_hidden(tokens_BTS, control, cache)
-        return self.head(x), self.done_logits(x), kvs
+        hidden_BTSC, kvs = self.compute_hidden(tokens_BTS, control, cache)
+        return self.head(hidden_BTSC), self.done_logits(hidden_BTSC), kvs
 
     def done_logits(self, hidden_BTSC) -> torch.Tensor:
         """The done head reads the whole current frame: (B, T, S, C) -> (B, T)."""
@@ -130,81 +117,6 @@ class STWorldModel(
     # ---- generation ----------------------------------------------------------------------------------------
 
     @torch.no_grad()
-    def start_rollout(self, prompt_BPS, control: Control, use_cache: bool = True) -> RolloutState:
-        """Read the prompt frames (real tokens) with their controls; returns the state to generate from."""
-        hidden, kvs = self.compute_hidden(prompt_BPS, control)
-        cache = KVCache.from_frames(kvs, self.config.window) if use_cache else None
-        done = torch.sigmoid(self.done_logits(hidden[:, -1:])[:, 0].float())
-        state = RolloutState(prompt_BPS, control, cache, done, hidden[:, -1].mean(dim=1), prompt_BPS.shape[1])
-        self._slide(state)
-        return state
-
-    @torch.no_grad()
-    def predict_next_frame(
-        self, state: RolloutState, control: Control, temperature: float = 0.0, generator: torch.Generator | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Generate the next frame under `control` ((B, 1, L, C)) in `maskgit_steps` parallel decoding steps, then
-        read it once more to cache its keys/values and its done signal. Returns tokens (B, S) and done (B,)."""
-        B, S = state.tokens.shape[0], self.config.tokens_per_frame
-        frame = torch.full((B, 1, S), self.config.mask_token_id, dtype=torch.long, device=state.tokens.device)
-        known = torch.zeros(B, S, dtype=torch.bool, device=frame.device)
-        steps = self.config.maskgit_steps
-        for step in range(1, steps + 1):
-            logits = self._logits_of_new_frame(state, frame, control)[0][:, -1].float()  # (B, S, V)
-            if temperature > 0:
-                gumbel = -torch.log(-torch.log(torch.rand(logits.shape, generator=generator, device=logits.device)))
-                sample = (logits / temperature + gumbel).argmax(-1)
-            else:
-                sample = logits.argmax(-1)
-            confidence = logits.softmax(-1).gather(-1, sample[..., None]).squeeze(-1).masked_fill(known, math.inf)
-            n_known = S if step == steps else int(S * (1 - math.cos(math.pi / 2 * step / steps)))
-            keep = torch.zeros_like(known).scatter(1, confidence.topk(max(n_known, 1), dim=1).indices, True)
-            frame[:, 0] = torch.where(keep & ~known, sample, frame[:, 0])
-            known |= keep
-        return frame[:, 0], self.observe_frame(state, frame, control)
-
-    @torch.no_grad()
-    def observe_frame(self, state: RolloutState, frame_B1S, control: Control) -> torch.Tensor:
-        """Append a known frame (generated, or real for teacher forcing) to the rollout; returns its done (B,)."""
-        if state.cache is not None:
-            hidden, _ = self.compute_hidden(frame_B1S, control, state.cache)
-        else:
-            hidden, _ = self.compute_hidden(
-                torch.cat([state.tokens, frame_B1S], 1), self._concat_controls(state.control, control)
-            )
-        state.features = hidden[:, -1].mean(dim=1)
-        self._append(state, frame_B1S, control, torch.sigmoid(self.done_logits(hidden[:, -1:])[:, 0].float()))
-        return state.done
-
-    def _logits_of_new_frame(self, state: RolloutState, frame_B1S, control: Control):
-        if state.cache is not None:
-            return self.compute_logits(frame_B1S, control, state.cache)
-        # Without the cache: recompute the whole window (past frames + the new one), as the paper's code did.
-        tokens = torch.cat([state.tokens, frame_B1S], 1)
-        return self.compute_logits(tokens, self._concat_controls(state.control, control))
-
-    def _concat_controls(self, past: Control, new: Control) -> Control:
-        if self.config.control == "text":
-            return past  # one instruction for every frame
-        return Control(torch.cat([past.tokens, new.tokens], 1), None)
-
-    def _append(self, state: RolloutState, frame_B1S, control: Control, done) -> None:
-        state.tokens = torch.cat([state.tokens, frame_B1S], 1)
-        state.control = self._concat_controls(state.control, control)
-        if state.cache is not None:
-            state.cache.frames += 1  # the frame's keys/values are already in its slot
-        state.done = done
-        state.frames_seen += 1
-        self._slide(state)
-
-    def _slide(self, state: RolloutState) -> None:
-        """Keep the last window - 1 frames: with the new one, a generated frame sees `window` frames."""
-        keep = self.config.window - 1
-        state.tokens = state.tokens[:, -keep:]
-        if self.config.control == "action":
-            state.control = Control(state.control.tokens[:, -keep:], None)
-
-    @torch.no_grad()
     def generate(
         self,
         prompt_BPS,
@@ -227,11 +139,11 @@ class STWorldModel(
             got = None if actions is None else tuple(actions.shape)
             raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
         control = self.episode_control(actions, no_action, instructions)
-        state = self.start_rollout(prompt_BPS, self.frame_control(control, slice(0, P)), use_cache)
+        rollout = Rollout.start(self, prompt_BPS, self.frame_control(control, slice(0, P)), use_cache)
         frames, dones = [], []
         for t in range(P, P + n_frames):
-            frame, done = self.predict_next_frame(
-                state, self.frame_control(control, slice(t, t + 1)), temperature, generator
+            frame, done = rollout.predict_next_frame(
+                self.frame_control(control, slice(t, t + 1)), temperature, generator
             )
             frames.append(frame)
             dones.append(done)
@@ -242,12 +154,12 @@ class STWorldModel(
         """Read known frames one after the other, as a rollout would (each sees the window before it). Returns
         done probabilities (B, T) and features (B, T, C). Actions: (B, T - 1, A), action t leading to frame t + 1."""
         control = self.episode_control(actions, instructions=instructions)
-        state = self.start_rollout(tokens_BTS[:, :1], self.frame_control(control, slice(0, 1)))
-        done, features = [state.done], [state.features]
+        rollout = Rollout.start(self, tokens_BTS[:, :1], self.frame_control(control, slice(0, 1)))
+        done, features = [rollout.done], [rollout.features]
         for t in range(1, tokens_BTS.shape[1]):
             frame_control = self.frame_control(control, slice(t, t + 1))
-            done.append(self.observe_frame(state, tokens_BTS[:, t : t + 1], frame_control))
-            features.append(state.features)
+            done.append(rollout.observe(tokens_BTS[:, t : t + 1], frame_control))
+            features.append(rollout.features)
         return torch.stack(done, 1), torch.stack(features, 1)
 
     def episode_control(self, actions=None, no_action=None, instructions=None) -> Control:

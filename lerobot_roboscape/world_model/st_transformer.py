@@ -1,7 +1,12 @@
 """The spatial-temporal transformer block (Genie, Bruce et al. 2024, Fig. 4; with cross-attention to control
-tokens as in RoboScape-R, Fig. 1). Tensors are named by layout: x_BTSC = (batch, time, space, channels)."""
+tokens as in RoboScape-R, Fig. 1).
 
-from dataclasses import dataclass
+Tensors are named by layout: B batch, T time (frames), S space (a frame's tokens), C channels, L control tokens,
+H heads, D head width, W the cache's window. Attention runs over rows of two kinds: F = B*T rows, one per frame, for
+spatial and cross-attention; P = B*S rows, one per token position, for temporal attention.
+"""
+
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -10,58 +15,74 @@ from torch import nn
 
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 
-KV = tuple[torch.Tensor, torch.Tensor]  # keys (rotary-rotated) and values: (N, n_head, T, head_dim)
+KV = tuple[torch.Tensor, torch.Tensor]  # keys (rotary-rotated) and values of every frame: (P, H, T, D)
 
 
-def rotate(x: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-    """Rotary position embedding of x (..., T, hs) at integer `positions` (T,). Angles are computed in float64 so
-    that absolute frame positions of long rollouts stay exact; attention only sees their differences."""
-    half = x.shape[-1] // 2
-    freqs = 10000 ** (-torch.arange(half, device=x.device, dtype=torch.float64) / half)
-    angles = positions.double()[:, None] * freqs[None]  # (T, hs/2)
-    cos, sin = angles.cos().to(x.dtype), angles.sin().to(x.dtype)
-    x1, x2 = x[..., :half], x[..., half:]
+def rotary(positions: torch.Tensor, width: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """cos and sin (T, width / 2) of the rotary embedding at integer frame `positions` (T,). Angles are computed in
+    float64 so that absolute positions of long rollouts stay exact; attention only sees their differences."""
+    half = width // 2
+    freqs = 10000 ** (-torch.arange(half, device=positions.device, dtype=torch.float64) / half)
+    angles = positions.double()[:, None] * freqs[None]
+    return angles.cos().to(dtype), angles.sin().to(dtype)
+
+
+def rotate(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Rotate the last dimension of x (..., T, D) by the angles of `rotary` (T, D / 2)."""
+    x1, x2 = x.chunk(2, dim=-1)
     return torch.cat([x1 * cos - x2 * sin, x1 * sin + x2 * cos], dim=-1)
 
 
 @dataclass
+class LayerCache:
+    """One block's keys and values of the last `window` frames: frame t lives in slot t % window."""
+
+    k: torch.Tensor  # (P, H, W, D)
+    v: torch.Tensor
+    ring: "KVCache" = field(repr=False)
+
+
 class KVCache:
-    """Keys and values of the last `window` frames of every layer, in a ring buffer: frame t lives in slot
-    t % window. A new frame is written into its slot (overwriting the frame that leaves the window) and attends to
-    the whole buffer, so generating a frame costs the same at step 10 and step 10000, and nothing is copied."""
+    """Every block's keys and values of the last `window` frames, in ring buffers. A new frame is written into its
+    slot (overwriting the frame that leaves the window) and attends to the whole buffer, so generating a frame
+    costs the same at step 10 and step 10000, and nothing is copied. `layers[i]` is block i's view."""
 
-    k: list[torch.Tensor]  # per layer (N, n_head, window, head_dim)
-    v: list[torch.Tensor]
-    frames: int  # frames committed so far; the frame being generated is number `frames`
-
-    @classmethod
-    def from_frames(cls, kvs: list[KV], window: int) -> "KVCache":
+    def __init__(self, kvs: list[KV], window: int):
         """A cache holding the last window - 1 of the frames whose keys/values are `kvs` (T frames, from 0)."""
         T = kvs[0][0].shape[2]
-        keep = range(max(0, T - (window - 1)), T)
-        ks, vs = [], []
+        self.frames = T  # frames committed so far; the frame being computed is number `frames`
+        self.window = window
+        self.layers = []
         for k, v in kvs:
-            buffer_k = k.new_zeros(*k.shape[:2], window, k.shape[3])
-            buffer_v = torch.zeros_like(buffer_k)
-            for t in keep:
-                buffer_k[:, :, t % window], buffer_v[:, :, t % window] = k[:, :, t], v[:, :, t]
-            ks.append(buffer_k)
-            vs.append(buffer_v)
-        return cls(ks, vs, T)
-
-    @property
-    def window(self) -> int:
-        return self.k[0].shape[2]
+            keep = torch.arange(max(0, T - (window - 1)), T, device=k.device)
+            k_PHWD = k.new_zeros(*k.shape[:2], window, k.shape[3])
+            v_PHWD = torch.zeros_like(k_PHWD)
+            k_PHWD[:, :, keep % window], v_PHWD[:, :, keep % window] = k[:, :, keep], v[:, :, keep]
+            self.layers.append(LayerCache(k_PHWD, v_PHWD, self))
+        self._rotation = None
 
     @property
     def slot(self) -> int:
         return self.frames % self.window
 
-    def mask(self, device) -> torch.Tensor | None:
+    def mask(self) -> torch.Tensor | None:
         """Slots holding a frame (all of them once the window has filled)."""
         if self.frames >= self.window - 1:
             return None
+        device = self.layers[0].k.device
         return (torch.arange(self.window, device=device) <= self.frames)[None, None, None]
+
+    def rotation(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rotary angles of the frame being computed, shared by every block and MaskGIT step."""
+        if self._rotation is None or self._rotation[0] != self.frames:
+            k = self.layers[0].k
+            position = torch.tensor([self.frames], device=k.device)
+            self._rotation = (self.frames, rotary(position, k.shape[-1], k.dtype))
+        return self._rotation[1]
+
+    def commit(self) -> None:
+        """The frame just computed stays: its keys and values are already in its slot."""
+        self.frames += 1
 
 
 class Attention(nn.Module):
@@ -75,15 +96,18 @@ class Attention(nn.Module):
         self.proj = nn.Linear(config.d_model, config.d_model)
         self.dropout = config.dropout
 
-    def heads(self, x):
-        return rearrange(x, "n t (h d) -> n h t d", h=self.n_head)
+    def heads(self, x_NTC):
+        return rearrange(x_NTC, "n t (h d) -> n h t d", h=self.n_head)
+
+    def merge(self, y_NHTD):
+        return self.proj(rearrange(y_NHTD, "n h t d -> n t (h d)"))
 
     def forward(self, x_NTC, context_NLC=None, mask=None):
         context = x_NTC if context_NLC is None else context_NLC
         q = self.heads(self.q(x_NTC))
         k, v = map(self.heads, self.kv(context).chunk(2, dim=-1))
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
-        return self.proj(rearrange(y, "n h t d -> n t (h d)"))
+        dropout = self.dropout if self.training else 0.0
+        return self.merge(F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout))
 
 
 class TemporalAttention(Attention):
@@ -93,22 +117,24 @@ class TemporalAttention(Attention):
     window) and their keys/values are returned. With a cache, one new frame attends to the cached frames.
     """
 
-    def forward(self, x_NTC, cache: KVCache | None = None, layer: int = 0):
-        q = self.heads(self.q(x_NTC))
-        k, v = map(self.heads, self.kv(x_NTC).chunk(2, dim=-1))
-        dropout = self.dropout if self.training else 0.0
+    def forward(self, x_PTC, cache: LayerCache | None = None):
+        q = self.heads(self.q(x_PTC))
+        k, v = map(self.heads, self.kv(x_PTC).chunk(2, dim=-1))
         if cache is None:
-            positions = torch.arange(q.shape[2], device=q.device)
-            q, k = rotate(q, positions), rotate(k, positions)
+            cos, sin = rotary(torch.arange(q.shape[2], device=q.device), q.shape[-1], q.dtype)
+            q, k = rotate(q, cos, sin), rotate(k, cos, sin)
+            dropout = self.dropout if self.training else 0.0
             y = F.scaled_dot_product_attention(q, k, v, is_causal=True, dropout_p=dropout)
-            return self.proj(rearrange(y, "n h t d -> n t (h d)")), (k, v)
-        assert q.shape[2] == 1, "a cached step reads one new frame"
-        position = torch.tensor([cache.frames], device=q.device)
-        q, k = rotate(q, position), rotate(k, position)
-        cache.k[layer][:, :, cache.slot] = k[:, :, 0]
-        cache.v[layer][:, :, cache.slot] = v[:, :, 0]
-        y = F.scaled_dot_product_attention(q, cache.k[layer], cache.v[layer], attn_mask=cache.mask(q.device))
-        return self.proj(rearrange(y, "n h t d -> n t (h d)")), None
+            return self.merge(y), (k, v)
+        if q.shape[2] != 1:
+            raise ValueError(f"a cached step reads one new frame, got {q.shape[2]}")
+        cos, sin = cache.ring.rotation()
+        q = rotate(q, cos, sin)
+        slot = cache.ring.slot
+        cache.k[:, :, slot] = rotate(k, cos, sin)[:, :, 0]
+        cache.v[:, :, slot] = v[:, :, 0]
+        y = F.scaled_dot_product_attention(q, cache.k, cache.v, attn_mask=cache.ring.mask())
+        return self.merge(y), None
 
 
 class Mlp(nn.Module):
@@ -134,19 +160,19 @@ class STBlock(nn.Module):
         self.ln_cross, self.cross = nn.LayerNorm(config.d_model), Attention(config)
         self.ln_mlp, self.mlp = nn.LayerNorm(config.d_model), Mlp(config)
 
-    def forward(self, x_BTSC, control_BTLC, control_mask_BTL=None, cache: KVCache | None = None, layer: int = 0):
+    def forward(self, x_BTSC, control_BTLC, control_mask_BTL=None, cache: LayerCache | None = None):
         B, T, S, _ = x_BTSC.shape
-        x_NSC = rearrange(x_BTSC, "b t s c -> (b t) s c")
-        x_NSC = x_NSC + self.spatial(self.ln_spatial(x_NSC))
+        x_FSC = rearrange(x_BTSC, "b t s c -> (b t) s c")
+        x_FSC = x_FSC + self.spatial(self.ln_spatial(x_FSC))
 
-        x_NTC = rearrange(x_NSC, "(b t) s c -> (b s) t c", b=B)
-        h, kv = self.temporal(self.ln_temporal(x_NTC), cache, layer)
-        x_NSC = rearrange(x_NTC + h, "(b s) t c -> (b t) s c", b=B)
+        x_PTC = rearrange(x_FSC, "(b t) s c -> (b s) t c", b=B)
+        h_PTC, kv = self.temporal(self.ln_temporal(x_PTC), cache)
+        x_FSC = rearrange(x_PTC + h_PTC, "(b s) t c -> (b t) s c", b=B)
 
-        control = rearrange(control_BTLC.expand(B, T, -1, -1), "b t l c -> (b t) l c")
+        control_FLC = rearrange(control_BTLC.expand(B, T, -1, -1), "b t l c -> (b t) l c")
         mask = None
         if control_mask_BTL is not None:
             mask = rearrange(control_mask_BTL.expand(B, T, -1), "b t l -> (b t) 1 1 l")
-        x_NSC = x_NSC + self.cross(self.ln_cross(x_NSC), control, mask)
-        x_NSC = x_NSC + self.mlp(self.ln_mlp(x_NSC))
-        return rearrange(x_NSC, "(b t) s c -> b t s c", b=B), kv
+        x_FSC = x_FSC + self.cross(self.ln_cross(x_FSC), control_FLC, mask)
+        x_FSC = x_FSC + self.mlp(self.ln_mlp(x_FSC))
+        return rearrange(x_FSC, "(b t) s c -> b t s c", b=B), kv

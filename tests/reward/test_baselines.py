@@ -92,7 +92,7 @@ def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained
     _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
     model = RewardModel.from_pretrained(dirs[kind]).eval()
     with torch.no_grad():
-        expected = model(env._state.features if kind == "embedding" else env._frames)
+        expected = model(env._rollout.features if kind == "embedding" else env._frames)
     np.testing.assert_allclose(reward, expected.numpy(), rtol=1e-5, atol=1e-6)
     other = "proxy" if kind == "embedding" else "embedding"
     with pytest.raises(ValueError, match=f"is a {kind} reward model"):

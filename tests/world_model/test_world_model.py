@@ -3,6 +3,7 @@ import torch
 
 from lerobot_roboscape.world_model.configuration_world_model import PaperWorldModelConfig, TinyWorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.rollout import Rollout
 
 MICRO = dict(
     n_cameras=2,
@@ -103,12 +104,14 @@ def test_long_rollout_stays_finite_with_a_bounded_cache():
     tokens, done = model.generate(prompt, 320, actions=actions, temperature=1.0, generator=g)
     assert tokens.shape == (3, 320, 8) and tokens.min() >= 0 and tokens.max() < 16
     assert torch.isfinite(done).all() and (done >= 0).all() and (done <= 1).all()
-    state = model.start_rollout(prompt, model.frame_control(model.episode_control(actions[:, :1]), slice(0, 1)))
+    first_control = model.frame_control(model.episode_control(actions[:, :1]), slice(0, 1))
+    rollout = Rollout.start(model, prompt, first_control)
     control = model.episode_control(actions)
     for t in range(1, 12):
-        model.predict_next_frame(state, model.frame_control(control, slice(t, t + 1)))
-        assert state.cache.k[0].shape[2] == 4 and state.cache.frames == t + 1  # a fixed ring of `window` frames
-        assert state.tokens.shape[1] == min(t + 1, 3)
+        rollout.predict_next_frame(model.frame_control(control, slice(t, t + 1)))
+        # a fixed ring of `window` frames per layer
+        assert all(layer.k.shape[2] == 4 for layer in rollout.cache.layers) and rollout.cache.frames == t + 1
+        assert rollout.tokens.shape[1] == min(t + 1, 3)
 
 
 def test_overfits_one_clip():
