@@ -9,6 +9,7 @@ later with `hf upload`. Datasets go through LeRobotDataset's own push, with the 
 import json
 import shutil
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 from huggingface_hub import HfApi
@@ -261,3 +262,71 @@ def push_dataset(root: Path, repo_id: str, local_dir: Path | None = None, privat
         shutil.copytree(root, folder, ignore=shutil.ignore_patterns("images"))  # as push_to_hub ignores images/
         card.save(folder / "README.md")
         return publish(folder, repo_id, local_dir, repo_type="dataset")
+
+
+ARTIFACTS = ("dataset", "world_models", "policy")
+
+
+@dataclass
+class PushConfig:
+    """Args:
+    artifact: "dataset", "world_models" or "policy".
+    repo_id: the Hub repo, `user_or_org/name`.
+    local_dir: write the repo's folder under this directory instead of uploading.
+    private: create the repo private (default: the Hub's default).
+    dataset_root: (dataset) the LeRobotDataset directory.
+    tokenizer: (world_models) the tokenizer's pretrained_model directory.
+    action_world_model: (world_models) the action world model's pretrained_model directory.
+    text_world_model: (world_models) the text world model's pretrained_model directory.
+    fidelity_dir: (world_models) a roboscape-eval-wm report to publish with them.
+    dataset_repo_id: (world_models, policy) the dataset they were trained on, as named on the Hub (default: the one
+        in their training config).
+    policy: (policy) a pretrained_model directory of lerobot-train or roboscape-ppo.
+    eval_dir: (policy) a roboscape-eval output whose success table goes into the card.
+    """
+
+    artifact: str = "policy"
+    repo_id: str = ""
+    local_dir: Path | None = None
+    private: bool | None = None
+    dataset_root: Path | None = None
+    tokenizer: Path | None = None
+    action_world_model: Path | None = None
+    text_world_model: Path | None = None
+    fidelity_dir: Path | None = None
+    dataset_repo_id: str | None = None
+    policy: Path | None = None
+    eval_dir: Path | None = None
+
+    def __post_init__(self):
+        if self.artifact not in ARTIFACTS:
+            raise InvalidInputError(f"--artifact must be one of {ARTIFACTS}, got {self.artifact!r}")
+        if self.repo_id.count("/") != 1:
+            raise InvalidInputError(f"--repo_id must be `user_or_org/name`, got {self.repo_id!r}")
+        needed = {
+            "dataset": ["dataset_root"],
+            "world_models": ["tokenizer", "action_world_model", "text_world_model"],
+            "policy": ["policy"],
+        }[self.artifact]
+        missing = [f"--{name}" for name in needed if getattr(self, name) is None]
+        if missing:
+            raise InvalidInputError(f"--artifact={self.artifact} needs {', '.join(missing)}")
+
+
+def push(cfg: PushConfig) -> str:
+    if cfg.artifact == "dataset":
+        return push_dataset(cfg.dataset_root, cfg.repo_id, cfg.local_dir, cfg.private)
+    if cfg.artifact == "world_models":
+        return push_world_models(
+            cfg.repo_id,
+            cfg.local_dir,
+            cfg.private,
+            tokenizer=cfg.tokenizer,
+            action_world_model=cfg.action_world_model,
+            text_world_model=cfg.text_world_model,
+            dataset_repo_id=cfg.dataset_repo_id,
+            fidelity_dir=cfg.fidelity_dir,
+        )
+    return push_policy(
+        cfg.repo_id, cfg.policy, cfg.local_dir, cfg.private, eval_dir=cfg.eval_dir, dataset_repo_id=cfg.dataset_repo_id
+    )

@@ -15,11 +15,10 @@ import pytest
 from huggingface_hub import DatasetCard, HfApi, ModelCard, constants
 from huggingface_hub.repocard import RepoCard
 
-from lerobot_roboscape.cli.push import PushConfig
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.hub.pull import ArtifactNotFoundError, pull_world_models
-from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
+from lerobot_roboscape.hub.push import PushConfig, push_dataset, push_policy, push_world_models
 from lerobot_roboscape.rl.policy_loading import load_policy
 from tests.conftest import IMAGE_SIZE
 
