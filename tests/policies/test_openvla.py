@@ -1,29 +1,43 @@
 import json
+import math
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from huggingface_hub import ModelCard
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.processor import PolicyProcessorPipeline
+from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
 from lerobot_policy_openvla import OpenVLAConfig, OpenVLAPolicy
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
 from lerobot_policy_openvla.checkpoint import (
+    RANDOM_7B,
+    OpenVLACheckpoint,
     OpenVLACheckpointError,
     build_vla,
+    checkpoint_state_dict,
+    default_dtype,
     read_checkpoint,
     tiny_checkpoint,
+    tiny_config,
     write_checkpoint,
 )
 from lerobot_policy_openvla.modeling_openvla import openvla_prompt
+from lerobot_policy_openvla.prismatic import PrismaticVisionBackbone
 from safetensors import safe_open
+from torch import nn
 
 from lerobot_roboscape.actor_critic import ActorCritic
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.hub.push import push_policy
 from tests.conftest import IMAGE_SIZE, lerobot_train
 
 CAMERA = "observation.images.third_view"
+FIXTURES = Path(__file__).parents[1] / "fixtures"
 TASKS = ["push the can forward", "pick up the red apple and place it in the bowl", "pull the mug back"]
 
 
@@ -60,6 +74,7 @@ def make_batch(tasks=TASKS):
 
 def test_action_tokenizer_bins_and_ids():
     tokenizer = OpenVLAActionTokenizer()
+    assert np.array_equal(tokenizer.bins.numpy(), np.linspace(-1, 1, 256))  # OpenVLA's float64 edges, bit for bit
     ids = tokenizer.encode(torch.tensor([-1.0, 1.0, 0.0, -5.0, 5.0]))
     assert ids.tolist() == [31999, 31744, 31872, 31999, 31744]  # 32000 - bin, bins 1..256, clipped
     actions = torch.linspace(-0.999, 0.999, 1001)
@@ -217,12 +232,166 @@ def test_bad_input_names_what_is_wrong(policy, change, error, message):
         policy.select_action(batch)
 
 
-def test_unnormalisation_uses_the_dataset_quantiles(policy):
+def openvla_config(**overrides) -> OpenVLAConfig:
+    """A config for the processors alone (no weights built)."""
+    features = {CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE))}
+    action = {"action": PolicyFeature(FeatureType.ACTION, (7,))}
+    kwargs = dict(device="cpu", base_model="tiny", input_features=features, output_features=action)
+    return OpenVLAConfig(**{**kwargs, **overrides})
+
+
+def published_norm_stats() -> dict:
+    return json.loads((FIXTURES / "openvla_7b_norm_stats.json").read_text())["norm_stats"]
+
+
+def base_with_norm_stats(directory: Path, norm_stats: dict) -> str:
+    """A base checkpoint folder whose config.json carries `norm_stats` (all the processors read)."""
+    directory.mkdir()
+    (directory / "config.json").write_text(json.dumps({**tiny_config(), "norm_stats": norm_stats}))
+    return str(directory)
+
+
+def test_unnormalisation_uses_the_dataset_quantiles_and_passes_the_gripper(tmp_path):
+    # Was: every dimension, the gripper included, mapped to [q01, q99] (LeRobot's QUANTILES). OpenVLA's fine-tuning
+    # statistics mask the gripper, which is neither normalised nor un-normalised.
     q01, q99 = torch.linspace(-0.5, 0.1, 7), torch.linspace(0.2, 0.9, 7)
     stats = {"action": {"q01": q01, "q99": q99, "min": q01 - 1, "max": q99 + 1, "mean": q01, "std": q99}}
-    _, postprocessor = make_pre_post_processors(policy.config, dataset_stats=stats)
-    torch.testing.assert_close(postprocessor(torch.full((1, 7), -1.0)), q01[None])
-    torch.testing.assert_close(postprocessor(torch.ones(1, 7)), q99[None])
+    preprocessor, postprocessor = make_pre_post_processors(openvla_config(), dataset_stats=stats)
+    x = torch.tensor([[-1.0, 1.0, -1.0, 1.0, 0.0, 0.5, -0.3]], dtype=torch.float64)
+    expected = torch.cat([((x + 1) / 2 * (q99 - q01) + q01)[:, :6], x[:, 6:]], dim=1)
+    torch.testing.assert_close(postprocessor(x), expected)
+    assert postprocessor(x)[0, 6] == -0.3  # the gripper, untouched
+    # The preprocessor inverts it for SFT targets, clipped to [-1, 1] as OpenVLA's data pipeline does.
+    action = torch.cat([expected[:, :6], torch.tensor([[0.7]], dtype=torch.float64)], dim=1).float()
+    batch = preprocessor({CAMERA: torch.rand(3, IMAGE_SIZE, IMAGE_SIZE), "task": "x", "action": action[0]})
+    torch.testing.assert_close(batch["action"], torch.cat([x[:, :6], torch.tensor([[0.7]])], 1).float())
+    far = preprocessor({CAMERA: torch.rand(3, IMAGE_SIZE, IMAGE_SIZE), "task": "x", "action": torch.full((7,), 9.0)})
+    assert far["action"][0, :6].eq(1).all() and far["action"][0, 6] == 9  # OpenVLA's tokenizer clips the gripper
+    # The statistics travel with the saved pipeline.
+    postprocessor.save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "policy_postprocessor.json").read_text())["steps"][0]
+    assert saved["registry_name"] == "openvla_unnormalize_action" and saved["config"]["mask"] == [True] * 6 + [False]
+    converters = dict(to_transition=policy_action_to_transition, to_output=transition_to_policy_action)
+    reloaded = PolicyProcessorPipeline.from_pretrained(tmp_path, "policy_postprocessor.json", **converters)
+    assert torch.equal(reloaded(x), postprocessor(x))
+
+
+def predict_action_reference(token_ids: np.ndarray, action_stats: dict) -> np.ndarray:
+    """OpenVLAForActionPrediction.predict_action (prismatic/extern/hf/modeling_prismatic.py) after `generate`,
+    in numpy as the published code writes it, for openvla-7b's config (vocab 32064 padded by 64, 256 bins)."""
+    bins = np.linspace(-1, 1, 256)
+    bin_centers = (bins[:-1] + bins[1:]) / 2.0
+    vocab_size = 32064 - 64  # text_config.vocab_size - pad_to_multiple_of
+    discretized_actions = vocab_size - token_ids
+    discretized_actions = np.clip(discretized_actions - 1, a_min=0, a_max=bin_centers.shape[0] - 1)
+    normalized_actions = bin_centers[discretized_actions]
+    mask = action_stats.get("mask", np.ones_like(action_stats["q01"], dtype=bool))
+    action_high, action_low = np.array(action_stats["q99"]), np.array(action_stats["q01"])
+    return np.where(mask, 0.5 * (normalized_actions + 1) * (action_high - action_low) + action_low, normalized_actions)
+
+
+def test_unnormalisation_equals_predict_action(policy, tmp_path):
+    """The published model zero-shot (--policy.unnorm_key=bridge_orig): token ids -> the policy's decoding ->
+    the postprocessor equals OpenVLA's predict_action, bit for bit, gripper included."""
+    norm_stats = published_norm_stats()
+    bridge = norm_stats["bridge_orig"]["action"]
+    config = openvla_config(base_model=base_with_norm_stats(tmp_path / "base", norm_stats), unnorm_key="bridge_orig")
+    _, postprocessor = make_pre_post_processors(config)
+    token_ids = np.array(
+        [[31744, 31999, 31872, 31800, 31900, 31950, 31947], [31745, 31998, 31871, 31760, 31990, 31850, 31750]]
+    )
+    actions = postprocessor(policy.action_tokenizer.decode(torch.from_numpy(token_ids)))
+    expected = predict_action_reference(token_ids, bridge)
+    assert actions.dtype == torch.float64 and np.array_equal(actions.numpy(), expected)
+    # The issue's case: a gripper token decoded to -0.588 stays -0.588 (mask[6] is False); QUANTILES made it 0.206.
+    assert round(float(actions[0, 6]), 3) == -0.588
+    assert (
+        round(0.5 * (float(actions[0, 6]) + 1) * (bridge["q99"][6] - bridge["q01"][6]) + bridge["q01"][6], 3) == 0.206
+    )
+    # End to end: the greedy tokens the policy picks, through select_action and the postprocessor.
+    batch = make_batch()
+    slots, _, _ = policy.generate_action_slots(batch, greedy=True)
+    token_ids = policy.action_tokenizer.slots_to_action_ids(slots).numpy()
+    assert np.array_equal(
+        postprocessor(policy.select_action(batch)).numpy(), predict_action_reference(token_ids, bridge)
+    )
+
+
+def test_unnorm_key_is_chosen_as_predict_action_chooses_it(tmp_path):
+    norm_stats = published_norm_stats()
+    base = base_with_norm_stats(tmp_path / "all", norm_stats)
+    with pytest.raises(InvalidInputError, match=r"25 datasets.*--policy.unnorm_key.*'bridge_orig'.*'viola'"):
+        make_pre_post_processors(openvla_config(base_model=base))
+    with pytest.raises(InvalidInputError, match=r"unnorm_key='bridge'.*'bridge_orig'"):
+        make_pre_post_processors(openvla_config(base_model=base, unnorm_key="bridge"))
+    single = base_with_norm_stats(tmp_path / "one", {"fractal20220817_data": norm_stats["fractal20220817_data"]})
+    _, postprocessor = make_pre_post_processors(openvla_config(base_model=single))
+    fractal = norm_stats["fractal20220817_data"]["action"]
+    assert postprocessor.steps[0].q01 == fractal["q01"] and postprocessor.steps[0].mask == fractal["mask"]
+    # unnorm_key wins over the dataset's statistics; without either, a base without norm_stats passes actions.
+    _, postprocessor = make_pre_post_processors(
+        openvla_config(base_model=base, unnorm_key="fractal20220817_data"),
+        dataset_stats={"action": {"q01": torch.zeros(7), "q99": torch.ones(7)}},
+    )
+    assert postprocessor.steps[0].q99 == fractal["q99"]
+    _, postprocessor = make_pre_post_processors(openvla_config())
+    assert torch.equal(postprocessor(torch.full((1, 7), 0.5)), torch.full((1, 7), 0.5))
+
+
+def test_published_checkpoint_keys_and_shapes_load_exactly():
+    """Independent of the plugin's own key mapping: the published checkpoint's 982 tensors (names from its
+    model.safetensors.index.json, shapes from its config), checked against its total_size, then loaded through
+    `build_vla` into the random-7b preset on the meta device and compared name by name."""
+    fixture = json.loads((FIXTURES / "openvla_7b_checkpoint.json").read_text())
+    published = fixture["tensors"]
+    assert len(published) == 982
+    assert sum(math.prod(shape) * 2 for shape, dtype in published.values()) == fixture["total_size"] == 15_082_474_368
+    assert {dtype for _, dtype in published.values()} == {"BF16"}
+
+    preset = read_checkpoint(RANDOM_7B)
+    state_dict = {
+        name: torch.empty(shape, dtype=torch.bfloat16, device="meta") for name, (shape, _) in published.items()
+    }
+    checkpoint = OpenVLACheckpoint("openvla-7b (meta)", preset.config, state_dict, preset.tokenizer)
+    vla = build_vla(checkpoint, "meta", torch.bfloat16)  # refuses a missing, unexpected or misshapen key
+    ours = {name: [list(t.shape), str(t.dtype)] for name, t in checkpoint_state_dict(vla).items()}
+    assert sorted(ours) == sorted(published)
+    assert all(ours[name] == [shape, "torch.bfloat16"] for name, (shape, _) in published.items())
+    renamed = {name.replace(".scale_factor", ".gamma"): t for name, t in state_dict.items()}
+    with pytest.raises(OpenVLACheckpointError, match=r"missing=\['vision_backbone\.featurizer\.blocks\.0\.ls1\.scale"):
+        build_vla(OpenVLACheckpoint("renamed", preset.config, renamed, preset.tokenizer), "meta", torch.bfloat16)
+
+
+def test_bf16_preprocessing_is_fp32_then_cast():
+    architecture = read_checkpoint("tiny").architecture
+    backbones = {}
+    for dtype in (torch.float32, torch.bfloat16):
+        torch.manual_seed(0)
+        with default_dtype(dtype):
+            backbones[dtype] = PrismaticVisionBackbone(architecture)
+    images = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0))
+    assert architecture.image_size != IMAGE_SIZE  # the antialiased bicubic resize runs (it raised in bf16 on CPU)
+    reference = backbones[torch.float32].preprocess(images)
+    for fp32, bf16 in zip(reference, backbones[torch.bfloat16].preprocess(images), strict=True):
+        assert bf16.dtype == torch.bfloat16 and torch.equal(bf16, fp32.to(torch.bfloat16))
+    actions = make_policy(dtype="bfloat16").select_action(make_batch())  # the whole tiny policy in bf16 on CPU
+    assert actions.shape == (3, 7) and torch.isfinite(actions).all()
+
+
+def test_lora_is_gaussian_initialised_and_leaves_the_lm_head():
+    policy = make_policy()
+    assert policy.lora_config().init_lora_weights == "gaussian"
+    lora_A = torch.cat([p.flatten() for n, p in policy.vla.named_parameters() if "lora_A" in n])
+    assert abs(lora_A.std().item() - 1 / policy.config.lora_r) < 0.05 / policy.config.lora_r  # N(0, 1/r^2)
+    assert all(p.eq(0).all() for n, p in policy.vla.named_parameters() if "lora_B" in n)
+    modules = dict(policy.vla.named_modules())
+    adapted = {n.removesuffix(".base_layer") for n in modules if n.endswith(".base_layer")}
+    linear = {n.removesuffix(".base_layer") for n, m in modules.items() if type(m) is nn.Linear and "lora_" not in n}
+    used = {n for n in linear if "attn_pool" not in n}  # SigLIP's pooling head is never read
+    assert adapted == used - {"language_model.lm_head"}  # peft's all-linear: every linear layer but the head
+    # RL4VLA's PPO adapter also trains the LM head: its explicit target list (which ends in "lm_head") gives it.
+    with_head = make_policy(lora_target_modules=["q_proj", "v_proj", "lm_head"])
+    assert any(n.startswith("language_model.lm_head.lora_A") for n, _ in with_head.vla.named_parameters())
 
 
 def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
@@ -236,7 +405,9 @@ def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
         "--policy.base_model=tiny",
         "--policy.gradient_checkpointing=false",
     )
-    assert (checkpoint / "policy_postprocessor.json").exists()
+    postprocessor = json.loads((checkpoint / "policy_postprocessor.json").read_text())
+    unnormalize = next(step for step in postprocessor["steps"] if step["registry_name"] == "openvla_unnormalize_action")
+    assert unnormalize["config"]["mask"] == [True] * 6 + [False]  # the dataset's q01/q99, the gripper masked
     assert (checkpoint / "model.safetensors").stat().st_size < 5e6  # the adapter and value head, not the base
     # lerobot-eval reads the policy from the folder its Hub repo would hold.
     repo = push_policy("me/openvla_sft", checkpoint, local_dir=tmp_path / "hub")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from huggingface_hub import snapshot_download
+from huggingface_hub import hf_hub_download, snapshot_download
 from safetensors import safe_open
 from safetensors.torch import save_file
 from tokenizers import Tokenizer, decoders, models, normalizers, processors
@@ -58,6 +58,27 @@ def module_key_to_checkpoint_key(key: str) -> str:
     return re.sub(r"\.ls([12])\.gamma$", r".ls\1.scale_factor", key)
 
 
+def checkpoint_state_dict(vla: PrismaticVLA) -> dict[str, torch.Tensor]:
+    """The network's weights under the published checkpoint's names (what `build_vla` reads back)."""
+    return {module_key_to_checkpoint_key(key): tensor for key, tensor in vla.state_dict().items()}
+
+
+def select_action_stats(norm_stats: dict, unnorm_key: str | None, source: str) -> dict:
+    """The action statistics (q01, q99, mask, ...) of one dataset of a checkpoint's `norm_stats`, chosen as
+    OpenVLA's `predict_action` chooses them: `unnorm_key`, or the only dataset when there is one."""
+    names = sorted(norm_stats)
+    if unnorm_key is None:
+        if len(names) != 1:
+            raise InvalidInputError(
+                f"{source} was trained on {len(names)} datasets: pass --policy.unnorm_key=<one of {names}> to "
+                f"choose the statistics that un-normalise its actions"
+            )
+        unnorm_key = names[0]
+    if unnorm_key not in norm_stats:
+        raise InvalidInputError(f"unnorm_key={unnorm_key!r} is not among the datasets of {source}: {names}")
+    return norm_stats[unnorm_key]["action"]
+
+
 def architecture_from_config(config: dict, source: str) -> PrismaticArchitecture:
     if config.get("model_type") != "openvla":
         raise OpenVLACheckpointError(
@@ -86,20 +107,40 @@ def read_checkpoint(name_or_path: str, revision: str | None = None, init_seed: i
         return OpenVLACheckpoint(name_or_path, RANDOM_PRESETS[name_or_path](), None, tiny_tokenizer(), init_seed)
     path = Path(name_or_path)
     if not path.is_dir():
-        try:
-            path = Path(snapshot_download(name_or_path, revision=revision, allow_patterns=CHECKPOINT_PATTERNS))
-        except Exception as error:
-            raise OpenVLACheckpointError(
-                f"OpenVLA base checkpoint {name_or_path!r} is neither a local directory nor downloadable from "
-                f"the Hub ({type(error).__name__}: {error}). Pass --policy.base_model=<dir or repo id>, or "
-                f"--policy.base_model=tiny for the random tiny preset."
-            ) from error
-    config_file = path / "config.json"
-    if not config_file.exists():
-        raise OpenVLACheckpointError(f"{path} has no config.json: not an OpenVLA checkpoint")
-    config = json.loads(config_file.read_text())
+        path = from_hub(name_or_path, revision)
+    config = read_config_file(path / "config.json")
     tokenizer = LlamaTokenizerFast.from_pretrained(path)
     return OpenVLACheckpoint(str(name_or_path), config, read_safetensors(path), tokenizer)
+
+
+def read_config(name_or_path: str, revision: str | None = None) -> dict:
+    """A checkpoint's config.json (or a random preset's) without its weights, e.g. for its `norm_stats`."""
+    if name_or_path in RANDOM_PRESETS:
+        return RANDOM_PRESETS[name_or_path]()
+    path = Path(name_or_path)
+    if path.is_dir():
+        return read_config_file(path / "config.json")
+    return read_config_file(from_hub(name_or_path, revision, filename="config.json"))
+
+
+def from_hub(repo_id: str, revision: str | None, filename: str | None = None) -> Path:
+    """The checkpoint's folder (or one file of it) in the Hub cache, downloaded the first time."""
+    try:
+        if filename is not None:
+            return Path(hf_hub_download(repo_id, filename, revision=revision))
+        return Path(snapshot_download(repo_id, revision=revision, allow_patterns=CHECKPOINT_PATTERNS))
+    except Exception as error:
+        raise OpenVLACheckpointError(
+            f"OpenVLA base checkpoint {repo_id!r} is neither a local directory nor downloadable from the Hub "
+            f"({type(error).__name__}: {error}). Pass --policy.base_model=<dir or repo id>, or "
+            f"--policy.base_model=tiny for the random tiny preset."
+        ) from error
+
+
+def read_config_file(config_file: Path) -> dict:
+    if not config_file.exists():
+        raise OpenVLACheckpointError(f"{config_file.parent} has no config.json: not an OpenVLA checkpoint")
+    return json.loads(config_file.read_text())
 
 
 def read_safetensors(path: Path) -> dict[str, torch.Tensor]:
@@ -139,7 +180,7 @@ def build_vla(checkpoint: OpenVLACheckpoint, device: str | torch.device, dtype: 
             return PrismaticVLA(checkpoint.architecture)
     with torch.device(device), default_dtype(dtype):
         vla = PrismaticVLA(checkpoint.architecture)
-    expected = {module_key_to_checkpoint_key(key): tensor for key, tensor in vla.state_dict().items()}
+    expected = checkpoint_state_dict(vla)
     missing = sorted(set(expected) - set(checkpoint.state_dict))
     unexpected = sorted(set(checkpoint.state_dict) - set(expected))
     misshapen = [
@@ -219,8 +260,7 @@ def tiny_checkpoint(seed: int = 0) -> OpenVLACheckpoint:
     """The tiny preset with its weights drawn and renamed to the published keys (to write or test loading)."""
     preset = read_checkpoint(TINY, init_seed=seed)
     vla = build_vla(preset, "cpu", torch.float32)
-    state_dict = {module_key_to_checkpoint_key(key): tensor for key, tensor in vla.state_dict().items()}
-    return OpenVLACheckpoint(TINY, preset.config, state_dict, preset.tokenizer)
+    return OpenVLACheckpoint(TINY, preset.config, checkpoint_state_dict(vla), preset.tokenizer)
 
 
 def tiny_tokenizer() -> LlamaTokenizerFast:

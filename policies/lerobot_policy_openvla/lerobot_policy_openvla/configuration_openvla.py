@@ -24,11 +24,20 @@ class OpenVLAConfig(PreTrainedConfig):
         init_seed: Seed of a random preset's weights.
         camera: The image feature the model sees (OpenVLA reads one third-person image); default: the third
             view if the dataset has one, else the first camera.
+        unnorm_key: The dataset of the base checkpoint's `norm_stats` whose action statistics (q01, q99, mask)
+            normalise and un-normalise actions, as `predict_action(unnorm_key=...)` (e.g. "bridge_orig" to run
+            openvla/openvla-7b zero-shot). None: the training dataset's statistics (gripper masked, as OpenVLA's
+            fine-tuning), or, without a dataset, the base checkpoint's only dataset.
         lora_r: LoRA rank.
         lora_alpha: LoRA scaling numerator (scale = alpha / r).
         lora_dropout: Dropout on the LoRA branch.
         lora_target_modules: ["all-linear"] (every linear layer of the vision towers, projector and LLM, except
-            the LM head) or module-name suffixes understood by peft (e.g. ["q_proj", "v_proj"]).
+            the LM head, as peft's "all-linear" in OpenVLA's finetune.py) or module-name suffixes understood by
+            peft (e.g. ["q_proj", "v_proj"]). The LM head stays frozen by default: one adapter serves SFT and then
+            PPO here, and OpenVLA's SFT recipe leaves the head out. RL4VLA's PPO adapter (a fresh one on the
+            merged SFT weights) also targets it; its list is ["proj", "qkv", "fc1", "fc2", "q", "kv", "fc3",
+            "q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj", "lm_head"]. Adapters
+            start as OpenVLA's and RL4VLA's (init_lora_weights="gaussian": A ~ N(0, 1/r^2), B = 0).
         dtype: Weights of the frozen base: "bfloat16", "float32", or "auto" (bfloat16 on GPUs that support it).
         gradient_checkpointing: Recompute activations in the backward pass (needed at 7B scale).
         value_head_dims: Hidden sizes of the value MLP on the last prompt token's hidden state.
@@ -38,15 +47,17 @@ class OpenVLAConfig(PreTrainedConfig):
         optimizer_lr: Learning rate of the SFT optimiser preset.
     """
 
-    # Inputs and normalisation: images in [0, 1]; actions scaled to [-1, 1] with the dataset's q01/q99, as
-    # OpenVLA does before binning.
+    # Inputs and normalisation: images in [0, 1]; actions scaled to [-1, 1] with q01/q99 except the masked
+    # (gripper) dimension, as OpenVLA does before binning, by the processors' own steps (processor_openvla.py),
+    # so LeRobot's normaliser leaves the action alone.
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
             "VISUAL": NormalizationMode.IDENTITY,
-            "ACTION": NormalizationMode.QUANTILES,
+            "ACTION": NormalizationMode.IDENTITY,
         }
     )
     camera: str | None = None
+    unnorm_key: str | None = None
 
     # Base model.
     base_model: str = OPENVLA_7B

@@ -60,9 +60,12 @@ class OpenVLAPolicy(PreTrainedPolicy):
             self.vla.vision_backbone.fused_featurizer.set_grad_checkpointing(True)
 
     def lora_config(self) -> LoraConfig:
+        """OpenVLA's finetune.py adapter: peft's "all-linear" (every linear layer but the output one, the LM
+        head), gaussian-initialised as there and in RL4VLA (A ~ N(0, 1/r^2), B = 0)."""
         targets = self.config.lora_target_modules
         if targets == ["all-linear"]:
-            # Every linear layer the forward pass uses; SigLIP's attention-pool head is never read.
+            # peft's "all-linear" minus SigLIP's attention-pool head, which the forward pass never reads (its
+            # adapter would stay at its initial value). The LM head is left out, as peft leaves it out.
             targets = [
                 name
                 for name, module in self.vla.named_modules()
@@ -73,6 +76,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
             lora_alpha=self.config.lora_alpha,
             lora_dropout=self.config.lora_dropout,
             target_modules=targets,
+            init_lora_weights="gaussian",
         )
 
     # Checkpoints hold the trainable weights only: the LoRA adapter and the value head.
@@ -132,7 +136,8 @@ class OpenVLAPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """Greedy action tokens -> normalised actions (B, 7)."""
+        """Greedy action tokens -> normalised actions (B, 7): OpenVLA's float64 bin centres, which the
+        postprocessor un-normalises as `predict_action` does."""
         slots, _, _ = self.generate_action_slots(batch, greedy=True)
         return self.action_tokenizer.decode(self.action_tokenizer.slots_to_action_ids(slots))
 
@@ -259,7 +264,7 @@ class OpenVLAPolicy(PreTrainedPolicy):
                 f"{key} has images of shape {tuple(images.shape[1:])}, but this policy was built for "
                 f"{self.image_shape} (C, H, W)"
             )
-        return images.to(self.vla.projector.fc1.weight.dtype)
+        return images.float()  # resized and normalised in fp32, then cast to the weights' dtype (prismatic.py)
 
 
 class OpenVLAValueHead(nn.Module):

@@ -1,7 +1,7 @@
 """OpenVLA's network (Prismatic VLM) built natively on timm and transformers.
 
     image (B, 3, H, W) in [0, 1]
-      -> resize to 224, normalise twice (DINOv2's ImageNet statistics, SigLIP's 0.5/0.5)
+      -> resize to 224, normalise twice (DINOv2's ImageNet statistics, SigLIP's 0.5/0.5), in fp32, then cast
       -> DINOv2 ViT-L/14-reg4 and SigLIP So400m/14 side by side, patch features of each one's second-to-last
          block, concatenated on channels (B, 256, 1024 + 1152)
       -> projector MLP to the LLM width (B, 256, 4096)
@@ -53,6 +53,7 @@ class PrismaticVisionBackbone(nn.Module):
         self.featurizer: VisionTransformer = timm.create_model(dino_id, **common, **dino_kwargs)
         self.fused_featurizer: VisionTransformer = timm.create_model(siglip_id, **common, **siglip_kwargs)
         self.image_size = arch.image_size
+        # Exact in bf16 too (they were rounded to it), so a cast of the module keeps their values.
         self.register_buffer("dino_mean", torch.tensor(DINO_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("dino_std", torch.tensor(DINO_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -61,13 +62,16 @@ class PrismaticVisionBackbone(nn.Module):
         return self.featurizer.embed_dim + self.fused_featurizer.embed_dim
 
     def preprocess(self, images_B3HW: Tensor) -> tuple[Tensor, Tensor]:
-        """Images in [0, 1] -> the two normalised 224 px inputs (OpenVLA's "resize-naive" strategy)."""
+        """Images in [0, 1] -> the two normalised 224 px inputs (OpenVLA's "resize-naive" strategy), computed
+        in fp32 as OpenVLA's image processor does, then cast to the weights' dtype."""
+        dtype = self.featurizer.patch_embed.proj.weight.dtype
+        images_B3HW = images_B3HW.float()
         size = (self.image_size, self.image_size)
         if images_B3HW.shape[-2:] != size:
             images_B3HW = F.interpolate(images_B3HW, size=size, mode="bicubic", antialias=True).clamp(0, 1)
-        dino = (images_B3HW - self.dino_mean) / self.dino_std
+        dino = (images_B3HW - self.dino_mean.float()) / self.dino_std.float()
         siglip = (images_B3HW - 0.5) / 0.5
-        return dino, siglip
+        return dino.to(dtype), siglip.to(dtype)
 
     def forward(self, images_B3HW: Tensor) -> Tensor:
         """(B, 3, H, W) in [0, 1] -> patch features (B, N, D_dino + D_siglip)."""
