@@ -6,6 +6,7 @@ H heads, D head width, W the cache's window. Attention runs over rows of two kin
 spatial and cross-attention; P = B*S rows, one per token position, for temporal attention.
 """
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -133,8 +134,12 @@ class TemporalAttention(Attention):
         slot = cache.ring.slot
         cache.k[:, :, slot] = rotate(k, cos, sin)[:, :, 0]
         cache.v[:, :, slot] = v[:, :, 0]
-        y = F.scaled_dot_product_attention(q, cache.k, cache.v, attn_mask=cache.ring.mask())
-        return self.merge(y), None
+        # One query against `window` keys per row: two small matmuls beat the fused kernel here (a frame at batch 16
+        # on 2 CPU cores: 1.5 s against 1.75 s, measured).
+        scores = (q @ cache.k.transpose(-1, -2)) * q.shape[-1] ** -0.5
+        if (mask := cache.ring.mask()) is not None:
+            scores = scores.masked_fill(~mask, -math.inf)
+        return self.merge(scores.softmax(-1) @ cache.v), None
 
 
 class Mlp(nn.Module):
