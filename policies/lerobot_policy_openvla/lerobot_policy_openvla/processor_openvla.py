@@ -11,6 +11,7 @@ as OpenVLA's fine-tuning masks it), or from the base checkpoint's `norm_stats` w
 run the published model zero-shot. They are saved in the pipelines' JSON, so a checkpoint keeps its own.
 """
 
+from abc import abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
@@ -114,8 +115,9 @@ class OpenVLAActionStats(ProcessorStep):
         mask = torch.tensor(self.mask, dtype=torch.bool, device=action.device)
         return {**transition, TransitionKey.ACTION: self.transform(action, *stats, mask)}
 
+    @abstractmethod
     def transform(self, action: Tensor, q01: Tensor, q99: Tensor, mask: Tensor) -> Tensor:
-        raise NotImplementedError
+        """The normalisation (or its inverse) that the subclass applies with these statistics."""
 
     def get_config(self) -> dict[str, Any]:
         return {"q01": self.q01, "q99": self.q99, "mask": self.mask}
