@@ -378,6 +378,21 @@ def test_bf16_preprocessing_is_fp32_then_cast():
     assert actions.shape == (3, 7) and torch.isfinite(actions).all()
 
 
+@pytest.mark.gpu
+def test_bf16_preprocessing_on_gpu_is_fp32_then_cast():
+    """On a GPU the bf16 path used to normalise in bf16 and differ from OpenVLA's fp32-then-cast by up to 0.016."""
+    architecture = read_checkpoint("tiny").architecture
+    backbones = {}
+    for dtype in (torch.float32, torch.bfloat16):
+        torch.manual_seed(0)
+        with torch.device("cuda"), default_dtype(dtype):
+            backbones[dtype] = PrismaticVisionBackbone(architecture)
+    images = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0)).cuda()
+    reference = backbones[torch.float32].preprocess(images)
+    for fp32, bf16 in zip(reference, backbones[torch.bfloat16].preprocess(images), strict=True):
+        assert bf16.dtype == torch.bfloat16 and torch.equal(bf16, fp32.to(torch.bfloat16))
+
+
 def test_lora_is_gaussian_initialised_and_leaves_the_lm_head():
     policy = make_policy()
     assert policy.lora_config().init_lora_weights == "gaussian"

@@ -96,6 +96,17 @@ def test_cached_generation_equals_recomputing_the_window(control):
     torch.testing.assert_close(done_cached, done_full)
 
 
+@pytest.mark.gpu
+def test_cached_generation_on_gpu_equals_recomputing_the_window():
+    model = make_model("action", window=6).cuda()
+    batch = random_batch(T=6)
+    prompt, actions = batch["tokens"][:, :1].cuda(), batch["actions"][:, :5].cuda()
+    cached, done_cached = model.generate(prompt, 5, actions=actions, use_cache=True)  # fills the window
+    full, done_full = model.generate(prompt, 5, actions=actions, use_cache=False)
+    assert torch.equal(cached, full)
+    torch.testing.assert_close(done_cached, done_full)
+
+
 def test_long_rollout_stays_finite_with_a_bounded_cache():
     model = make_model("action")
     g = torch.Generator().manual_seed(1)
