@@ -3,7 +3,9 @@ observe known frames, slide the window.
 
 With the key/value cache (the default) a new frame is computed against the cached keys and values of the frames
 before it. Without it, every step re-reads the whole window of past frames, as the paper's code (1xgpt's
-`STMaskGIT.generate`) does; both give the same tokens.
+`STMaskGIT.generate`) does. Both give the same tokens while the rollout fits in the window; past it, a cached frame
+keeps the keys and values it was computed with (its own window of context), where recomputing re-reads the oldest
+frames of the window without theirs.
 """
 
 import math
