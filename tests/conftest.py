@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from lerobot_roboscape.demos.collect import CollectConfig, collect
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 
 IMAGE_SIZE = 32
 # Session fixtures that run the simulator (a collection, a recorded file) or a command; a test using one is slow.
@@ -219,3 +220,25 @@ def mlp_checkpoint(demo_dataset, tmp_path_factory):
         "--eval.n_episodes=1",
         "--eval.batch_size=1",
     )
+
+
+@pytest.fixture
+def env_config(demo_dataset, trained_tokenizer, world_models):
+    """A `roboscape_wm` config on the test models and data, with small horizons; overrides as keywords."""
+    _, root = demo_dataset
+
+    def make(**overrides):
+        kwargs = dict(
+            dataset_repo_id="test/demos",
+            dataset_root=str(root),
+            tokenizer=str(trained_tokenizer),
+            action_world_model=str(world_models["action"]),
+            text_world_model=str(world_models["text"]),
+            image_size=IMAGE_SIZE,
+            allow_random_lpips=True,
+            episode_length=6,
+            max_goal_steps=4,
+        )
+        return RoboscapeWorldModelEnvConfig(**{**kwargs, **overrides})
+
+    return make

@@ -7,32 +7,10 @@ from gymnasium.utils.env_checker import check_env
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
-from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from tests.conftest import IMAGE_SIZE
-
-
-@pytest.fixture
-def env_config(demo_dataset, trained_tokenizer, world_models):
-    _, root = demo_dataset
-
-    def make(**overrides):
-        kwargs = dict(
-            dataset_repo_id="test/demos",
-            dataset_root=str(root),
-            tokenizer=str(trained_tokenizer),
-            action_world_model=str(world_models["action"]),
-            text_world_model=str(world_models["text"]),
-            image_size=IMAGE_SIZE,
-            allow_random_lpips=True,
-            episode_length=6,
-            max_goal_steps=4,
-        )
-        return RoboscapeWorldModelEnvConfig(**{**kwargs, **overrides})
-
-    return make
 
 
 def test_gymnasium_env_checker(env_config):

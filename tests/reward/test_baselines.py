@@ -5,7 +5,6 @@ import torch
 
 from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.writer import read_episode_info
-from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
@@ -70,24 +69,10 @@ def test_reward_model_round_trip_and_bad_input(tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["embedding", "proxy"])
-def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained_tokenizer, world_models):
-    _, root = demo_dataset
+def test_env_uses_the_baseline_reward(kind, reward_models, env_config):
     dirs, _ = reward_models
-    common = dict(
-        dataset_repo_id="test/demos",
-        dataset_root=str(root),
-        tokenizer=str(trained_tokenizer),
-        action_world_model=str(world_models["action"]),
-        text_world_model=str(world_models["text"]),
-        image_size=IMAGE_SIZE,
-        allow_random_lpips=True,
-        episode_length=3,
-        max_goal_steps=2,
-        theta=1.0,
-    )
-    env = RoboscapeWorldModelEnv(
-        RoboscapeWorldModelEnvConfig(reward_type=kind, reward_model=str(dirs[kind]), **common), num_envs=2
-    )
+    small = dict(episode_length=3, max_goal_steps=2, theta=1.0)
+    env = RoboscapeWorldModelEnv(env_config(reward_type=kind, reward_model=str(dirs[kind]), **small), num_envs=2)
     env.reset(seed=0)
     _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
     model = RewardModel.from_pretrained(dirs[kind]).eval()
@@ -96,9 +81,9 @@ def test_env_uses_the_baseline_reward(kind, reward_models, demo_dataset, trained
     np.testing.assert_allclose(reward, expected.numpy(), rtol=1e-5, atol=1e-6)
     other = "proxy" if kind == "embedding" else "embedding"
     with pytest.raises(ValueError, match=f"is a {kind} reward model"):
-        RoboscapeWorldModelEnv(RoboscapeWorldModelEnvConfig(reward_type=other, reward_model=str(dirs[kind]), **common))
+        RoboscapeWorldModelEnv(env_config(reward_type=other, reward_model=str(dirs[kind]), **small))
     with pytest.raises(ValueError, match="needs reward_model"):
-        RoboscapeWorldModelEnvConfig(reward_type=kind, **common)
+        env_config(reward_type=kind, **small)
 
 
 def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_models, token_cache, tmp_path):
