@@ -21,7 +21,7 @@ import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.atomic import write_text_atomically
-from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, LAST, last_checkpoint
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect
@@ -442,7 +442,7 @@ def lerobot_sft(
         start(output_dir)
         run_lerobot("lerobot_train", args)
         mark_done(output_dir, args)
-    return output_dir / "checkpoints" / "last" / "pretrained_model"
+    return output_dir / CHECKPOINTS / LAST / FINAL  # lerobot-train links `last` to its newest checkpoint
 
 
 def lerobot_eval(
