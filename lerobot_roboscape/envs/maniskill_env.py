@@ -2,7 +2,8 @@
 
 Same camera names, image size, 7-D actions and task strings, so one policy runs in both. Each of the B slots holds
 one ManiSkill env of a task family (families are dealt to slots in turn) and is reset into a scene drawn from the
-selected split/scenes. The reward has the world-model reward's shape, with the simulator in place of the models:
+selected split/scenes. The slots' ManiSkill envs live in worker processes (`config.workers`, see
+envs/simulator_slots.py) and the policy's whole batch steps them at once. The reward has the world-model reward's shape, with the simulator in place of the models:
 alpha * sparse_reward while the task is accomplished + beta * the task's normalised dense reward (the rule-based
 reward of the paper's baselines). As in `roboscape_wm`, episodes run a fixed horizon and `is_success` is success
 at any step (`EpisodeBook`); an ended episode stays frozen until the next reset, which restarts all slots.
@@ -12,13 +13,12 @@ import gymnasium as gym
 import numpy as np
 
 from lerobot_roboscape.dataset.reader import family_horizons, open_dataset
-from lerobot_roboscape.demos.rollout import observation_images, observation_state
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
-from lerobot_roboscape.envs.configs import STATE_DIM
+from lerobot_roboscape.envs.simulator_slots import Slots, SlotSpec, SlotWorkers, make_slots
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES, select_scenes
-from lerobot_roboscape.tasks.make import make_task_env
+from lerobot_roboscape.tasks.base import STATE_DIM
 
 
 def task_horizons(config, families: list[str]) -> dict[str, int]:
@@ -32,27 +32,37 @@ def task_horizons(config, families: list[str]) -> dict[str, int]:
     return {f: from_dataset.get(f) or gym.spec(ENV_IDS[f]).max_episode_steps for f in families}
 
 
+def slot_families(config, num_envs: int) -> list[str]:
+    """The task family of each parallel env: the config's families dealt in turn."""
+    families = list(config.families) or list(TASK_FAMILIES)
+    return [families[i % len(families)] for i in range(num_envs)]
+
+
+def build_slots(config, num_envs: int) -> Slots | SlotWorkers:
+    """The ManiSkill envs of a `RoboscapeManiSkillEnv` of `num_envs` episodes, to hand to several of them in turn
+    (splits, checkpoints) when they share families and image size: built once, they save each env's start-up."""
+    spec = SlotSpec(select_scenes("all")[0].id, config.image_size, SLOT_TIME_LIMIT, config.light_wrist_camera)
+    return make_slots(slot_families(config, num_envs), spec, config.resolved_workers(num_envs))
+
+
+# The slots' own time limit, above every horizon: episodes are cut by the env's horizons (EpisodeBook).
+SLOT_TIME_LIMIT = 100_000
+
+
 class RoboscapeManiSkillEnv(BatchedEnv):
-    def __init__(self, config, num_envs: int = 1):
-        """config: a `RoboscapeManiSkillEnvConfig` (see envs/configs.py)."""
+    def __init__(self, config, num_envs: int = 1, slots: Slots | SlotWorkers | None = None):
+        """config: a `RoboscapeManiSkillEnvConfig` (see envs/configs.py). slots: envs made by `build_slots` with the
+        same families, image size and num_envs, which this env uses and leaves open (default: its own)."""
         self.config, self.num_envs = config, num_envs
         families = list(config.families) or list(TASK_FAMILIES)
         self.scenes = select_scenes(config.split or "all", list(config.scenes) or None)
         if not self.scenes:
             raise InvalidInputError(f"no scene matches split={config.split!r} scenes={config.scenes}")
-        self.slot_families = [families[i % len(families)] for i in range(num_envs)]
+        self.slot_families = slot_families(config, num_envs)
         horizons = task_horizons(config, families)
         self.horizons = np.array([horizons[f] for f in self.slot_families])
-        self.envs = [
-            make_task_env(
-                family,
-                self.scenes[0].id,
-                image_size=config.image_size,
-                max_episode_steps=horizons[family],
-                reward_mode="normalized_dense",
-            )
-            for family in self.slot_families
-        ]
+        self._owns_slots = slots is None
+        self.slots = build_slots(config, num_envs) if slots is None else slots
         size = config.image_size
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in config.cameras}
         spaces = {"pixels": gym.spaces.Dict(pixels)}
@@ -70,7 +80,7 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             f"+ {config.beta} x the task's normalised dense reward"
         )
         self._rng = np.random.default_rng(config.seed)
-        self._obs = None
+        self._images = None
 
     def reset(self, *, seed=None, options=None):
         options = options or {}
@@ -83,45 +93,38 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             else [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
         )
         episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
-        self._obs = []
-        self._state = np.zeros((self.num_envs, STATE_DIM), np.float32)
-        for env, scene_id, s in zip(self.envs, scene_ids, episode_seeds, strict=True):
-            obs, _ = env.reset(seed=int(s), options={"scene_id": str(scene_id)})
-            self._obs.append(observation_images(obs))
-            self._state[len(self._obs) - 1] = observation_state(obs)
-        self._tasks = [env.unwrapped.instruction for env in self.envs]
+        images, state, self._tasks = self.slots.reset(episode_seeds, scene_ids)
+        self._images, self._state = {cam: images[cam].copy() for cam in self.config.cameras}, state.copy()
         self._book = EpisodeBook(self.horizons, self.config.terminate_on_success, self._max_step_reward)
         return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids)}
 
     def step(self, actions):
-        if self._obs is None:
+        if self._images is None:
             raise RuntimeError("call reset() before step()")
         actions, clipped = self._check_actions(actions)
-        reward = np.zeros(self.num_envs, dtype=np.float32)
-        success = np.zeros(self.num_envs, dtype=bool)
-        for i in np.flatnonzero(~self._book.finished):  # ended episodes are not simulated any more
-            obs, dense, _, _, info = self.envs[i].step(actions[i])
-            self._obs[i] = observation_images(obs)
-            self._state[i] = observation_state(obs)
-            success[i] = bool(info["success"][0])
-            reward[i] = self.config.alpha * self.config.sparse_reward * success[i] + self.config.beta * float(dense[0])
-        reward = self._book.step(reward, success)
+        # Ended episodes are not simulated any more.
+        images, state, dense, success = self.slots.step(actions, ~self._book.finished)
+        self._images, self._state = {cam: images[cam].copy() for cam in self.config.cameras}, state.copy()
+        reward = self.config.alpha * self.config.sparse_reward * success + self.config.beta * dense
+        reward = self._book.step(reward.astype(np.float32), success)
         info = {"is_success": self._book.succeeded.copy(), "clipped_actions": clipped}
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
     def _observation(self) -> dict:
-        obs = {"pixels": {cam: np.stack([o[cam] for o in self._obs]) for cam in self.config.cameras}}
+        obs = {"pixels": {cam: image.copy() for cam, image in self._images.items()}}
         if self.config.include_state:
             obs["agent_pos"] = self._state.copy()
         return obs
 
     def render(self) -> tuple[np.ndarray, ...]:
         """Per episode: its camera views stacked vertically."""
-        return tuple(np.concatenate([o[cam] for cam in self.config.cameras], axis=0) for o in self._obs)
+        return tuple(
+            np.concatenate([self._images[cam][i] for cam in self.config.cameras]) for i in range(self.num_envs)
+        )
 
     def tasks(self) -> tuple[str, ...]:
-        return tuple(self._tasks) if self._obs is not None else ("",) * self.num_envs
+        return tuple(self._tasks) if self._images is not None else ("",) * self.num_envs
 
     def close_extras(self, **kwargs):
-        for env in self.envs:
-            env.close()
+        if self._owns_slots:
+            self.slots.close()

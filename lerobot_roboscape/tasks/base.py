@@ -20,6 +20,7 @@ from mani_skill.utils.structs.pose import Pose
 from transforms3d.euler import euler2quat
 
 from lerobot_roboscape.tasks.scenes import SCENES, ContainerSpec, ObjectSpec, TableSpec, get_scene
+from lerobot_roboscape.tasks.wrist_camera_mesh import lighten_wrist_camera
 
 # The robot's interface, as datasets record it and policies see it.
 # ManiSkill sensor uid -> camera name used in datasets and env observations.
@@ -30,6 +31,7 @@ STATE_NAMES = (
     + ["finger_left", "finger_right"]
     + ["tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
 )
+STATE_DIM = len(STATE_NAMES)
 # `action` of the pd_ee_delta_pose controller, each in [-1, 1]: position and rotation deltas, gripper.
 ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 CONTROL_FREQ = 20  # Hz, ManiSkill's tabletop default: the fps of datasets, envs and videos
@@ -100,7 +102,9 @@ class RoboscapeTabletopEnv(BaseEnv):
 
     Subclasses set `family` and implement `_initialize_episode`, `evaluate` and `compute_dense_reward`.
     The scene is chosen by `scene_id` at construction, or changed later with
-    `reset(options={"scene_id": ...})`. Every reset rebuilds the scene.
+    `reset(options={"scene_id": ...})`. Every reset rebuilds the scene. `light_wrist_camera` (default) renders the
+    wrist camera's body with a light mesh (tasks/wrist_camera_mesh.py: 3.5x faster software rendering); False
+    renders ManiSkill's own.
     """
 
     SUPPORTED_ROBOTS = ["panda_wristcam"]
@@ -117,10 +121,17 @@ class RoboscapeTabletopEnv(BaseEnv):
     object_spawn_y = (-0.14, 0.14)
 
     def __init__(
-        self, *args, scene_id: str = SCENES[0].id, robot_uids="panda_wristcam", robot_init_qpos_noise=0.02, **kwargs
+        self,
+        *args,
+        scene_id: str = SCENES[0].id,
+        robot_uids="panda_wristcam",
+        robot_init_qpos_noise=0.02,
+        light_wrist_camera: bool = True,
+        **kwargs,
     ):
         self.scene_spec = get_scene(scene_id)
         self.robot_init_qpos_noise = robot_init_qpos_noise
+        self.light_wrist_camera = light_wrist_camera
         super().__init__(*args, robot_uids=robot_uids, **kwargs)
 
     @property
@@ -155,6 +166,8 @@ class RoboscapeTabletopEnv(BaseEnv):
     # Scene.
     def _load_agent(self, options: dict):
         super()._load_agent(options, sapien.Pose(p=list(ROBOT_BASE_XYZ)))
+        if self.light_wrist_camera:
+            lighten_wrist_camera(self.agent)
 
     def _load_scene(self, options: dict):
         build_table(self, self.scene_spec.table)
