@@ -3,10 +3,11 @@
 Same camera names, image size, 7-D actions and task strings, so one policy runs in both. Each of the B slots holds
 one ManiSkill env of a task family (families are dealt to slots in turn) and is reset into a scene drawn from the
 selected split/scenes. The slots' ManiSkill envs live in worker processes (`config.workers`, see
-envs/simulator_slots.py) and the policy's whole batch steps them at once. The reward has the world-model reward's shape, with the simulator in place of the models:
-alpha * sparse_reward while the task is accomplished + beta * the task's normalised dense reward (the rule-based
-reward of the paper's baselines). As in `roboscape_wm`, episodes run a fixed horizon and `is_success` is success
-at any step (`EpisodeBook`); an ended episode stays frozen until the next reset, which restarts all slots.
+envs/simulator_slots.py) and the policy's whole batch steps them at once. The reward has the world-model reward's
+shape, with the simulator in place of the models: alpha * sparse_reward while the task is accomplished + beta * the
+task's normalised dense reward (the rule-based reward of the paper's baselines). As in `roboscape_wm`, episodes run
+a fixed horizon and `is_success` is success at any step (`EpisodeBook`); an ended episode stays frozen until the
+next reset, which restarts all slots.
 """
 
 import gymnasium as gym

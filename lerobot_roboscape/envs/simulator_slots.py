@@ -9,6 +9,7 @@ family, scene and seed, never on the worker or the episodes before it: any numbe
 episodes, bit for bit.
 """
 
+import contextlib
 import multiprocessing as mp
 import os
 import traceback
@@ -158,10 +159,8 @@ class SlotWorkers:
 
     def close(self) -> None:
         for connection in self.connections:
-            try:
+            with contextlib.suppress(BrokenPipeError, OSError):
                 connection.send(("close", ()))
-            except (BrokenPipeError, OSError):
-                pass
         for process in self.processes:
             process.join(timeout=30)
             if process.is_alive():
