@@ -37,6 +37,7 @@ class EvalConfig:
     image_size: camera image side (0: the policy's).
     seed: seed of the initial states; the datasets' episodes use small seeds, so the default is far from them.
     videos: episodes recorded per split (the first batch's).
+    workers: simulator processes the batch is spread over (null: one per CPU core).
     output_dir: eval.json, eval.md and videos/ (and splits/, each split's result as soon as it is complete).
     device: "auto", "cpu" or "cuda".
     resume: continue an interrupted evaluation in output_dir, keeping the splits it completed.
@@ -53,6 +54,7 @@ class EvalConfig:
     image_size: int = 0
     seed: int = 100_000
     videos: int = 2
+    workers: int | None = None
     output_dir: Path = Path("outputs/eval")
     device: str = "auto"
     resume: bool = False
@@ -99,10 +101,30 @@ def run_episodes(env, policy, io: PolicyIO, seed: int, record: bool = False) -> 
     return success, frames
 
 
-def evaluate_success(cfg: EvalConfig) -> dict:
-    """Evaluate, write eval.json / eval.md / videos under output_dir, and return the results."""
-    from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
-    from lerobot_roboscape.rl.ppo import write_video
+def eval_env_config(cfg: EvalConfig, split: str, image_size: int) -> RoboscapeManiSkillEnvConfig:
+    # Success at any step is what counts, so an episode can stop at its first success.
+    return RoboscapeManiSkillEnvConfig(
+        families=list(cfg.families) or list(TASK_FAMILIES),
+        split=split,
+        image_size=image_size,
+        episode_length=cfg.episode_length,
+        terminate_on_success=True,
+        dataset_repo_id=cfg.dataset_repo_id,
+        dataset_root=cfg.dataset_root,
+        workers=cfg.workers,
+        seed=cfg.seed,
+    )
+
+
+def eval_batch_size(cfg: EvalConfig) -> int:
+    return min(cfg.batch_size, cfg.episodes * len(cfg.families or TASK_FAMILIES))
+
+
+def evaluate_success(cfg: EvalConfig, slots=None) -> dict:
+    """Evaluate, write eval.json / eval.md / videos under output_dir, and return the results. slots: the simulator's
+    envs from `build_slots` (of `eval_env_config(cfg, ...)` and `eval_batch_size(cfg)`), to share them between
+    evaluations; by default the evaluation builds its own, once for all its splits."""
+    from lerobot_roboscape.envs.maniskill_env import build_slots
 
     done = completed_splits(cfg)
     device = resolve_device(cfg.device)
@@ -112,44 +134,49 @@ def evaluate_success(cfg: EvalConfig) -> dict:
     image_size = cfg.image_size or next(
         feature.shape[-1] for feature in policy.config.input_features.values() if len(feature.shape) == 3
     )
-    families = list(cfg.families) or list(TASK_FAMILIES)
     results = {"policy": cfg.policy_path, "episode_length": cfg.episode_length or "per family", "splits": {}}
-    for split in cfg.splits:
-        if split in done:
-            results["splits"][split] = done[split]
-            continue
-        # Success at any step is what counts, so an episode can stop at its first success.
-        env_cfg = RoboscapeManiSkillEnvConfig(
-            families=families,
-            split=split,
-            image_size=image_size,
-            episode_length=cfg.episode_length,
-            terminate_on_success=True,
-            dataset_repo_id=cfg.dataset_repo_id,
-            dataset_root=cfg.dataset_root,
-            seed=cfg.seed,
-        )
-        check_policy_fits_env(policy, env_cfg, cfg.policy_path)
-        env = RoboscapeManiSkillEnv(env_cfg, num_envs=min(cfg.batch_size, cfg.episodes * len(families)))
-        outcomes = {family: [] for family in families}
-        batches = math.ceil(cfg.episodes * len(families) / env.num_envs)
-        for k in tqdm(range(batches), desc=f"eval {split}", leave=False):
-            record = k == 0 and cfg.videos > 0
-            success, frames = run_episodes(env, policy, io, seed=cfg.seed + 7919 * k, record=record)
-            for family, ok in zip(env.slot_families, success, strict=True):
-                if len(outcomes[family]) < cfg.episodes:
-                    outcomes[family].append(bool(ok))
-            if record:
-                clip = [frame[:, : frame.shape[1] * cfg.videos // env.num_envs] for frame in frames]
-                write_video(cfg.output_dir / "videos" / f"{split}.mp4", clip, env.metadata["render_fps"])
-        env.close()
-        results["splits"][split] = {family: summarise(o) for family, o in outcomes.items()}
-        results["splits"][split]["all"] = summarise([x for o in outcomes.values() for x in o])
-        write_text_atomically(cfg.output_dir / SPLITS / f"{split}.json", json.dumps(results["splits"][split]))
+    own_slots = None
+    try:
+        for split in cfg.splits:
+            if split in done:
+                results["splits"][split] = done[split]
+                continue
+            env_cfg = eval_env_config(cfg, split, image_size)
+            check_policy_fits_env(policy, env_cfg, cfg.policy_path)
+            if slots is None:
+                slots = own_slots = build_slots(env_cfg, eval_batch_size(cfg))
+            results["splits"][split] = evaluate_split(cfg, env_cfg, slots, policy, io)
+            write_text_atomically(cfg.output_dir / SPLITS / f"{split}.json", json.dumps(results["splits"][split]))
+    finally:
+        if own_slots is not None:
+            own_slots.close()
     # The tables appear only complete: a killed evaluation leaves its finished splits, never a partial eval.json.
     write_text_atomically(cfg.output_dir / "eval.json", json.dumps(results, indent=2))
     write_text_atomically(cfg.output_dir / "eval.md", markdown_table(results))
     return results
+
+
+def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots, policy, io: PolicyIO) -> dict:
+    """{family: cell, "all": cell} of one split, its episodes run in batches on `slots`."""
+    from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
+    from lerobot_roboscape.rl.ppo import write_video
+
+    env = RoboscapeManiSkillEnv(env_cfg, num_envs=eval_batch_size(cfg), slots=slots)
+    outcomes = {family: [] for family in env_cfg.families}
+    batches = math.ceil(cfg.episodes * len(env_cfg.families) / env.num_envs)
+    for k in tqdm(range(batches), desc=f"eval {env_cfg.split}", leave=False):
+        record = k == 0 and cfg.videos > 0
+        success, frames = run_episodes(env, policy, io, seed=cfg.seed + 7919 * k, record=record)
+        for family, ok in zip(env.slot_families, success, strict=True):
+            if len(outcomes[family]) < cfg.episodes:
+                outcomes[family].append(bool(ok))
+        if record:
+            clip = [frame[:, : frame.shape[1] * cfg.videos // env.num_envs] for frame in frames]
+            write_video(cfg.output_dir / "videos" / f"{env_cfg.split}.mp4", clip, env.metadata["render_fps"])
+    env.close()
+    cells = {family: summarise(o) for family, o in outcomes.items()}
+    cells["all"] = summarise([x for o in outcomes.values() for x in o])
+    return cells
 
 
 def completed_splits(cfg: EvalConfig) -> dict[str, dict]:

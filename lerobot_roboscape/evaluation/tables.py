@@ -35,7 +35,7 @@ def format_table(results: dict, families: list[str], title: str) -> str:
         + " |"
     )
     lines = [
-        f"{title}: success rate (%) in the ManiSkill simulator [95% Wilson interval], episodes per cell: "
+        f"{title}: success rate (%) in the ManiSkill simulator [95% Wilson interval] (its width), episodes per cell: "
         f"{_episodes(results)}",
         "",
         header,
@@ -50,7 +50,7 @@ def format_table(results: dict, families: list[str], title: str) -> str:
 
 def _cell(cell: dict) -> str:
     low, high = cell["ci95"]
-    return f"{100 * cell['success_rate']:.0f} [{100 * low:.0f}, {100 * high:.0f}]"
+    return f"{100 * cell['success_rate']:.0f} [{100 * low:.0f}, {100 * high:.0f}] ({100 * (high - low):.0f})"
 
 
 def _episodes(results: dict) -> str:

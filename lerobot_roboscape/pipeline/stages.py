@@ -2,17 +2,13 @@
 and returns what it made. A stage writes into its own folder under output_dir and, once complete, a stage.json with
 the settings it ran with; a rerun with the same settings skips it (so a killed run resumes where it stopped)."""
 
-import contextlib
 import json
 import logging
-import os
 import shutil
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
-from multiprocessing import get_context
 from pathlib import Path
 
 import av
@@ -27,10 +23,17 @@ from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.maniskill_env import build_slots
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, plot_rollout_rewards, write_reward_report
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success, markdown_table
+from lerobot_roboscape.evaluation.success_rate import (
+    EvalConfig,
+    eval_batch_size,
+    eval_env_config,
+    evaluate_success,
+    markdown_table,
+)
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.reward.baselines import RewardModelConfig
 from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConfig, train_reward_model
@@ -601,18 +604,13 @@ def rl(
 
 # ---- evaluation in the simulator ---------------------------------------------------------------------------------
 
-
-def _evaluate_quietly(cfg: EvalConfig) -> dict:
-    import torch
-
-    torch.set_num_threads(1)  # side by side with other evaluations: one core each
-    with contextlib.redirect_stderr(open(os.devnull, "w")):
-        return evaluate_success(cfg)
+EVAL_BATCH_SIZE = 8  # parallel episodes of each simulator evaluation
 
 
 def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
-    """Success of every checkpoint in the simulator, IND and OOD (95% Wilson intervals); evaluations run
-    `workers` at a time, one per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
+    """Success of every checkpoint in the simulator, IND and OOD (95% Wilson intervals), one evaluation per
+    (checkpoint, split), one after another on the same simulator envs (built once, spread over `workers`
+    processes). Returns {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
@@ -622,26 +620,27 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: 
                     families=cfg.families,
                     splits=[split],
                     episodes=cfg.table_episodes,
-                    batch_size=min(8, len(cfg.families) * cfg.table_episodes),
+                    batch_size=EVAL_BATCH_SIZE,
                     episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
                     dataset_repo_id=data.train.repo_id,
                     dataset_root=data.train.root,
                     image_size=cfg.image_size,
                     videos=2,
+                    workers=cfg.workers,
                     output_dir=out / eval_dir(name, method) / split,
                     device=cfg.device,
                 )
     pending = {key: job for key, job in jobs.items() if not is_done(job.output_dir, job, cfg.fresh)}
-    for job in pending.values():
-        start(job.output_dir)
-    if cfg.workers > 1 and len(pending) > 1:
-        with ProcessPoolExecutor(min(cfg.workers, len(pending)), mp_context=get_context("spawn")) as pool:
-            for job, _ in zip(pending.values(), pool.map(_evaluate_quietly, pending.values()), strict=True):
+    if pending:
+        first = next(iter(pending.values()))
+        slots = build_slots(eval_env_config(first, "ind", cfg.image_size), eval_batch_size(first))
+        try:
+            for job in pending.values():
+                start(job.output_dir)
+                evaluate_success(job, slots)
                 mark_done(job.output_dir, job)
-    else:
-        for job in pending.values():
-            evaluate_success(job)
-            mark_done(job.output_dir, job)
+        finally:
+            slots.close()
     results = {}
     for (name, method, split), job in jobs.items():
         cells = json.loads((job.output_dir / "eval.json").read_text())["splits"][split]
