@@ -13,7 +13,14 @@ import torch
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import ActionScorer, PPOConfig, collect_rollout, make_optimizer, update
+from lerobot_roboscape.rl.ppo import (
+    ActionScorer,
+    PPOConfig,
+    RunningReturnStats,
+    collect_rollout,
+    make_optimizer,
+    update,
+)
 
 
 def measure(env_cfg, checkpoint: Path, batch_size: int, iterations: int) -> tuple[float, float]:
@@ -26,13 +33,13 @@ def measure(env_cfg, checkpoint: Path, batch_size: int, iterations: int) -> tupl
     scorer, optimizer = accelerator.prepare(ActionScorer(policy), make_optimizer(policy, cfg))
     env = env_cfg.create_envs(batch_size)[env_cfg.type][0]
     collect_rollout(env, policy, io, seed=0)  # warm-up (goals of the world-model env are cached from here on)
-    steps, rollout_s, total_s = 0, 0.0, 0.0
+    steps, rollout_s, total_s, stats = 0, 0.0, 0.0, RunningReturnStats()
     for i in range(iterations):
         torch.manual_seed(i)
         start = time.perf_counter()
         rollout = collect_rollout(env, policy, io, seed=i)
         rollout_s += time.perf_counter() - start
-        update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(i))
+        update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(i), stats, False)
         total_s += time.perf_counter() - start
         steps += int(rollout.alive.sum())
     env.close()
