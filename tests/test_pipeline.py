@@ -71,3 +71,37 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met["roboscape_mlp PPO in WM vs Supervised finetune, IND (all families)"]
     assert not met["roboscape_mlp PPO in WM vs Supervised finetune, OOD (all families)"]  # equal is not higher
     assert met["roboscape_mlp PPO in WM vs RL w. ManiSkill, OOD (all families)"]
+
+
+def report_markdown(scale: str, **overrides) -> str:
+    from lerobot_roboscape.pipeline.config import PipelineConfig
+    from lerobot_roboscape.pipeline.report import markdown
+
+    cfg = PipelineConfig(scale=scale, families=["push"], **overrides)
+    table = {"roboscape_mlp": {stages.SFT: {s: {"push": cell(0.0, 50), "all": cell(0.0, 50)} for s in ("ind", "ood")}}}
+    results = {
+        "machine": "2 CPU cores",
+        "date": "2026-11-24",
+        "targets": {"tokenizer held-out reconstruction PSNR (dB)": {"value": 20.0, "goal": ">= 26.0", "met": False}},
+        "stage_seconds": {"simulator evaluation (2 jobs one after another, on 2 simulator processes)": 120.0},
+        "reward": {},
+        "similarity": "tokenizer",
+    }
+    return markdown(cfg, results, table)
+
+
+def test_a_scale_too_small_to_judge_says_so_instead_of_missing_every_target():
+    tiny = report_markdown("tiny")
+    assert "**no**" not in tiny and "none is judged here" in tiny
+    assert "None" not in tiny and "0 OOD scenes" not in tiny  # no PPO time budget, no held-out scenes
+    assert "same number of iterations (2)" in tiny and "collects no held-out OOD episodes" in tiny
+    bench = report_markdown("bench", device="cpu")
+    assert "| tokenizer held-out reconstruction PSNR (dB) | 20.000 | >= 26.0 | **no** |" in bench
+    assert "8 OOD scenes" in bench and "(4 min)" in bench
+
+
+def test_the_report_gives_each_cells_interval_width_and_the_evaluation_time():
+    bench = report_markdown("bench", device="cpu")
+    assert "0 [0, 7] (7)" in bench  # 0 of 50: the 95% Wilson interval [0, 7.1]
+    assert "Each cell rests on 50 episodes; its 95% interval is 7 to 7 points wide" in bench
+    assert "The evaluation took 2.0 min" in bench

@@ -9,6 +9,7 @@ import numpy as np
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
+from lerobot_roboscape.tasks.make import make_task_env, one_thread_per_process
 
 SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest
 # Suboptimal plans with detours at low speed outlast the tasks' RL time limits; the plan ends the episode.
@@ -22,6 +23,7 @@ class EpisodeJob:
     seed: int
     kind: str  # of the plan, one of planner.KINDS: "optimal", "suboptimal" or "failed"
     image_size: int
+    light_wrist_camera: bool = True  # render the wrist camera's body with the light mesh (tasks/wrist_camera_mesh.py)
 
 
 def observation_state(obs: dict) -> np.ndarray:
@@ -89,12 +91,14 @@ _worker_envs: dict = {}
 
 
 def _worker_run(job: EpisodeJob) -> Episode:
-    from lerobot_roboscape.tasks.make import make_task_env
-
-    key = (job.family, job.image_size)
+    key = (job.family, job.image_size, job.light_wrist_camera)
     if key not in _worker_envs:
         _worker_envs[key] = make_task_env(
-            job.family, job.scene_id, image_size=job.image_size, max_episode_steps=COLLECT_MAX_STEPS
+            job.family,
+            job.scene_id,
+            image_size=job.image_size,
+            max_episode_steps=COLLECT_MAX_STEPS,
+            light_wrist_camera=job.light_wrist_camera,
         )
     return run_planned_episode(_worker_envs[key], job)
 
@@ -106,5 +110,5 @@ def run_jobs(jobs: list[EpisodeJob], workers: int = 2) -> Iterator[Episode]:
             yield _worker_run(job)
         return
     # SAPIEN's renderer does not survive fork; spawn clean interpreters.
-    with mp.get_context("spawn").Pool(workers) as pool:
+    with mp.get_context("spawn").Pool(workers, initializer=one_thread_per_process) as pool:
         yield from pool.imap(_worker_run, jobs, chunksize=1)

@@ -11,7 +11,6 @@ episodes, bit for bit.
 
 import contextlib
 import multiprocessing as mp
-import os
 import traceback
 from dataclasses import dataclass
 
@@ -19,6 +18,7 @@ import numpy as np
 
 from lerobot_roboscape.demos.rollout import observation_images, observation_state
 from lerobot_roboscape.tasks.base import STATE_DIM
+from lerobot_roboscape.tasks.make import make_task_env, one_thread_per_process
 
 
 @dataclass(frozen=True)
@@ -43,8 +43,6 @@ class Slots:
     ({camera: (k, H, W, 3) uint8}) and `state` ((k, STATE_DIM) float32) hold every slot's latest observation."""
 
     def __init__(self, families: list[str], spec: SlotSpec):
-        from lerobot_roboscape.tasks.make import make_task_env
-
         self.envs = [
             make_task_env(
                 family,
@@ -91,12 +89,7 @@ class Slots:
 
 def _serve(connection, families: list[str], spec: SlotSpec) -> None:
     """A worker's loop: build its slots, then answer (method, args) calls until "close" or a closed pipe."""
-    import torch
-
-    # The workers share the cores: one thread each, for torch and for Mesa's software renderer (whose own threads
-    # measured 10% slower beside another worker's: 59 against 67 env steps/s at batch 8 on 2 cores).
-    torch.set_num_threads(1)
-    os.environ.setdefault("LP_NUM_THREADS", "1")
+    one_thread_per_process()
     try:
         slots = Slots(families, spec)
         connection.send(("ok", None))

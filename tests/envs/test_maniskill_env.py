@@ -12,7 +12,8 @@ pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
 
 def make_config(**overrides):
-    return RoboscapeManiSkillEnvConfig(**{"image_size": IMAGE_SIZE, "episode_length": 4, **overrides})
+    # One process: spreading the envs over workers is tested in test_simulator_slots.py.
+    return RoboscapeManiSkillEnvConfig(**{"image_size": IMAGE_SIZE, "episode_length": 4, "workers": 1, **overrides})
 
 
 def test_gymnasium_env_checker():
