@@ -27,6 +27,11 @@ CAMERAS = ("observation.images.third_view", "observation.images.wrist")
 PATHS = {"today": dict(light_wrist_camera=False, workers=1), "new": dict(light_wrist_camera=True, workers=None)}
 
 
+def print_speed_up(rates: dict[str, float]) -> None:
+    if len(rates) == 2:
+        print(f"speed-up: {rates['new'] / rates['today']:.1f}x")
+
+
 def timed(fn, *args, **kwargs) -> tuple[float, object]:
     start = time.perf_counter()
     out = fn(*args, **kwargs)
@@ -149,7 +154,7 @@ def bench_collect(tmp: Path, episodes: int, image_size: int) -> None:
             f"{writing[0]:.0f} s writing the dataset: video encoding in the main process)"
         )
     collect_module.write_dataset = write_dataset
-    print(f"speed-up: {rates['new'] / rates['today']:.1f}x")
+    print_speed_up(rates)
 
 
 def bench_eval(policy_path: Path, image_size: int, batches: int, episode_length: int) -> None:
@@ -179,7 +184,7 @@ def bench_eval(policy_path: Path, image_size: int, batches: int, episode_length:
             f"{rates[name]:.1f} env steps/s ({steps} steps and {batches} resets in {run_s:.0f} s), envs built in "
             f"{build_s:.0f} s; with the build: {steps / (run_s + build_s):.1f} env steps/s"
         )
-    print(f"speed-up: {rates['new'] / rates['today']:.1f}x")
+    print_speed_up(rates)
 
 
 def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int, episode_length: int) -> None:
@@ -217,12 +222,13 @@ def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int
         env.close()
         rates[name] = steps / seconds
         print(f"{name:>6}: {rates[name]:.1f} env steps/s ({steps} steps, rollouts and updates, in {seconds:.0f} s)")
-    print(f"speed-up: {rates['new'] / rates['today']:.1f}x")
+    print_speed_up(rates)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="+", default=["profile", "collect", "eval", "ppo"])
+    parser.add_argument("--paths", nargs="+", default=list(PATHS), help="today's path, the new one, or both")
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--profile-steps", type=int, default=30)
     parser.add_argument("--collect-episodes", type=int, default=24)
@@ -231,6 +237,8 @@ def main():
     parser.add_argument("--ppo-envs", type=int, default=8)
     parser.add_argument("--ppo-iterations", type=int, default=2)
     args = parser.parse_args()
+    for name in set(PATHS) - set(args.paths):
+        del PATHS[name]
     print(
         f"{os.cpu_count()} CPU cores, {args.image_size} px, 2 cameras; today = ManiSkill's wrist-camera mesh, 1 process"
     )

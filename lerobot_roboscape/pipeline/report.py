@@ -131,7 +131,7 @@ def measure_targets(fidelity: dict, rewards: dict, table: dict, families: list[s
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _target(
         ours,
-        f">= {REWARD_ROC_AUC} and above " + ", ".join(f"{k} ({_fmt(v)})" for k, v in baselines.items()),
+        f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({_fmt(v)})" for k, v in baselines.items()),
         ours is not None and ours >= REWARD_ROC_AUC and beats,
     )
     for policy, methods in table.items():
@@ -184,8 +184,8 @@ def protocol(cfg: PipelineConfig) -> str:
             if cfg.ppo_one_scene
             else " RL in ManiSkill runs in every training scene."
         )
-        + f" Success: {cfg.table_episodes} simulator episodes per (split, family); episodes end at success or "
-        f"after {ending}."
+        + f" Success: {_episodes(cfg.table_episodes)} in the simulator per (split, family); episodes end at success "
+        f"or after {ending}."
     )
 
 
@@ -201,10 +201,14 @@ def evaluation_summary(cfg: PipelineConfig, table: dict, seconds: dict) -> str:
     ]
     minutes = sum(v for k, v in seconds.items() if k.startswith("simulator evaluation")) / 60
     return (
-        f"Each cell rests on {cfg.table_episodes} episodes; its 95% interval is {min(widths):.0f} to "
-        f"{max(widths):.0f} points wide (the width is in brackets in each cell). The evaluation took "
+        f"Each cell rests on {_episodes(cfg.table_episodes)}; its 95% interval is {min(widths):.0f} to "
+        f"{max(widths):.0f} points wide (in parentheses after each interval). The evaluation took "
         f"{minutes:.1f} min ({len(widths)} cells, {cfg.workers} simulator processes)."
     )
+
+
+def _episodes(n: int) -> str:
+    return f"{n} episode" if n == 1 else f"{n} episodes"
 
 
 def _target(value, goal: str, met: bool) -> dict:
