@@ -126,16 +126,21 @@ def bench_collect(tmp: Path, episodes: int, image_size: int) -> None:
 
     print(f"\n## Collection: {episodes} pick&place planner episodes, 2 cameras stored, 2 worker processes")
     rates = {}
-    write_dataset = collect_module.write_dataset
+    run_jobs, write_dataset = collect_module.run_jobs, collect_module.write_dataset
     for name, path in PATHS.items():
-        writing = []
+        arrivals, writing = [], []  # (seconds, frames) of each episode as the workers hand it over; the write
+
+        def timed_jobs(*args, arrivals=arrivals, **kwargs):
+            for episode in run_jobs(*args, **kwargs):
+                arrivals.append((time.perf_counter(), len(episode.action)))
+                yield episode
 
         def timed_write(*args, writing=writing, **kwargs):
             seconds, dataset = timed(write_dataset, *args, **kwargs)
             writing.append(seconds)
             return dataset
 
-        collect_module.write_dataset = timed_write
+        collect_module.run_jobs, collect_module.write_dataset = timed_jobs, timed_write
         cfg = CollectConfig(
             root=str(tmp / f"collect_{name}"),
             families=["pick_place"],
@@ -147,13 +152,17 @@ def bench_collect(tmp: Path, episodes: int, image_size: int) -> None:
             workers=2,
             light_wrist_camera=path["light_wrist_camera"],
         )
+        start = time.perf_counter()
         seconds, dataset = timed(collect, cfg)
         rates[name] = dataset.meta.total_frames / seconds
+        # Steady state: the episodes after each worker's first (which carries its start-up), until the last.
+        steady = sum(frames for _, frames in arrivals[2:]) / (arrivals[-1][0] - arrivals[1][0])
         print(
-            f"{name:>6}: {dataset.meta.total_frames} frames in {seconds:.0f} s: {rates[name]:.1f} frames/s (of which "
-            f"{writing[0]:.0f} s writing the dataset: video encoding in the main process)"
+            f"{name:>6}: {dataset.meta.total_frames} frames in {seconds:.0f} s: {rates[name]:.1f} frames/s; start-up "
+            f"to the first episode {arrivals[0][0] - start:.0f} s, then {steady:.1f} frames/s, then "
+            f"{writing[0]:.0f} s writing the dataset (video encoding in the main process)"
         )
-    collect_module.write_dataset = write_dataset
+    collect_module.run_jobs, collect_module.write_dataset = run_jobs, write_dataset
     print_speed_up(rates)
 
 
