@@ -7,8 +7,6 @@ shaded with the normals of the original surface, renders the same to within a fe
 (tests/tasks/test_wrist_camera_mesh.py). Physics is untouched: only the visual shape is replaced.
 """
 
-from functools import cache
-
 import numpy as np
 import sapien
 import trimesh
@@ -19,14 +17,17 @@ WRIST_CAMERA_LINK = "camera_link"
 NORMAL_NEIGHBOURS = 16  # original faces searched for each hull vertex's normal
 
 
-@cache
-def _light_mesh(vertices: bytes, triangles: bytes, normals: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+# Robot uid -> the light mesh's (vertices, triangles, normals): made once per process, as every reset rebuilds the
+# robot from its URDF.
+_LIGHT_MESHES: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def light_mesh(
+    vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(vertices, triangles, normals) of the convex hull of a triangle soup, as a soup again (flat triangles), each
     vertex taking the normal of the nearby original face that faces the same way (so the rounded edges shade as
-    before). Arguments are the soup's arrays as bytes, to key the cache."""
-    vertices = np.frombuffer(vertices, np.float32).reshape(-1, 3)
-    triangles = np.frombuffer(triangles, np.uint32).reshape(-1, 3)
-    normals = np.frombuffer(normals, np.float32).reshape(-1, 3)
+    before)."""
     hull = trimesh.Trimesh(vertices, triangles).convex_hull
     soup = np.asarray(hull.vertices, np.float32)[hull.faces].reshape(-1, 3)  # (3F, 3)
     soup_normals = np.repeat(np.asarray(hull.face_normals, np.float32), 3, axis=0)
@@ -45,18 +46,16 @@ def lighten_wrist_camera(agent: BaseAgent) -> None:
     for link in agent.robot.links_map[WRIST_CAMERA_LINK]._objs:
         entity = link.entity
         body = entity.find_component_by_type(sapien.render.RenderBodyComponent)
+        (shape,) = body.render_shapes  # the URDF gives the camera body one mesh of one part
+        (part,) = shape.parts
+        if agent.uid not in _LIGHT_MESHES:
+            _LIGHT_MESHES[agent.uid] = light_mesh(part.vertices, part.triangles, part.get_vertex_normal())
+        vertices, triangles, normals = _LIGHT_MESHES[agent.uid]
+        mesh = sapien.render.RenderShapeTriangleMesh(
+            vertices, triangles, normals, np.zeros((len(vertices), 2), np.float32), part.material
+        )
+        mesh.local_pose = shape.local_pose
         light = sapien.render.RenderBodyComponent()
-        for shape in body.render_shapes:
-            for part in shape.parts:
-                vertices, triangles, normals = _light_mesh(
-                    part.vertices.astype(np.float32).tobytes(),
-                    part.triangles.astype(np.uint32).tobytes(),
-                    part.get_vertex_normal().astype(np.float32).tobytes(),
-                )
-                mesh = sapien.render.RenderShapeTriangleMesh(
-                    vertices, triangles, normals, np.zeros((len(vertices), 2), np.float32), part.material
-                )
-                mesh.local_pose = shape.local_pose
-                light.attach(mesh)
+        light.attach(mesh)
         entity.remove_component(body)
         entity.add_component(light)
