@@ -21,6 +21,9 @@ from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tasks.base import STATE_DIM
 
+# The slots' own time limit, above every horizon: episodes are cut by the env's horizons (EpisodeBook).
+SLOT_TIME_LIMIT = 100_000
+
 
 def task_horizons(config, families: list[str]) -> dict[str, int]:
     """The fixed horizon of each family: `episode_length`, else the longest successful demonstration of the family
@@ -44,10 +47,6 @@ def build_slots(config, num_envs: int) -> Slots | SlotWorkers:
     (splits, checkpoints) when they share families and image size: built once, they save each env's start-up."""
     spec = SlotSpec(select_scenes("all")[0].id, config.image_size, SLOT_TIME_LIMIT, config.light_wrist_camera)
     return make_slots(slot_families(config, num_envs), spec, config.resolved_workers(num_envs))
-
-
-# The slots' own time limit, above every horizon: episodes are cut by the env's horizons (EpisodeBook).
-SLOT_TIME_LIMIT = 100_000
 
 
 class RoboscapeManiSkillEnv(BatchedEnv):

@@ -181,7 +181,9 @@ def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots,
 
 def completed_splits(cfg: EvalConfig) -> dict[str, dict]:
     """The splits an interrupted evaluation with the same settings completed (with --resume=true)."""
-    settings = json.dumps({k: str(v) for k, v in asdict(cfg).items() if k != "resume"}, sort_keys=True)
+    # The worker count changes no episode (envs/simulator_slots.py), so a resume may use another.
+    kept = {k: str(v) for k, v in asdict(cfg).items() if k not in ("resume", "workers")}
+    settings = json.dumps(kept, sort_keys=True)
     written = cfg.output_dir / SPLITS / "eval_config.json"
     if (cfg.output_dir / "eval.json").exists() or written.exists():
         if not cfg.resume:
