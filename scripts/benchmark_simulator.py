@@ -74,7 +74,7 @@ def profile(image_size: int, policy_path: Path, steps: int) -> None:
 
     command = [sys.executable, "-c", "import lerobot_roboscape.evaluation.success_rate, lerobot_roboscape.rl.ppo"]
     start_up, _ = timed(subprocess.run, command, check=True, capture_output=True)
-    print(f"\n## Profile (one process; torch {torch.get_num_threads()} threads here, 1 in each simulator worker)")
+    print(f"\n## Profile (one process, torch with {torch.get_num_threads()} threads)")
     print(f"process start-up (python + imports of torch, lerobot, mani_skill): {start_up:.1f} s")
     print(
         f"{'wrist-camera mesh':>18} {'make env':>9} {'1st reset':>10} {'reset':>7} {'step':>7} {'physics':>8} "

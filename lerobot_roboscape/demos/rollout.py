@@ -9,7 +9,7 @@ import numpy as np
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
-from lerobot_roboscape.tasks.make import make_task_env, one_thread_per_process
+from lerobot_roboscape.tasks.make import make_task_env
 
 SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest
 # Suboptimal plans with detours at low speed outlast the tasks' RL time limits; the plan ends the episode.
@@ -110,5 +110,5 @@ def run_jobs(jobs: list[EpisodeJob], workers: int = 2) -> Iterator[Episode]:
             yield _worker_run(job)
         return
     # SAPIEN's renderer does not survive fork; spawn clean interpreters.
-    with mp.get_context("spawn").Pool(workers, initializer=one_thread_per_process) as pool:
+    with mp.get_context("spawn").Pool(workers) as pool:
         yield from pool.imap(_worker_run, jobs, chunksize=1)

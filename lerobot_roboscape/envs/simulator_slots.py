@@ -18,7 +18,7 @@ import numpy as np
 
 from lerobot_roboscape.demos.rollout import observation_images, observation_state
 from lerobot_roboscape.tasks.base import STATE_DIM
-from lerobot_roboscape.tasks.make import make_task_env, one_thread_per_process
+from lerobot_roboscape.tasks.make import make_task_env
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,6 @@ class Slots:
 
 def _serve(connection, families: list[str], spec: SlotSpec) -> None:
     """A worker's loop: build its slots, then answer (method, args) calls until "close" or a closed pipe."""
-    one_thread_per_process()
     try:
         slots = Slots(families, spec)
         connection.send(("ok", None))

@@ -1,7 +1,4 @@
-import os
-
 import gymnasium as gym
-import torch
 
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES
@@ -22,10 +19,3 @@ def make_task_env(family: str, scene_id: str, image_size: int = 64, obs_mode: st
         sensor_configs=dict(width=image_size, height=image_size),
         **kwargs,
     )
-
-
-def one_thread_per_process() -> None:
-    """For simulator processes that share the cores with others: one thread for torch and one for Mesa's software
-    renderer (lavapipe), which otherwise starts one per core in every process. Call before the first env is made."""
-    torch.set_num_threads(1)
-    os.environ.setdefault("LP_NUM_THREADS", "1")
