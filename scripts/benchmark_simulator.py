@@ -69,6 +69,7 @@ def render_pictures(task, uids: list[str]) -> None:
 
 
 def profile(image_size: int, policy_path: Path, steps: int) -> None:
+    from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
     from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
     from lerobot_roboscape.tasks.make import make_task_env
 
@@ -115,6 +116,13 @@ def profile(image_size: int, policy_path: Path, steps: int) -> None:
             [timed(lambda: io.env_action(policy.select_action(io.batch(pixels, ["x"] * 8))))[0] for _ in range(20)]
         )
     print(f"policy with its processors (roboscape_mlp, batch 8): {1e3 * policy_s:.1f} ms per batch step")
+    workers = RoboscapeManiSkillEnvConfig().resolved_workers(8)
+    mesa = os.environ.get("LP_NUM_THREADS", "unset: one per core")
+    print(
+        f"cores shared: a batch of 8 runs on {workers} simulator worker processes, each with torch's default threads "
+        f"({torch.get_num_threads()}) and Mesa's (LP_NUM_THREADS={mesa}); the policy runs in this process while "
+        "they wait"
+    )
 
 
 # ---- benchmarks ---------------------------------------------------------------------------------------------------
