@@ -205,40 +205,21 @@ def bench_eval(policy_path: Path, image_size: int, batches: int, episode_length:
 
 
 def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int, episode_length: int) -> None:
-    from accelerate import Accelerator
+    from benchmark_ppo import measure  # the PPO throughput of scripts/benchmark_ppo.py, beside this file
 
     from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-    from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-    from lerobot_roboscape.rl.ppo import (
-        ActionScorer,
-        PPOConfig,
-        RunningReturnStats,
-        collect_rollout,
-        make_optimizer,
-        update,
-    )
 
-    print(f"\n## PPO in roboscape_maniskill: {num_envs} envs, {iterations} iterations of {episode_length} steps")
+    print(
+        f"\n## PPO in roboscape_maniskill: {num_envs} envs, {iterations} iterations of {episode_length} steps "
+        "(after a warm-up rollout)"
+    )
     rates = {}
     for name, path in PATHS.items():
-        policy, pre, post = load_policy(str(policy_path), "cpu")
-        io = PolicyIO(pre, post)
         env_cfg = RoboscapeManiSkillEnvConfig(
             families=["pick_place", "push"], image_size=image_size, episode_length=episode_length, **path
         )
-        cfg = PPOConfig(policy_path=str(policy_path), env=env_cfg, num_envs=num_envs).with_policy_defaults(policy.name)
-        accelerator = Accelerator(cpu=True)
-        scorer, optimizer = accelerator.prepare(ActionScorer(policy), make_optimizer(policy, cfg))
-        env = env_cfg.create_envs(num_envs)[env_cfg.type][0]
-        steps, start, stats = 0, time.perf_counter(), RunningReturnStats()
-        for i in range(iterations):
-            rollout = collect_rollout(env, policy, io, seed=i)
-            update(cfg, accelerator, scorer, optimizer, io, rollout, torch.Generator().manual_seed(i), stats, False)
-            steps += int(rollout.alive.sum())
-        seconds = time.perf_counter() - start
-        env.close()
-        rates[name] = steps / seconds
-        print(f"{name:>6}: {rates[name]:.1f} env steps/s ({steps} steps, rollouts and updates, in {seconds:.0f} s)")
+        rollout_rate, rates[name] = measure(env_cfg, policy_path, num_envs, iterations)
+        print(f"{name:>6}: {rates[name]:.1f} env steps/s of rollout + update ({rollout_rate:.1f} of rollout alone)")
     print_speed_up(rates)
 
 

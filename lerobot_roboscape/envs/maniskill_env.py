@@ -93,8 +93,8 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             else [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
         )
         episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
-        images, state, self._tasks = self.slots.reset(episode_seeds, scene_ids)
-        self._images, self._state = {cam: images[cam].copy() for cam in self.config.cameras}, state.copy()
+        # The slots' latest observation (in-process slots update these arrays in place); `_observation` copies.
+        self._images, self._state, self._tasks = self.slots.reset(episode_seeds, scene_ids)
         self._book = EpisodeBook(self.horizons, self.config.terminate_on_success, self._max_step_reward)
         return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids)}
 
@@ -103,15 +103,14 @@ class RoboscapeManiSkillEnv(BatchedEnv):
             raise RuntimeError("call reset() before step()")
         actions, clipped = self._check_actions(actions)
         # Ended episodes are not simulated any more.
-        images, state, dense, success = self.slots.step(actions, ~self._book.finished)
-        self._images, self._state = {cam: images[cam].copy() for cam in self.config.cameras}, state.copy()
+        self._images, self._state, dense, success = self.slots.step(actions, ~self._book.finished)
         reward = self.config.alpha * self.config.sparse_reward * success + self.config.beta * dense
         reward = self._book.step(reward.astype(np.float32), success)
         info = {"is_success": self._book.succeeded.copy(), "clipped_actions": clipped}
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
     def _observation(self) -> dict:
-        obs = {"pixels": {cam: image.copy() for cam, image in self._images.items()}}
+        obs = {"pixels": {cam: self._images[cam].copy() for cam in self.config.cameras}}
         if self.config.include_state:
             obs["agent_pos"] = self._state.copy()
         return obs

@@ -105,8 +105,8 @@ def _serve(connection, families: list[str], spec: SlotSpec) -> None:
 
 
 class SlotWorkers:
-    """`Slots` spread over `workers` processes, slot i in worker i * workers // k, called with the same methods: each
-    call goes to every worker before any answer is read, so the workers step their shares at the same time."""
+    """`Slots` spread over `workers` processes in contiguous shares, called with the same methods: each call goes to
+    every worker before any answer is read, so the workers step their shares at the same time."""
 
     def __init__(self, families: list[str], spec: SlotSpec, workers: int):
         context = mp.get_context("spawn")  # SAPIEN's renderer does not survive fork
@@ -141,13 +141,11 @@ class SlotWorkers:
 
     def reset(self, seeds, scene_ids) -> tuple[dict, np.ndarray, list[str]]:
         answers = self._call("reset", seeds, scene_ids)
-        images = {cam: np.concatenate([a[0][cam] for a in answers]) for cam in answers[0][0]}
-        return images, np.concatenate([a[1] for a in answers]), [task for a in answers for task in a[2]]
+        return _joined_images(answers), np.concatenate([a[1] for a in answers]), [t for a in answers for t in a[2]]
 
     def step(self, actions, live) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
         answers = self._call("step", actions, live)
-        images = {cam: np.concatenate([a[0][cam] for a in answers]) for cam in answers[0][0]}
-        return images, *(np.concatenate([a[k] for a in answers]) for k in (1, 2, 3))
+        return _joined_images(answers), *(np.concatenate([a[k] for a in answers]) for k in (1, 2, 3))
 
     def close(self) -> None:
         for connection in self.connections:
@@ -158,6 +156,11 @@ class SlotWorkers:
             if process.is_alive():
                 process.kill()
         self.connections, self.processes = [], []
+
+
+def _joined_images(answers: list) -> dict[str, np.ndarray]:
+    """The workers' image batches ({camera: (k_w, H, W, 3)}, first in each answer) as one, in slot order."""
+    return {cam: np.concatenate([a[0][cam] for a in answers]) for cam in answers[0][0]}
 
 
 def make_slots(families: list[str], spec: SlotSpec, workers: int) -> Slots | SlotWorkers:
