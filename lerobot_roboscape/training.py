@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import shutil
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, 
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
+HELDOUT_CURVE = "heldout_curve.jsonl"  # one {"step", "seconds", <measure>: value} line per held-out evaluation
 
 
 @dataclass
@@ -39,6 +41,8 @@ class TrainingConfig:
     grad_clip: gradient-norm clipping.
     log_freq: steps between log lines (TensorBoard under output_dir/logs, and the progress bar).
     save_freq: steps between checkpoints.
+    eval_freq: steps between held-out evaluations (when the stage has held-out data; 0: at the end only). They are
+        logged and appended to output_dir/heldout_curve.jsonl: the curves that size a run.
     keep_checkpoints: checkpoints kept on disk (older ones are deleted).
     seed: seed of the initialisation and of the batch sampling.
     mixed_precision: "auto" (bf16 on a GPU that supports it, else full precision), "bf16", "fp16" or "no".
@@ -53,6 +57,7 @@ class TrainingConfig:
     grad_clip: float = 1.0
     log_freq: int = 25
     save_freq: int = 250
+    eval_freq: int = 0
     keep_checkpoints: int = 2
     seed: int = 0
     mixed_precision: str = "auto"
@@ -128,9 +133,11 @@ def fit(
     output_dir: str | Path,
     run_config: dict,
     desc: str = "training",
+    evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
 ) -> nn.Module:
     """Train `model` for config.steps steps on `batches(step, process_index)`; returns the unwrapped model, also
-    saved (save_pretrained) to output_dir/pretrained_model with the run's config."""
+    saved (save_pretrained) to output_dir/pretrained_model with the run's config. `evaluate(model)`, when given, is
+    called every config.eval_freq steps and at the end, on the main process, in eval mode and without gradients."""
     output_dir = Path(output_dir)
     resume_from = last_checkpoint(output_dir) if config.resume else None
     if not config.resume and (output_dir / CHECKPOINTS).exists():
@@ -157,6 +164,8 @@ def fit(
         logger.info("resumed from %s at step %d", resume_from, start)
     if accelerator.is_main_process:
         (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
+        _truncate_curve(output_dir / HELDOUT_CURVE, start)
+    began = time.time()
 
     model.train()
     progress = tqdm(
@@ -185,13 +194,42 @@ def fit(
             logs["lr"] = scheduler.get_last_lr()[0]
             accelerator.log(logs, step=step + 1)
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in ("loss", "token_acc", "l1")})
-        if (step + 1) % config.save_freq == 0 or step + 1 == config.steps:
+        last = step + 1 == config.steps
+        if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
+            _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, time.time() - began)
+        if (step + 1) % config.save_freq == 0 or last:
             _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints)
     accelerator.end_training()
     unwrapped = accelerator.unwrap_model(model)
     if accelerator.is_main_process:
         save_atomically(unwrapped, output_dir / FINAL)
     return unwrapped
+
+
+def _every(step: int, freq: int) -> bool:
+    return freq > 0 and (step + 1) % freq == 0
+
+
+def _evaluate(model: nn.Module, evaluate: Callable, accelerator: Accelerator, step: int, output_dir: Path, seconds):
+    model.eval()
+    with torch.no_grad():
+        measures = evaluate(model)
+    model.train()
+    accelerator.log({f"heldout/{k}": v for k, v in measures.items() if v is not None}, step=step)
+    with open(output_dir / HELDOUT_CURVE, "a") as f:
+        f.write(json.dumps({"step": step, "seconds": round(seconds, 1), **measures}) + "\n")
+
+
+def _truncate_curve(path: Path, step: int) -> None:
+    """Drop the held-out points after `step`, which a resumed run measures again."""
+    if path.exists():
+        lines = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        path.write_text("".join(line + "\n" for line in lines))
+
+
+def read_curve(output_dir: str | Path) -> list[dict]:
+    path = Path(output_dir) / HELDOUT_CURVE
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
 
 
 def save_atomically(model, path: Path) -> None:

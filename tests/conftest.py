@@ -25,7 +25,8 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def demo_dataset(tmp_path_factory):
     """A small real collection: two families on one scene, one optimal, one suboptimal and one deliberately failed
-    episode each (episodes 0-2 pick and place, 3-5 push; the failed ones are 2 and 3)."""
+    episode each (episodes 0-2 pick and place, 3-5 push; the failed ones are 2 and 3), with the object's and the
+    container's masks."""
     root = tmp_path_factory.mktemp("collect") / "demos"
     cfg = CollectConfig(
         repo_id="test/demos",
@@ -38,6 +39,7 @@ def demo_dataset(tmp_path_factory):
         image_size=IMAGE_SIZE,
         workers=2,
         seed=3,
+        segmentation=True,
     )
     return collect(cfg), root
 
@@ -93,8 +95,9 @@ def trained_tokenizer(demo_dataset, tmp_path_factory):
     cfg = TrainTokenizerConfig(
         dataset=DatasetConfig(repo_id="test/demos", root=str(root)),
         tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER),
-        train=TrainingConfig(steps=8, batch_size=8, save_freq=8, log_freq=4),
+        train=TrainingConfig(steps=8, batch_size=8, save_freq=8, log_freq=4, eval_freq=4),
         output_dir=out,
+        heldout=DatasetConfig(repo_id="test/demos", root=str(root), episodes=[1, 3]),
         num_workers=0,
         allow_random_lpips=True,
     )

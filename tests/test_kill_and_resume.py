@@ -22,6 +22,7 @@ from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from lerobot_roboscape.tokenizer.token_cache import open_token_cache
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training import read_curve
 from lerobot_roboscape.world_model.train import prepare_token_cache
 from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
 from tests.harness import assert_same_weights, command, kill_when, rerun
@@ -96,6 +97,11 @@ def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_m
             "--tokenizer.base_channels=8",
             "--tokenizer.channel_multipliers=[1,2,2,2]",
             "--tokenizer.codebook_bits=6",
+            "--tokenizer.object_weight=2",
+            "--heldout.repo_id=test/demos",
+            f"--heldout.root={root}",
+            "--heldout.episodes=[3]",
+            "--train.eval_freq=4",
             "--train.batch_size=4",
             "--num_workers=0",
             "--allow_random_lpips=true",
@@ -116,6 +122,10 @@ def test_training(trainer, demo_dataset, trained_tokenizer, token_cache, world_m
     assert not (killed / FINAL).exists()
     rerun(name, *args, f"--output_dir={killed}", "--train.resume=true")
     assert_same_weights(tmp_path / "reference" / FINAL / "model.safetensors", killed / FINAL / "model.safetensors")
+    if trainer == "tokenizer":  # the held-out curve has each point once, as the uninterrupted run's
+        drop_seconds = lambda curve: [{k: v for k, v in p.items() if k != "seconds"} for p in curve]  # noqa: E731
+        assert [p["step"] for p in read_curve(killed)] == list(range(4, 25, 4))
+        assert drop_seconds(read_curve(killed)) == drop_seconds(read_curve(tmp_path / "reference"))
 
 
 def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):

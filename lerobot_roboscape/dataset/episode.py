@@ -8,6 +8,7 @@ import numpy as np
 from lerobot_roboscape.errors import InvalidInputError, require_finite, require_shape
 
 IMAGES = "images."  # prefix of the camera arrays in a saved episode
+MASKS = "masks."  # prefix of the cameras' label images (dataset/segmentation.py), when recorded
 
 
 @dataclass
@@ -22,6 +23,7 @@ class Episode:
         reward: (T,) float32, success: (T,) bool, done: (T,) bool.
         task: the instruction.
         info: per-episode facts recorded with the dataset (task family, scene, split, optimal, seed, ...).
+        masks: camera -> (T, H, W) uint8 labels of the object and the container (dataset/segmentation.py), or None.
     """
 
     images: dict[str, np.ndarray]
@@ -32,6 +34,7 @@ class Episode:
     done: np.ndarray
     task: str
     info: dict = field(default_factory=dict)
+    masks: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.action)
@@ -61,6 +64,13 @@ class Episode:
                 raise InvalidInputError(
                     f"{where}: camera {name!r} must be (T, H, W, 3) uint8, got {img.shape} {img.dtype}"
                 )
+        for name, labels in (self.masks or {}).items():
+            expected = self.images[name].shape[:3] if name in self.images else None
+            if labels.shape != expected or labels.dtype != np.uint8:
+                raise InvalidInputError(
+                    f"{where}: masks of camera {name!r} must be {expected} uint8 (its images' frames), got "
+                    f"{labels.shape} {labels.dtype}"
+                )
 
     def save(self, path: str | Path) -> None:
         """Write to `path` (.npz, no pickled objects), complete or not at all."""
@@ -72,6 +82,7 @@ class Episode:
             "success": self.success,
             "done": self.done,
             **{f"{IMAGES}{k}": v for k, v in self.images.items()},
+            **{f"{MASKS}{k}": v for k, v in (self.masks or {}).items()},
             "text": np.frombuffer(text, np.uint8),
         }
         path = Path(path)
@@ -85,6 +96,7 @@ class Episode:
         with np.load(path, allow_pickle=False) as data:
             text = json.loads(data["text"].tobytes())
             images = {k.removeprefix(IMAGES): data[k] for k in data.files if k.startswith(IMAGES)}
+            masks = {k.removeprefix(MASKS): data[k] for k in data.files if k.startswith(MASKS)}
             return cls(
                 images,
                 data["state"],
@@ -94,4 +106,5 @@ class Episode:
                 data["done"],
                 text["task"],
                 text["info"],
+                masks or None,
             )

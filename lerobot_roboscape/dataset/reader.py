@@ -11,6 +11,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.video_utils import decode_video_frames
 from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD, SUCCESS
 
+from lerobot_roboscape.dataset.segmentation import read_masks
 from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.errors import InvalidInputError, require_finite
 
@@ -177,18 +178,71 @@ def _sidecar(dataset: LeRobotDataset) -> dict[int, dict]:
 
 
 class CameraFrames(torch.utils.data.Dataset):
-    """Random access to single frames of every camera, (n_cameras, 3, H, W) float in [0, 1], for the tokenizer."""
+    """Random access to single frames of every camera, decoded from the videos on each access: (n_cameras, 3, H, W)
+    float in [0, 1], with (n_cameras, H, W) uint8 labels (dataset/segmentation.py) when `masks`. For datasets too
+    large for `FrameBank`."""
 
-    def __init__(self, dataset: LeRobotDataset):
-        self.dataset = dataset
+    def __init__(self, dataset: LeRobotDataset, masks: bool = False):
+        self.dataset, self.masks = dataset, masks
         self.keys = dataset.meta.camera_keys
 
     def __len__(self) -> int:
         return self.dataset.num_frames
 
-    def __getitem__(self, i: int) -> torch.Tensor:
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         item = self.dataset[i]
-        return torch.stack([item[key] for key in self.keys])
+        out = {"images": torch.stack([item[key] for key in self.keys])}
+        if self.masks:
+            episode, frame = int(item["episode_index"]), int(item["frame_index"])
+            length = self.dataset.meta.episodes[episode]["length"]
+            labels = read_masks(self.dataset.root, episode, camera_names(self.dataset), length, mmap=True)
+            out["masks"] = torch.from_numpy(np.stack([m[frame] for m in labels.values()]))
+        return out
+
+
+@dataclass
+class FrameBank:
+    """Every frame of some episodes, decoded once and kept in memory (a video decode per random frame would cost
+    more than a tokenizer step on a CPU).
+
+    images: (N, n_cameras, H, W, 3) uint8; masks: (N, n_cameras, H, W) uint8 labels, or None;
+    episode_index / frame_index: (N,) where each frame comes from.
+    """
+
+    images: torch.Tensor
+    masks: torch.Tensor | None
+    episode_index: np.ndarray
+    frame_index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @staticmethod
+    def nbytes(dataset: LeRobotDataset) -> int:
+        """Memory the decoded frames of `dataset` take."""
+        side = image_size(dataset)
+        return dataset.num_frames * len(dataset.meta.camera_keys) * side * side * 3
+
+    @classmethod
+    def load(cls, dataset: LeRobotDataset, masks: bool = False, stride: int = 1) -> "FrameBank":
+        """Every `stride`-th frame of each episode of `dataset`, with their labels when `masks`."""
+        cameras = camera_names(dataset)
+        images, labels, episodes, frames = [], [], [], []
+        for index in episode_indices(dataset):
+            episode = read_episode(dataset, index)
+            keep = np.arange(0, len(episode.action), stride)
+            images.append(np.stack([episode.images[c][keep] for c in cameras], 1))
+            if masks:
+                recorded = read_masks(dataset.root, index, cameras, len(episode.action))
+                labels.append(np.stack([recorded[c][keep] for c in cameras], 1))
+            episodes.append(np.full(len(keep), index))
+            frames.append(keep)
+        return cls(
+            torch.from_numpy(np.concatenate(images)),
+            torch.from_numpy(np.concatenate(labels)) if masks else None,
+            np.concatenate(episodes),
+            np.concatenate(frames),
+        )
 
 
 def family_horizons(dataset: LeRobotDataset) -> dict[str | None, int]:

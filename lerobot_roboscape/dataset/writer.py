@@ -15,6 +15,7 @@ from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD,
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
+from lerobot_roboscape.dataset.segmentation import write_masks
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
@@ -100,7 +101,7 @@ def write_dataset(
     staging_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
     staging = staging_parent / root.name
     try:
-        dataset, records, features = None, [], None
+        dataset, records, features, segmented = None, [], None, None
         for k, episode in enumerate(tqdm(episodes, total=total, desc=f"writing {repo_id}", unit="episode")):
             where = _describe(episode, k, root)
             episode.validate(where)
@@ -120,7 +121,16 @@ def write_dataset(
                     streaming_encoding=True,
                 )
             check_features(episode, features, where)
+            if segmented is None:
+                segmented = episode.masks is not None
+            elif (episode.masks is not None) != segmented:
+                raise InvalidInputError(
+                    f"{where}: {'has no' if segmented else 'has'} segmentation masks, unlike the dataset's first "
+                    "episode; every episode of a dataset has them or none does"
+                )
             _add_episode(dataset, episode)
+            if segmented:
+                write_masks(staging, len(records), episode.masks)
             records.append(
                 {"episode_index": len(records), "length": len(episode), "task": episode.task, **episode.info}
             )

@@ -40,6 +40,9 @@ class CollectConfig:
     workers: parallel ManiSkill processes (0: run in this process).
     light_wrist_camera: render the wrist camera's body with a light mesh (3.5x faster without a GPU; the frames
         differ only on its outline); false renders ManiSkill's own mesh.
+    segmentation: also record each frame's masks of the task object and the container, stored beside the dataset
+        (dataset/segmentation.py); the tokenizer and world-model reports measure the object on them, and the
+        tokenizer can weigh its loss by them. About a quarter slower.
     keep_failed: also write attempts that did not succeed (in the simulator, whatever their kind).
     overwrite: replace an existing dataset at `root`.
     resume: continue an interrupted collection into `root` from the episodes it saved.
@@ -59,6 +62,7 @@ class CollectConfig:
     image_size: int = 64
     workers: int = 2
     light_wrist_camera: bool = True
+    segmentation: bool = False
     keep_failed: bool = True
     overwrite: bool = False
     resume: bool = False
@@ -104,6 +108,7 @@ def make_jobs(cfg: CollectConfig) -> list[EpisodeJob]:
                         str(next(kinds)),
                         cfg.image_size,
                         cfg.light_wrist_camera,
+                        cfg.segmentation,
                     )
                 )
     return jobs

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_roboscape.dataset.episode import Episode
+from lerobot_roboscape.dataset.segmentation import label_image
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
 from lerobot_roboscape.tasks.make import make_task_env
@@ -24,6 +25,7 @@ class EpisodeJob:
     kind: str  # of the plan, one of planner.KINDS: "optimal", "suboptimal" or "failed"
     image_size: int
     light_wrist_camera: bool = True  # render the wrist camera's body with the light mesh (tasks/wrist_camera_mesh.py)
+    segmentation: bool = False  # also record the object's and the container's masks (dataset/segmentation.py)
 
 
 def observation_state(obs: dict) -> np.ndarray:
@@ -37,6 +39,15 @@ def observation_images(obs: dict) -> dict[str, np.ndarray]:
     return {CAMERA_NAMES[uid]: data["rgb"][0].cpu().numpy() for uid, data in obs["sensor_data"].items()}
 
 
+def observation_masks(obs: dict, task_env: RoboscapeTabletopEnv) -> dict[str, np.ndarray]:
+    """camera -> (H, W) labels of the object and the container, from an observation with segmentation."""
+    object_id, container_id = int(task_env.obj.per_scene_id[0]), int(task_env.container.per_scene_id[0])
+    return {
+        CAMERA_NAMES[uid]: label_image(data["segmentation"][0, ..., 0].cpu().numpy(), object_id, container_id)
+        for uid, data in obs["sensor_data"].items()
+    }
+
+
 def run_planned_episode(
     env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None, failure: FailureConfig | None = None
 ) -> Episode:
@@ -45,12 +56,14 @@ def run_planned_episode(
     task_env: RoboscapeTabletopEnv = env.unwrapped
     rng = np.random.default_rng(job.seed)
     follower = plan_episode(task_env, job.kind, rng, suboptimal, failure)
-    frames: dict[str, list] = {"state": [], "action": [], "reward": [], "success": [], "images": []}
+    frames: dict[str, list] = {"state": [], "action": [], "reward": [], "success": [], "images": [], "masks": []}
     settle = SETTLE_STEPS
     while True:
         tcp = task_env.agent.tcp_pose
         action = follower.act(tcp.p[0].cpu().numpy(), tcp.q[0].cpu().numpy())
         frames["images"].append(observation_images(obs))
+        if job.segmentation:
+            frames["masks"].append(observation_masks(obs, task_env))
         frames["state"].append(observation_state(obs))
         obs, reward, terminated, truncated, info = env.step(action)
         frames["action"].append(action)
@@ -72,6 +85,7 @@ def run_planned_episode(
         success=np.asarray(frames["success"], dtype=bool),
         done=done,
         task=task_env.instruction,
+        masks={cam: np.stack([f[cam] for f in frames["masks"]]) for cam in cameras} if job.segmentation else None,
         info={
             "task_family": job.family,
             "scene": job.scene_id,
@@ -91,12 +105,13 @@ _worker_envs: dict = {}
 
 
 def _worker_run(job: EpisodeJob) -> Episode:
-    key = (job.family, job.image_size, job.light_wrist_camera)
+    key = (job.family, job.image_size, job.light_wrist_camera, job.segmentation)
     if key not in _worker_envs:
         _worker_envs[key] = make_task_env(
             job.family,
             job.scene_id,
             image_size=job.image_size,
+            obs_mode="rgb+segmentation" if job.segmentation else "rgb",
             max_episode_steps=COLLECT_MAX_STEPS,
             light_wrist_camera=job.light_wrist_camera,
         )

@@ -41,7 +41,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     """Run every stage (skipping those already complete in output_dir); returns {artifact name: artifact}."""
     out = Path(cfg.output_dir).resolve()
     artifacts: dict[str, Artifact] = {}
-    clock = StageClock(12)
+    clock = StageClock(13)
 
     clock("collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = stages.demonstrations(cfg, out)
@@ -52,6 +52,17 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     clock(f"train the image tokenizer ({cfg.tokenizer_preset} preset)")
     tokenizer = stages.tokenizer(cfg, out, data)
     artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
+
+    clock("tokenizer report on the held-out frames (whole frame, object, codebook; each view)")
+    views = stages.tokenizer_report(cfg, out, data, tokenizer)["views"]
+    print(
+        ", ".join(
+            f"{view} PSNR {m['psnr']:.1f} dB, object survives {m['object_survival']}" for view, m in views.items()
+        )
+    )
+    artifacts["tokenizer report"] = Artifact(
+        ArtifactKind.MARKDOWN, out / stages.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
+    )
 
     clock(f"train the action and the text world models ({cfg.wm_preset} preset)")
     models = stages.world_models(cfg, out, data, tokenizer)

@@ -40,6 +40,7 @@ from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConf
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from lerobot_roboscape.tasks import select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
+from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
@@ -65,6 +66,7 @@ HELDOUT_DIR = "datasets/roboscape_heldout"
 CONVERTED_DIR = "datasets/maniskill_converted"
 TRAJECTORIES_DIR = "maniskill_trajectories"
 TOKENIZER_DIR = "tokenizer"
+TOKENIZER_REPORT_DIR = "tokenizer_report"
 TOKEN_CACHE_DIR = "token_cache"
 FIDELITY_DIR = "fidelity"
 REWARD_REPORT_DIR = "reward_report"
@@ -189,6 +191,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
             image_size=cfg.image_size,
             workers=cfg.workers,
             keep_failed=True,
+            segmentation=True,
         ),
         cfg.fresh,
     )
@@ -224,6 +227,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
                 image_size=cfg.image_size,
                 workers=cfg.workers,
                 keep_failed=True,
+                segmentation=True,
             ),
             cfg.fresh,
         )
@@ -234,13 +238,18 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
 
 
 def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
-    """Train the image tokenizer; returns its pretrained_model directory."""
+    """Train the image tokenizer, measured on the held-out episodes as it trains; returns its pretrained_model
+    directory."""
     folder = out / TOKENIZER_DIR
     train = TrainTokenizerConfig(
         dataset=data.train,
+        heldout=data.heldout,
         tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
         train=TokenizerTrainingConfig(
-            steps=cfg.tokenizer_steps, batch_size=cfg.tokenizer_batch_size, save_freq=max(cfg.tokenizer_steps // 4, 1)
+            steps=cfg.tokenizer_steps,
+            batch_size=cfg.tokenizer_batch_size,
+            save_freq=max(cfg.tokenizer_steps // 4, 1),
+            eval_freq=max(cfg.tokenizer_steps // 10, 1),
         ),
         output_dir=folder,
         num_workers=min(cfg.workers, 2),
@@ -250,6 +259,25 @@ def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
         train_tokenizer(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
         mark_done(folder, train)
     return folder / FINAL
+
+
+def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict:
+    """The tokenizer's report on every held-out frame (whole frame and object, per view); returns it."""
+    folder = out / TOKENIZER_REPORT_DIR
+    report_cfg = TokenizerReportConfig(
+        dataset=data.heldout,
+        tokenizer=str(tokenizer_path),
+        output_dir=folder,
+        training_dir=out / TOKENIZER_DIR,
+        device=cfg.device,
+    )
+    # The tokenizer's own stage record (its settings and the seconds of its run) names the model measured.
+    settings = {"report": report_cfg, "tokenizer": json.loads((out / TOKENIZER_DIR / STAGE_FILE).read_text())}
+    if not is_done(folder, settings, cfg.fresh):
+        start(folder)
+        evaluate_tokenizer(report_cfg)
+        mark_done(folder, settings)
+    return json.loads((folder / "tokenizer_report.json").read_text())
 
 
 def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:

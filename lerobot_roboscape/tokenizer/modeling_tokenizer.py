@@ -7,11 +7,12 @@ import math
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 from vector_quantize_pytorch import LFQ
 
+from lerobot_roboscape.dataset.segmentation import OBJECT
+from lerobot_roboscape.image_fidelity import OBJECT_DILATION, dilate
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.weights import CheckedHubMixin
 
@@ -112,12 +113,23 @@ class VisualTokenizer(nn.Module, CheckedHubMixin, library_name="lerobot-roboscap
         reconstruction = (self.decoder(codes) + 1) / 2
         return TokenizerOutput(reconstruction, indices, aux_loss)
 
-    def compute_loss(self, images: torch.Tensor, lpips_metric: nn.Module | None = None) -> tuple[torch.Tensor, dict]:
-        """Reconstruction (L1) + perceptual (LPIPS, when a metric is given) + quantiser losses."""
+    def compute_loss(
+        self, images: torch.Tensor, lpips_metric: nn.Module | None = None, masks: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, dict]:
+        """Reconstruction (L1, the object's pixels weighted up when `masks` (B, H, W) labels are given) + perceptual
+        (LPIPS, when a metric is given) + quantiser losses."""
         out = self(images)
-        l1 = F.l1_loss(out.reconstruction, images)
+        error = (out.reconstruction - images).abs().mean(1)  # (B, H, W)
+        l1 = error.mean()
         loss = l1 + out.quantizer_loss
         logs = {"l1": l1.item(), "quantizer": out.quantizer_loss.item()}
+        if self.config.object_weight > 0:
+            if masks is None:
+                raise ValueError("object_weight > 0 needs the frames' segmentation masks")
+            region = dilate(masks == OBJECT, OBJECT_DILATION).float()
+            object_l1 = (error * region).sum() / region.sum().clamp_min(1)
+            loss = loss + self.config.object_weight * (error * region).mean()
+            logs["object_l1"] = object_l1.item()
         if lpips_metric is not None and self.config.perceptual_weight > 0:
             perceptual = lpips_metric(out.reconstruction * 2 - 1, images * 2 - 1).mean()
             loss = loss + self.config.perceptual_weight * perceptual

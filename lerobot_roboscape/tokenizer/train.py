@@ -8,10 +8,19 @@ import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.dataset.reader import CameraFrames, DatasetError, image_size, open_dataset
+from lerobot_roboscape.dataset.reader import (
+    CameraFrames,
+    DatasetError,
+    FrameBank,
+    camera_names,
+    image_size,
+    open_dataset,
+)
+from lerobot_roboscape.dataset.segmentation import SEGMENTATION_META, has_masks
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig, TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.report import curve_point, measure_tokenizer
 from lerobot_roboscape.training import TrainingConfig, fit
 
 
@@ -25,47 +34,69 @@ class TokenizerTrainingConfig(TrainingConfig):
 class TrainTokenizerConfig:
     """Args:
     dataset: the LeRobot dataset (--dataset.repo_id, --dataset.root, --dataset.episodes).
-    tokenizer: architecture and losses (--tokenizer.type=tiny|paper, then any field).
+    heldout: held-out episodes measured every train.eval_freq steps (tokenizer/report.py), for the curves that
+        size the run; recorded with --segmentation=true for the object measures. Optional.
+    tokenizer: architecture and losses (--tokenizer.type=tiny|bench|paper, then any field).
     train: optimisation, logging, checkpoints and resume; batch_size counts frames (all views of each).
-    output_dir: checkpoints, logs and the final model (output_dir/pretrained_model).
-    num_workers: data-loading processes.
+    output_dir: checkpoints, logs, held-out curve and the final model (output_dir/pretrained_model).
+    frames_in_memory_gb: decode the training frames once into memory when they fit in this much (far faster on a
+        CPU); larger datasets are decoded frame by frame by `num_workers` processes.
+    heldout_stride: every n-th frame of each held-out episode is measured during training.
+    num_workers: data-loading processes, when frames are not kept in memory.
     lpips_weights: torchvision trunk weights for the perceptual loss (default: the torch hub cache).
     allow_random_lpips: train with a random LPIPS trunk when no weights are found (offline demos and tests).
     """
 
     dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape"))
+    heldout: DatasetConfig | None = None
     tokenizer: TokenizerConfig = field(default_factory=TinyTokenizerConfig)
     train: TokenizerTrainingConfig = field(default_factory=TokenizerTrainingConfig)
     output_dir: Path = Path("outputs/tokenizer")
+    frames_in_memory_gb: float = 8.0
+    heldout_stride: int = 4
     num_workers: int = 2
     lpips_weights: Path | None = None
     allow_random_lpips: bool = False
 
 
-class RandomFrameBatches:
-    """Batches of random frames drawn by a per-step seed, loaded by a DataLoader's worker processes."""
+def _sample(step: int, process_index: int, seed: int, n: int, batch_size: int) -> list[int]:
+    """The frames of one step: a pure function of (seed, step, process), so a resumed run draws the same batches."""
+    return np.random.default_rng([seed, step, process_index]).integers(0, n, batch_size).tolist()
+
+
+class BankBatches:
+    """Batches of random frames from a `FrameBank` in memory."""
+
+    def __init__(self, bank: FrameBank, batch_size: int, seed: int):
+        self.bank, self.batch_size, self.seed = bank, batch_size, seed
+
+    def __call__(self, step: int, process_index: int = 0) -> dict:
+        rows = _sample(step, process_index, self.seed, len(self.bank), self.batch_size)
+        batch = {"images": self.bank.images[rows].flatten(0, 1).permute(0, 3, 1, 2).float() / 255}
+        if self.bank.masks is not None:
+            batch["masks"] = self.bank.masks[rows].flatten(0, 1)
+        return batch
+
+
+class StreamedBatches:
+    """Batches of random frames decoded from the videos by a DataLoader's worker processes."""
 
     def __init__(self, frames: CameraFrames, batch_size: int, seed: int, num_workers: int):
         self.frames, self.batch_size, self.seed, self.num_workers = frames, batch_size, seed, num_workers
         self._iterator, self._next_step = None, None
 
-    def _indices(self, start: int, process_index: int):
-        for step in range(start, 2**62):
-            rng = np.random.default_rng([self.seed, step, process_index])
-            yield rng.integers(0, len(self.frames), self.batch_size).tolist()
-
     def __call__(self, step: int, process_index: int = 0) -> dict:
         if step != self._next_step:
+            n, size, seed = len(self.frames), self.batch_size, self.seed
             loader = torch.utils.data.DataLoader(
                 self.frames,
-                batch_sampler=self._indices(step, process_index),
+                batch_sampler=(_sample(s, process_index, seed, n, size) for s in range(step, 2**62)),
                 num_workers=self.num_workers,
                 persistent_workers=False,
             )
             self._iterator = iter(loader)
         self._next_step = step + 1
-        views = next(self._iterator)  # (B, n_cameras, 3, H, W)
-        return {"images": views.flatten(0, 1)}
+        return {k: v.flatten(0, 1) for k, v in next(self._iterator).items()}  # views as frames of their own
 
 
 def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
@@ -76,6 +107,12 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
             f"dataset {dataset.root} has {size}x{size} images but --tokenizer.image_size is "
             f"{cfg.tokenizer.image_size}; collect at that size or set --tokenizer.image_size={size}"
         )
+    masks = cfg.tokenizer.object_weight > 0
+    if masks and not has_masks(dataset.root):
+        raise DatasetError(
+            f"--tokenizer.object_weight={cfg.tokenizer.object_weight} needs the object's masks, and dataset "
+            f"{dataset.root} has none ({SEGMENTATION_META} is missing); collect with --segmentation=true"
+        )
     set_seed(cfg.train.seed)  # before the LPIPS trunk too, which is random when no weights are found
     lpips_metric = None
     if cfg.tokenizer.perceptual_weight > 0:
@@ -84,8 +121,17 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
     def loss_fn(model, batch):
         if lpips_metric is not None:
             lpips_metric.to(batch["images"].device)
-        return model.compute_loss(batch["images"], lpips_metric)
+        return model.compute_loss(batch["images"], lpips_metric, batch.get("masks"))
 
-    batches = RandomFrameBatches(CameraFrames(dataset), cfg.train.batch_size, cfg.train.seed, cfg.num_workers)
+    if FrameBank.nbytes(dataset) <= cfg.frames_in_memory_gb * 2**30:
+        batches = BankBatches(FrameBank.load(dataset, masks=masks), cfg.train.batch_size, cfg.train.seed)
+    else:
+        frames = CameraFrames(dataset, masks=masks)
+        batches = StreamedBatches(frames, cfg.train.batch_size, cfg.train.seed, cfg.num_workers)
+    evaluate = None
+    if cfg.heldout is not None:
+        heldout = open_dataset(cfg.heldout.repo_id, cfg.heldout.root, cfg.heldout.episodes)
+        bank = FrameBank.load(heldout, masks=has_masks(heldout.root), stride=cfg.heldout_stride)
+        evaluate = lambda model: curve_point(measure_tokenizer(model, bank, camera_names(heldout)))  # noqa: E731
     model = VisualTokenizer(cfg.tokenizer)
-    return fit(model, loss_fn, batches, cfg.train, cfg.output_dir, asdict(cfg), desc="tokenizer")
+    return fit(model, loss_fn, batches, cfg.train, cfg.output_dir, asdict(cfg), desc="tokenizer", evaluate=evaluate)

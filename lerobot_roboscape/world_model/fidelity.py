@@ -9,6 +9,7 @@ the failed episodes alone: how often it calls a failed attempt done (its false p
 
 import json
 import logging
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -21,7 +22,9 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.classification import binary_auroc
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
-from lerobot_roboscape.dataset.reader import episode_indices, open_dataset, read_episode
+from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
+from lerobot_roboscape.dataset.segmentation import has_masks, read_masks
+from lerobot_roboscape.image_fidelity import frame_measures
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import resolve_device
@@ -34,6 +37,16 @@ from lerobot_roboscape.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
+# Of the task object (image_fidelity.py), when the held-out dataset has its masks: over views and the frames that
+# show it.
+OBJECT_METRICS = ("object_psnr", "object_survival")
+LABELS = {
+    "psnr": "PSNR",
+    "ssim": "SSIM",
+    "lpips": "LPIPS",
+    "object_psnr": "object PSNR",
+    "object_survival": "object survives",
+}
 
 
 @dataclass
@@ -77,6 +90,18 @@ def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
         "lpips": lpips_metric(p * 2 - 1, r * 2 - 1).flatten(),
     }
     return {k: v.reshape(-1, n).mean(1).cpu().numpy() for k, v in values.items()}
+
+
+def _object_metrics(pred, real, labels) -> dict[str, np.ndarray]:
+    """Per frame, averaged over the views that show the object (NaN where none does): pred/real (T, n_cameras, 3,
+    H, W) in [0, 1], labels (T, n_cameras, H, W)."""
+    views = [frame_measures(pred[:, v], real[:, v], labels[:, v]) for v in range(pred.shape[1])]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a frame where no view shows the object: NaN
+        return {
+            "object_psnr": np.nanmean([m["object_psnr"] for m in views], 0),
+            "object_survival": np.nanmean([m["object_survives"] for m in views], 0),
+        }
 
 
 def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
@@ -158,8 +183,10 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     prompt = cfg.prompt_frames or model.config.prompt_frames
     n_cameras = model.config.n_cameras
 
+    masks = has_masks(dataset.root)
+    metrics = METRICS + (OBJECT_METRICS if masks else ())
     per_step = {
-        f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction") for m in METRICS
+        f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction") for m in metrics
     }
     tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos, whole = [], [], [], [], [], [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
@@ -182,10 +209,17 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         target = real[prompt : prompt + horizon]
         pred = tokenizer.decode_views(pred_tokens[0], n_cameras)
         recon = tokenizer.decode_views(tokens[prompt : prompt + horizon], n_cameras)
+        if masks:
+            labels = read_masks(dataset.root, index, camera_names(dataset), len(tokens))
+            labels = torch.from_numpy(np.stack(list(labels.values()), 1)[prompt : prompt + horizon]).to(device)
         for kind, images in (("prediction", pred), ("reconstruction", recon)):
-            for metric, values in _image_metrics(images, target, lpips_metric).items():
-                for step, value in enumerate(values):
-                    per_step[f"{kind}_{metric}"][step].append(float(value))
+            values = _image_metrics(images, target, lpips_metric)
+            if masks:
+                values |= _object_metrics(images, target, labels)
+            for metric, per_frame in values.items():
+                for step, value in enumerate(per_frame):
+                    if not np.isnan(value):
+                        per_step[f"{kind}_{metric}"][step].append(float(value))
         tf = model.teacher_forced(tokens[None], actions[None, :-1])[0][0].cpu().numpy()
         tf_prob.append(tf)
         tf_label.append(episode.done_label)
@@ -213,7 +247,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "prompt_frames": prompt,
         "lpips_trunk": "random (not perceptual)" if lpips_metric.random_trunk else "pretrained",
         "per_step": {k: [float(np.mean(v)) if v else None for v in steps] for k, steps in per_step.items()},
-        "mean": {k: float(np.mean(sum(steps, []))) for k, steps in per_step.items()},
+        "mean": {k: float(np.mean(sum(steps, []))) if any(steps) else None for k, steps in per_step.items()},
         "done_teacher_forced": _done_scores(np.concatenate(tf_prob), np.concatenate(tf_label), cfg.done_threshold),
         "done_open_loop": _done_scores(np.concatenate(ol_prob), np.concatenate(ol_label), cfg.done_threshold),
         "episode_success_accuracy": float(
@@ -239,18 +273,25 @@ def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: 
 
 def markdown_table(report: dict) -> str:
     steps = len(report["per_step"]["prediction_psnr"])
+    per_step = report["per_step"]
+    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in per_step]
+    names = [f"{LABELS[m]} {kind}" for m in metrics for kind in ("pred", "recon")]
     lines = [
         f"# World-model fidelity ({len(report['episodes'])} episodes, {report['prompt_frames']} prompt frames)",
         "",
-        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame.",
+        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame."
+        + (
+            " Object columns: over the frames and views that show the task object."
+            if len(metrics) > len(METRICS)
+            else ""
+        ),
         "",
-        "| step | PSNR pred | PSNR recon | SSIM pred | SSIM recon | LPIPS pred | LPIPS recon |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "| step | " + " | ".join(names) + " |",
+        "|---:|" + "---:|" * len(names),
     ]
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    per_step = report["per_step"]
     for i in range(steps):
-        cells = [fmt(per_step[f"{kind}_{m}"][i]) for m in METRICS for kind in ("prediction", "reconstruction")]
+        cells = [fmt(per_step[f"{kind}_{m}"][i]) for m in metrics for kind in ("prediction", "reconstruction")]
         lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
     for name in ("done_teacher_forced", "done_open_loop"):
         d = report[name]
@@ -285,12 +326,13 @@ def markdown_table(report: dict) -> str:
 
 
 def plot(report: dict, path: Path) -> None:
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(12, 3.2))
-    for ax, metric in zip(axes, METRICS, strict=True):
+    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4 * len(metrics), 3.2))
+    for ax, metric in zip(axes, metrics, strict=True):
         for kind, style in (("prediction", "-o"), ("reconstruction", "--")):
             values = [np.nan if v is None else v for v in report["per_step"][f"{kind}_{metric}"]]
             ax.plot(range(1, len(values) + 1), values, style, label=kind, markersize=3)
-        ax.set_title(metric.upper())
+        ax.set_title(LABELS[metric])
         ax.set_xlabel("horizon step")
     axes[0].legend()
     fig.tight_layout()

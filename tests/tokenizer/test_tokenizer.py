@@ -1,11 +1,19 @@
+import shutil
+
+import imageio.v3 as iio
 import pytest
 import torch
 import torchvision
+from lerobot.configs.default import DatasetConfig
 from safetensors.torch import save_file
 
+from lerobot_roboscape.dataset.reader import DatasetError
+from lerobot_roboscape.dataset.segmentation import OBJECT
 from lerobot_roboscape.perceptual import LPIPSTrunkMissingError, load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import PaperTokenizerConfig, TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
+from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from tests.conftest import TEST_TOKENIZER
 
 
@@ -82,3 +90,57 @@ def test_lpips_trunk_loads_from_a_file_and_is_refused_when_missing(tmp_path):
     with pytest.raises(LPIPSTrunkMissingError, match="not found"):
         load_lpips("alex", trunk_path=tmp_path / "missing.pth")
     assert load_lpips("alex", trunk_path=None, allow_random_trunk=True) is not None
+
+
+def test_object_weight_adds_the_error_on_the_objects_pixels():
+    images = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(2))
+    masks = torch.zeros(2, 32, 32, dtype=torch.uint8)
+    masks[:, 10:13, 10:13] = OBJECT  # 3x3, dilated by a pixel to 5x5
+    plain, _ = make_tokenizer().compute_loss(images, masks=masks)
+    weighted_model = make_tokenizer(object_weight=10.0)  # same seed: the same weights
+    weighted, logs = weighted_model.compute_loss(images, masks=masks)
+    error = (weighted_model(images).reconstruction - images).abs().mean(1)[:, 9:14, 9:14]
+    assert torch.isclose(weighted - plain, 10 * error.sum() / (2 * 32 * 32), rtol=1e-4)
+    assert logs["object_l1"] == pytest.approx(error.mean().item(), rel=1e-4)
+    with pytest.raises(ValueError, match="needs the frames' segmentation masks"):
+        weighted_model.compute_loss(images)
+
+
+def test_training_with_object_weight_needs_a_dataset_with_masks(demo_dataset, tmp_path):
+    _, root = demo_dataset
+    unmasked = tmp_path / "unmasked"
+    shutil.copytree(root, unmasked, ignore=shutil.ignore_patterns("segmentation", "roboscape_segmentation.json"))
+    cfg = TrainTokenizerConfig(
+        dataset=DatasetConfig(repo_id="test/demos", root=str(unmasked)),
+        tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER, object_weight=5.0),
+        output_dir=tmp_path / "out",
+    )
+    with pytest.raises(DatasetError, match=r"object_weight=5.0 needs .* roboscape_segmentation.json is missing"):
+        train_tokenizer(cfg)
+
+
+def test_report_measures_the_object_per_view_and_plots_the_training_curve(demo_dataset, trained_tokenizer, tmp_path):
+    _, root = demo_dataset
+    report = evaluate_tokenizer(
+        TokenizerReportConfig(
+            dataset=DatasetConfig(repo_id="test/demos", root=str(root), episodes=[0, 4]),
+            tokenizer=str(trained_tokenizer),
+            output_dir=tmp_path,
+            training_dir=trained_tokenizer.parent,
+            columns=2,
+        )
+    )
+    for name in ("tokenizer_report.json", "tokenizer_report.md", "reconstruction.png", "heldout_curve.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert report["episodes"] == 2
+    for view in ("third_view", "wrist"):
+        m = report["views"][view]
+        assert 0 < m["object_frames"] <= m["frames"]
+        assert 0 <= m["object_survival"] <= 1 and 0 <= m["picture_object_survives"] <= 1
+        assert 5 < m["psnr"] < 60 and 0 < m["object_psnr"] < 60
+        assert 0 < m["codebook"]["share_used"] <= 1 and 1 <= m["codebook"]["perplexity"] <= 64
+    # The training fixture measured its held-out episodes every 4 of its 8 steps.
+    assert [p["step"] for p in report["curve"]] == [4, 8]
+    assert all(5 < p["wrist/psnr"] < 60 for p in report["curve"])
+    picture = iio.imread(tmp_path / "reconstruction.png")
+    assert picture.shape == (4 * 32 * 3, 2 * 32 * 3, 3)  # (real, reconstructed) x 2 views by 2 columns, at 3x
