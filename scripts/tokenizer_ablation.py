@@ -28,6 +28,8 @@ VARIANTS = {
     "entropy_0.02": {"entropy_weight": 0.02},
     "bits_12": {"codebook_bits": 12},
     "object_w20_entropy_0.02": {"object_weight": 20.0, "entropy_weight": 0.02},
+    "object_w50_entropy_0.02": {"object_weight": 50.0, "entropy_weight": 0.02},
+    "object_w20_entropy_0.005": {"object_weight": 20.0, "entropy_weight": 0.005},
     "object_w20_wide": {"object_weight": 20.0, "base_channels": 32},
 }
 

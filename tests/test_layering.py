@@ -17,6 +17,7 @@ STAGES = [
     "tasks",
     "dataset",
     "demos",
+    "image_fidelity",  # measures on the datasets' frames and masks, for the models' reports
     "tokenizer",
     "world_model",
     "reward",

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
+import torch
 
 from lerobot_roboscape.dataset.episode import Episode
-from lerobot_roboscape.dataset.reader import FrameBank, read_episode
+from lerobot_roboscape.dataset.reader import CameraFrames, FrameBank, read_episode
 from lerobot_roboscape.dataset.segmentation import CONTAINER, OBJECT, has_masks, mask_path, read_masks
 from lerobot_roboscape.dataset.writer import write_dataset
 from lerobot_roboscape.errors import InvalidInputError
@@ -53,7 +54,7 @@ def test_a_missing_or_wrong_mask_file_is_named(demo_dataset, tmp_path):
 
 
 def _episode(masks: bool, n: int = 3) -> Episode:
-    images = {"wrist": np.zeros((n, 8, 8, 3), np.uint8)}
+    images = {"wrist": np.zeros((n, 32, 32, 3), np.uint8)}
     return Episode(
         images=images,
         state=np.zeros((n, 2), np.float32),
@@ -62,7 +63,7 @@ def _episode(masks: bool, n: int = 3) -> Episode:
         success=np.zeros(n, bool),
         done=np.eye(n, dtype=bool)[-1],
         task="push the red cube forward",
-        masks={"wrist": np.ones((n, 8, 8), np.uint8)} if masks else None,
+        masks={"wrist": np.ones((n, 32, 32), np.uint8)} if masks else None,
     )
 
 
@@ -81,3 +82,13 @@ def test_a_dataset_has_masks_for_every_episode_or_none(tmp_path):
     with pytest.raises(InvalidInputError, match="episode 1 for .* has no segmentation masks"):
         write_dataset([_episode(True), _episode(False)], "test/mixed", tmp_path / "mixed", fps=20)
     assert not (tmp_path / "mixed").exists()  # nothing half-written
+
+
+def test_streamed_frames_carry_the_same_masks_as_the_bank(demo_dataset):
+    ds, _ = demo_dataset
+    bank = FrameBank.load(ds, masks=True)
+    streamed = CameraFrames(ds, masks=True)
+    for i in (0, len(bank) // 2, len(bank) - 1):
+        item = streamed[i]
+        assert item["images"].shape == (2, 3, 32, 32)
+        assert torch.equal(item["masks"], bank.masks[i])
