@@ -115,7 +115,8 @@ def test_training_with_object_weight_needs_a_dataset_with_masks(demo_dataset, tm
         tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER, object_weight=5.0),
         output_dir=tmp_path / "out",
     )
-    with pytest.raises(DatasetError, match=r"object_weight=5.0 needs .* \(meta/roboscape_segmentation.json is missing\)"):
+    missing = r"object_weight=5.0 needs .* \(meta/roboscape_segmentation.json is missing\)"
+    with pytest.raises(DatasetError, match=missing):
         train_tokenizer(cfg)
 
 
