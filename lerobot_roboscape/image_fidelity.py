@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from lerobot_roboscape.dataset.segmentation import OBJECT
 
 MIN_OBJECT_PIXELS = 4
+SIZE_BINS = (4, 16, 64)  # object pixels: survival is also given for [4, 16), [16, 64) and 64 or more
 OBJECT_DILATION = 1
 RING_WIDTH = 3
 
@@ -73,7 +74,21 @@ def summarize(measures: dict[str, np.ndarray]) -> dict:
         "object_survival": float(np.mean(measures["object_survives"][seen])) if seen.any() else None,
         "frames": int(len(seen)),
         "object_frames": int(seen.sum()),
+        "object_survival_by_size": survival_by_size(measures),
     }
+
+
+def survival_by_size(measures: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Object survival over the frames whose object covers each SIZE_BINS range of pixels: "lo-hi" -> {"frames",
+    "survival"} (None for an empty range)."""
+    edges = [*SIZE_BINS, np.inf]
+    bins = {}
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        inside = (measures["object_pixels"] >= lo) & (measures["object_pixels"] < hi)
+        name = f"{lo}-{int(hi) - 1} px" if hi < np.inf else f">= {lo} px"
+        survival = float(np.mean(measures["object_survives"][inside])) if inside.any() else None
+        bins[name] = {"frames": int(inside.sum()), "survival": survival}
+    return bins
 
 
 def codebook_use(indices: torch.Tensor, codebook_size: int) -> dict:

@@ -49,3 +49,18 @@ def test_codebook_use_and_perplexity():
     assert uniform["used"] == 16 and uniform["share_used"] == 0.25
     assert np.isclose(uniform["perplexity"], 16)
     assert np.isclose(codebook_use(torch.zeros(100, dtype=torch.long), 64)["perplexity"], 1)
+
+
+def test_survival_is_also_given_by_the_objects_size():
+    measures = {
+        "psnr": np.zeros(4),
+        "object_psnr": np.zeros(4),
+        "object_survives": np.array([1.0, 0.0, 1.0, np.nan]),
+        "object_pixels": np.array([5, 10, 100, 2]),
+    }
+    by_size = summarize(measures)["object_survival_by_size"]
+    assert by_size == {
+        "4-15 px": {"frames": 2, "survival": 0.5},
+        "16-63 px": {"frames": 0, "survival": None},
+        ">= 64 px": {"frames": 1, "survival": 1.0},
+    }

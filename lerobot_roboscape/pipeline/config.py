@@ -17,6 +17,8 @@ ALL = list(TASK_FAMILIES)
 #   simulator makes about 47 env steps/s with two 64 px cameras on the 2 cores, the policy included
 #   (docs/results/simulator/report.md), so Table 1 has 50 episodes per cell, as the paper's tables: a 95% interval
 #   at most 27 points wide.
+#   The tokenizer trains for 8000 steps (about 40 min) with the object's pixels weighted up, sized by its held-out
+#   curves (docs/results/tokenizer/report.md).
 # - "paper": the paper's setting (GPUs, days: 80 scenes, 128 px, paper presets, OpenVLA-7B with LoRA).
 SCALES = {
     "smoke": dict(
@@ -97,7 +99,7 @@ SCALES = {
         workers=2,
         tokenizer_preset="bench",
         wm_preset="bench",
-        tokenizer_steps=1200,
+        tokenizer_steps=8000,
         tokenizer_batch_size=8,
         wm_steps=800,
         text_wm_steps=300,

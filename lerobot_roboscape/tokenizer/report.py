@@ -188,4 +188,12 @@ def markdown(report: dict) -> str:
             f"{fmt(m.get('picture_object_survives'), '{:.0%}')} | "
             f"{c['used']}/{c['codebook_size']} ({c['share_used']:.1%}) | {c['perplexity']:.0f} |"
         )
+    sized = {camera: m["object_survival_by_size"] for camera, m in report["views"].items() if m.get("frames")}
+    if sized:
+        bins = list(next(iter(sized.values())))
+        lines += ["", "Object survival by the object's size in the frame (frames in brackets):", ""]
+        lines += ["| view | " + " | ".join(bins) + " |", "|---|" + "---:|" * len(bins)]
+        for camera, by_size in sized.items():
+            cells = [f"{fmt(b['survival'], '{:.1%}')} ({b['frames']})" for b in by_size.values()]
+            lines.append(f"| {camera} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
