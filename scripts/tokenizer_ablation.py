@@ -33,7 +33,10 @@ VARIANTS = {
     "object_w50_entropy_0.02": {"object_weight": 50.0, "entropy_weight": 0.02},
     "object_w20_entropy_0.005": {"object_weight": 20.0, "entropy_weight": 0.005},
     "object_w20_wide": {"object_weight": 20.0, "base_channels": 32},
+    "object_w100_entropy_0.02": {"object_weight": 100.0, "entropy_weight": 0.02},
+    "object_w50_entropy_0.02_hue": {"object_weight": 50.0, "entropy_weight": 0.02, "hue_shift": 0.5},
 }
+TRAINING_OPTIONS = ("hue_shift",)  # of TrainTokenizerConfig, not of the tokenizer
 
 
 def run_variant(name: str, args) -> dict:
@@ -44,6 +47,8 @@ def run_variant(name: str, args) -> dict:
     from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
     from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
 
+    changes = BASELINE | VARIANTS[name]
+    training = {k: changes.pop(k) for k in TRAINING_OPTIONS if k in changes}
     folder = Path(args.out) / name
     report_file = folder / "report" / "tokenizer_report.json"
     if report_file.exists():
@@ -51,7 +56,7 @@ def run_variant(name: str, args) -> dict:
     train = TrainTokenizerConfig(
         dataset=DatasetConfig(repo_id="local/train", root=args.train),
         heldout=DatasetConfig(repo_id="local/heldout", root=args.heldout),
-        tokenizer=replace(BenchTokenizerConfig(), **(BASELINE | VARIANTS[name])),
+        tokenizer=replace(BenchTokenizerConfig(), **changes),
         train=TokenizerTrainingConfig(
             steps=args.steps,
             batch_size=args.batch_size,
@@ -62,6 +67,7 @@ def run_variant(name: str, args) -> dict:
         ),
         output_dir=folder / "train",
         heldout_stride=args.heldout_stride,
+        **training,
     )
     began = time.time()
     train_tokenizer(train)

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
+from torchvision.transforms.v2.functional import adjust_hue
 
 from lerobot_roboscape.dataset.reader import (
     CameraFrames,
@@ -42,6 +43,9 @@ class TrainTokenizerConfig:
     frames_in_memory_gb: decode the training frames once into memory when they fit in this much (far faster on a
         CPU); larger datasets are decoded frame by frame by `num_workers` processes.
     heldout_stride: every n-th frame of each held-out episode is measured during training.
+    hue_shift: rotate each training frame's hue by a random fraction of the colour circle in [-hue_shift,
+        hue_shift] (0: no augmentation), so that object colours absent from the training scenes are not new to the
+        tokenizer.
     num_workers: data-loading processes, when frames are not kept in memory.
     lpips_weights: torchvision trunk weights for the perceptual loss (default: the torch hub cache).
     allow_random_lpips: train with a random LPIPS trunk when no weights are found (offline demos and tests).
@@ -54,6 +58,7 @@ class TrainTokenizerConfig:
     output_dir: Path = Path("outputs/tokenizer")
     frames_in_memory_gb: float = 8.0
     heldout_stride: int = 4
+    hue_shift: float = 0.0
     num_workers: int = 2
     lpips_weights: Path | None = None
     allow_random_lpips: bool = False
@@ -99,6 +104,24 @@ class StreamedBatches:
         return {k: v.flatten(0, 1) for k, v in next(self._iterator).items()}  # views as frames of their own
 
 
+def shift_hue(images: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) in [0, 1], each image's hue rotated by its fraction of the colour circle in `shifts` (B,)."""
+    return torch.stack([adjust_hue(image, float(shift)) for image, shift in zip(images, shifts, strict=True)])
+
+
+def with_hue(batches, hue_shift: float, seed: int):
+    """`batches` with a random hue shift per frame (the same for each of its views), a function of (seed, step)."""
+
+    def batch(step: int, process_index: int = 0) -> dict:
+        out = batches(step, process_index)
+        views = len(out["images"]) // batches.batch_size
+        rng = np.random.default_rng([seed, step, process_index, 1])
+        shifts = rng.uniform(-hue_shift, hue_shift, batches.batch_size).repeat(views)
+        return out | {"hue": torch.from_numpy(shifts)}
+
+    return batch
+
+
 def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
     dataset = open_dataset(cfg.dataset.repo_id, cfg.dataset.root, cfg.dataset.episodes)
     size = image_size(dataset)
@@ -121,13 +144,16 @@ def train_tokenizer(cfg: TrainTokenizerConfig) -> VisualTokenizer:
     def loss_fn(model, batch):
         if lpips_metric is not None:
             lpips_metric.to(batch["images"].device)
-        return model.compute_loss(batch["images"], lpips_metric, batch.get("masks"))
+        images = shift_hue(batch["images"], batch["hue"]) if "hue" in batch else batch["images"]
+        return model.compute_loss(images, lpips_metric, batch.get("masks"))
 
     if FrameBank.nbytes(dataset) <= cfg.frames_in_memory_gb * 2**30:
         batches = BankBatches(FrameBank.load(dataset, masks=masks), cfg.train.batch_size, cfg.train.seed)
     else:
         frames = CameraFrames(dataset, masks=masks)
         batches = StreamedBatches(frames, cfg.train.batch_size, cfg.train.seed, cfg.num_workers)
+    if cfg.hue_shift > 0:
+        batches = with_hue(batches, cfg.hue_shift, cfg.train.seed)
     evaluate = None
     if cfg.heldout is not None:
         heldout = open_dataset(cfg.heldout.repo_id, cfg.heldout.root, cfg.heldout.episodes)

@@ -1,19 +1,20 @@
 import shutil
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 import torchvision
 from lerobot.configs.default import DatasetConfig
 from safetensors.torch import save_file
 
-from lerobot_roboscape.dataset.reader import DatasetError
+from lerobot_roboscape.dataset.reader import DatasetError, FrameBank
 from lerobot_roboscape.dataset.segmentation import OBJECT
 from lerobot_roboscape.perceptual import LPIPSTrunkMissingError, load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import PaperTokenizerConfig, TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
-from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.tokenizer.train import BankBatches, TrainTokenizerConfig, shift_hue, train_tokenizer, with_hue
 from tests.conftest import TEST_TOKENIZER
 
 
@@ -145,3 +146,16 @@ def test_report_measures_the_object_per_view_and_plots_the_training_curve(demo_d
     assert all(5 < p["wrist/psnr"] < 60 for p in report["curve"])
     picture = iio.imread(tmp_path / "reconstruction.png")
     assert picture.shape == (4 * 32 * 3, 2 * 32 * 3, 3)  # (real, reconstructed) x 2 views by 2 columns, at 3x
+
+
+def test_hue_augmentation_rotates_colours_and_shifts_a_frames_views_alike():
+    red = torch.zeros(2, 3, 4, 4)
+    red[:, 0] = 1
+    shifted = shift_hue(red, torch.tensor([0.5, 0.0]))
+    assert torch.allclose(shifted[0, :, 0, 0], torch.tensor([0.0, 1.0, 1.0]), atol=1e-3)  # red -> cyan
+    assert torch.equal(shifted[1], red[1])
+    bank = FrameBank(torch.zeros(5, 2, 4, 4, 3, dtype=torch.uint8), None, np.zeros(5), np.arange(5))
+    batches = with_hue(BankBatches(bank, batch_size=3, seed=0), hue_shift=0.2, seed=0)
+    hue = batches(7)["hue"]
+    assert hue.shape == (6,) and torch.equal(hue[0::2], hue[1::2]) and hue.abs().max() <= 0.2
+    assert torch.equal(hue, batches(7)["hue"]) and not torch.equal(hue, batches(8)["hue"])
