@@ -169,7 +169,8 @@ def test_eval(mlp_checkpoint, tmp_path):
     for split in ("ind", "ood"):
         cells = reference["splits"][split]
         assert cells["push"]["episodes"] == cells["all"]["episodes"] == 1
-        assert (tmp_path / "reference" / "videos" / f"{split}.mp4").exists()
+        outcome = "success" if cells["push"]["successes"] else "failure"
+        assert (tmp_path / "reference" / "videos" / split / f"00_push_{outcome}.mp4").exists()
     assert "| OOD | push |" in (tmp_path / "reference" / "eval.md").read_text()
 
     killed = tmp_path / "killed"

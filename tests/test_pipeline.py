@@ -4,7 +4,7 @@ interrupted training stage resumes only into a run of the same settings, and the
 from dataclasses import dataclass
 
 from lerobot_roboscape.pipeline import stages
-from lerobot_roboscape.pipeline.report import measure_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.report import measure_targets, sft_targets, tokenizer_targets
 
 
 @dataclass
@@ -66,10 +66,26 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met["action WM open-loop PSNR, first 8 steps (dB; tokenizer 27.00)"]  # 25 is within 3 dB of 27
     assert not met["done ROC-AUC, held-out episodes generated open loop"]
     assert not met["world-model reward: ROC-AUC of the return, held-out OOD episodes"]  # the embedding beats it
-    assert met["roboscape_mlp SFT IND success, push"]
+    assert not met["roboscape_mlp SFT IND success, push"]  # 0.4 is below push's 0.6
     assert met["roboscape_mlp PPO in WM vs Supervised finetune, IND (all families)"]
     assert not met["roboscape_mlp PPO in WM vs Supervised finetune, OOD (all families)"]  # equal is not higher
     assert met["roboscape_mlp PPO in WM vs RL w. ManiSkill, OOD (all families)"]
+
+
+def test_sft_targets_are_per_family_with_the_interval_and_ood_beside():
+    table = {
+        "roboscape_mlp": {
+            stages.SFT: {
+                "ind": {"push": cell(0.62, 50), "pick_place": cell(0.14, 50)},
+                "ood": {"push": cell(0.1, 50), "pick_place": cell(0.0, 50)},
+            }
+        }
+    }
+    targets = sft_targets(table, ["pick_place", "push"])
+    push, pick = targets["roboscape_mlp SFT IND success, push"], targets["roboscape_mlp SFT IND success, pick_place"]
+    assert push["met"] and push["value"] == 0.62 and push["goal"] == ">= 0.6"
+    assert not pick["met"] and pick["value"] == 0.14  # 7/50, below 0.15
+    assert push["detail"].startswith("IND 31/50, 95% CI 0.48-0.74; OOD 0.100, 5/50")
 
 
 def test_tokenizer_targets_are_one_row_per_view_and_measure():

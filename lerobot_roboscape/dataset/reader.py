@@ -158,6 +158,19 @@ def successful_episodes(dataset: LeRobotDataset) -> list[int]:
     return successful
 
 
+def demonstrations_per_scene(dataset: LeRobotDataset, per_scene: int | None) -> list[int]:
+    """The first `per_scene` successful episodes of each (task family, scene), in index order (None: all of them):
+    the demonstrations an SFT run of that data size imitates."""
+    kept, counts = [], {}
+    for index in successful_episodes(dataset):
+        facts = episode_facts(dataset, index)
+        key = (facts.get("task_family"), facts.get("scene"))
+        if per_scene is None or counts.get(key, 0) < per_scene:
+            counts[key] = counts.get(key, 0) + 1
+            kept.append(index)
+    return kept
+
+
 def _local_range(dataset: LeRobotDataset, start: int, stop: int) -> tuple[int, int]:
     # With an episode selection, hf_dataset holds only the selected rows; find this episode's rows among them.
     if dataset.episodes is None:

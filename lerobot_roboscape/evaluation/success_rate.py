@@ -36,7 +36,8 @@ class EvalConfig:
     dataset_root: their local directory.
     image_size: camera image side (0: the policy's).
     seed: seed of the initial states; the datasets' episodes use small seeds, so the default is far from them.
-    videos: episodes recorded per split (the first batch's).
+    videos: episodes recorded per split (the first batch's), one file each, named with its family and outcome:
+        videos/<split>/<k>_<family>_<success|failure>.mp4.
     workers: simulator processes the batch is spread over (null: one per CPU core).
     output_dir: eval.json, eval.md and videos/ (and splits/, each split's result as soon as it is complete).
     device: "auto", "cpu" or "cuda".
@@ -171,8 +172,13 @@ def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots,
             if len(outcomes[family]) < cfg.episodes:
                 outcomes[family].append(bool(ok))
         if record:
-            clip = [frame[:, : frame.shape[1] * cfg.videos // env.num_envs] for frame in frames]
-            write_video(cfg.output_dir / "videos" / f"{env_cfg.split}.mp4", clip, env.metadata["render_fps"])
+            for i, (family, ok) in enumerate(zip(env.slot_families[: cfg.videos], success, strict=False)):
+                name = f"{i:02d}_{family}_{'success' if ok else 'failure'}.mp4"
+                clip = [
+                    frame[:, i * frame.shape[1] // env.num_envs : (i + 1) * frame.shape[1] // env.num_envs]
+                    for frame in frames
+                ]
+                write_video(cfg.output_dir / "videos" / env_cfg.split / name, clip, env.metadata["render_fps"])
     env.close()
     cells = {family: summarise(o) for family, o in outcomes.items()}
     cells["all"] = summarise([x for o in outcomes.values() for x in o])

@@ -19,7 +19,7 @@ from lerobot.configs.default import DatasetConfig
 from lerobot_roboscape.atomic import write_text_atomically
 from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, LAST, last_checkpoint
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
-from lerobot_roboscape.dataset.reader import open_dataset, successful_episodes
+from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
@@ -437,9 +437,10 @@ def run_lerobot(script: str, args: list[str]) -> None:
         raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
 
 
-def sft_episodes(dataset: DatasetConfig) -> list[int]:
-    """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model)."""
-    episodes = successful_episodes(open_dataset(dataset.repo_id, dataset.root))
+def sft_episodes(dataset: DatasetConfig, per_scene: int | None = None) -> list[int]:
+    """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model), the
+    first `per_scene` of each family and scene (None: all)."""
+    episodes = demonstrations_per_scene(open_dataset(dataset.repo_id, dataset.root), per_scene)
     if not episodes:
         raise InvalidInputError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
     return episodes
@@ -453,9 +454,13 @@ def lerobot_sft(
     batch_size: int,
     num_workers: int = 2,
     fresh: bool = False,
+    per_scene: int | None = None,
+    save_freq: int | None = None,
 ) -> Path:
-    """SFT with `lerobot-train` on the dataset's successful episodes; returns the final pretrained_model directory."""
-    episodes = sft_episodes(dataset)
+    """SFT with `lerobot-train` on the dataset's successful episodes (the first `per_scene` of each family and
+    scene; None: all), a checkpoint every `save_freq` steps (None: at the end); returns the final
+    pretrained_model directory."""
+    episodes = sft_episodes(dataset, per_scene)
     args = [
         f"--dataset.repo_id={dataset.repo_id}",
         *([f"--dataset.root={dataset.root}"] if dataset.root else []),
@@ -464,7 +469,7 @@ def lerobot_sft(
         "--policy.push_to_hub=false",
         f"--steps={steps}",
         f"--batch_size={batch_size}",
-        f"--save_freq={steps}",
+        f"--save_freq={save_freq or steps}",
         f"--log_freq={max(steps // 5, 1)}",
         f"--num_workers={num_workers}",
         f"--output_dir={output_dir}",

@@ -21,6 +21,11 @@ def _norm(channels: int) -> nn.GroupNorm:
     return nn.GroupNorm(math.gcd(32, channels), channels)
 
 
+def encoder_input(images: torch.Tensor) -> torch.Tensor:
+    """Images in [0, 1] -> the encoder's input range, [-1, 1]."""
+    return images * 2 - 1
+
+
 class ResBlock(nn.Module):
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
@@ -103,7 +108,7 @@ class VisualTokenizer(nn.Module, CheckedHubMixin, library_name="lerobot-roboscap
 
     def _quantize(self, images: torch.Tensor):
         self._check_images(images)
-        latents = self.encoder(images * 2 - 1)
+        latents = self.encoder(encoder_input(images))
         h = latents.shape[-1]
         codes, indices, aux_loss = self.quantizer(rearrange(latents, "b d h w -> b (h w) d"))
         return rearrange(codes, "b (h w) d -> b d h w", h=h), rearrange(indices, "b (h w) -> b h w", h=h), aux_loss

@@ -7,7 +7,7 @@ from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
-from lerobot_roboscape.dataset.reader import successful_episodes
+from lerobot_roboscape.dataset.reader import demonstrations_per_scene, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect, make_jobs
 from lerobot_roboscape.pipeline.stages import sft_episodes
 from tests.conftest import IMAGE_SIZE
@@ -105,6 +105,20 @@ def test_planned_failures_fail_in_the_simulator(failed_collection, demo_dataset)
     demos, _ = demo_dataset
     assert successful_episodes(demos) == [r["episode_index"] for r in read_episode_info(demos.root) if r["success"]]
     assert not {2, 3} & set(successful_episodes(demos))  # the fixture's planned failures
+
+
+def test_sft_takes_the_first_successful_demonstrations_of_each_family_and_scene(demo_dataset):
+    demos, root = demo_dataset
+    info = read_episode_info(root)
+    successful = successful_episodes(demos)
+    first = {}
+    for r in info:
+        if r["success"]:
+            first.setdefault((r["task_family"], r["scene"]), r["episode_index"])
+    assert demonstrations_per_scene(demos, 1) == sorted(first.values())
+    assert len(first) == 2  # one scene, two families
+    assert demonstrations_per_scene(demos, None) == demonstrations_per_scene(demos, 3) == successful
+    assert sft_episodes(DatasetConfig(repo_id="test/demos", root=str(root)), per_scene=1) == sorted(first.values())
 
 
 def test_successful_episodes_without_facts(demo_dataset, tmp_path):

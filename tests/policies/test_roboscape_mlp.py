@@ -102,3 +102,61 @@ def test_lerobot_train_checkpoint_has_processors_with_action_statistics(mlp_chec
     batch = preprocessor({**observation, "task": "push the can forward"})
     action = postprocessor(policy.select_action(batch))
     assert action.shape == (1, 7) and torch.isfinite(action).all()
+
+
+def test_random_shift_translates_each_image_within_its_padding():
+    from lerobot_policy_roboscape_mlp.modeling_roboscape_mlp import random_shift
+
+    images = torch.zeros(16, 3, 12, 12)
+    images[:, :, 6, 6] = 1.0  # one bright pixel
+    shifted = random_shift(images, pad=2)
+    assert shifted.shape == images.shape
+    ys, xs = [], []
+    for image in shifted:
+        y, x = (image[0] == 1).nonzero()[0].tolist()
+        ys.append(y)
+        xs.append(x)
+    assert all(4 <= v <= 8 for v in ys + xs)  # moved by at most the padding
+    assert len(set(zip(ys, xs, strict=True))) > 1  # and not all alike
+
+
+def test_chunk_loss_ignores_the_steps_past_the_episode_end():
+    policy = make_policy(chunk_size=3)
+    batch = make_batch()
+    chunk = policy.predict_action_chunk(batch)
+    assert chunk.shape == (4, 3, 7)
+    batch["action"] = chunk.clone()
+    batch["action"][:, 2] = 5.0  # far off, but padding
+    batch["action_is_pad"] = torch.tensor([[False, False, True]] * 4)
+    loss, info = policy.forward(batch)
+    assert loss.item() < 1e-10 and info["mse_first"] < 1e-10
+    batch["action_is_pad"][:, 2] = False
+    assert policy.forward(batch)[0].item() > 1.0
+
+
+def test_executing_a_chunk_asks_the_network_once_per_n_action_steps():
+    policy = make_policy(chunk_size=4, n_action_steps=3)
+    batch = make_batch()
+    chunk = policy.predict_action_chunk(batch)
+    calls = []
+    policy.trunk.register_forward_hook(lambda *_: calls.append(1))
+    policy.reset()
+    actions = [policy.select_action(batch) for _ in range(4)]
+    assert len(calls) == 2  # steps 0 and 3
+    for t in range(3):
+        torch.testing.assert_close(actions[t], chunk[:, t])
+    torch.testing.assert_close(actions[3], chunk[:, 0])  # same images, so the new chunk starts alike
+
+
+def test_binary_gripper_is_fully_open_or_closed_and_ppo_scores_the_raw_sample():
+    policy = make_policy(binary_gripper=True, init_log_std=0.0, chunk_size=2)
+    batch = make_batch(64)
+    assert set(policy.select_action(batch)[:, -1].tolist()) <= {-1.0, 1.0}
+    sample = policy.sample_action(batch)
+    assert set(sample.action[:, -1].tolist()) == {-1.0, 1.0}
+    assert not set(sample.raw_action[:, -1].tolist()) <= {-1.0, 1.0}
+    # PPO's Gaussian is over the chunk's first action, and evaluation scores the same sample alike.
+    torch.testing.assert_close(
+        policy.distribution(policy.features(batch)).mean, policy.chunk(policy.features(batch))[:, 0]
+    )
+    torch.testing.assert_close(policy.evaluate_actions(batch, sample.raw_action).log_prob, sample.log_prob)

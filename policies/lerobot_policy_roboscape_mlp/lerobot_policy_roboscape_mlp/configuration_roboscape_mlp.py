@@ -25,6 +25,14 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         value_hidden_dim: Width of the value head's hidden layer.
         value_grad_scale: Share of the value loss's gradient that reaches the shared encoder and trunk (0: none,
             the critic only reads the features the policy learned; 1: fully shared, as in CleanRL's Agent).
+        random_shift_pad: SFT augmentation: each training image is padded by this many pixels (edge replicated)
+            and cropped back at a random offset, as DrQ does (0: off).
+        chunk_size: Actions predicted per observation: SFT fits the next `chunk_size` demonstrated actions.
+        n_action_steps: Actions of each predicted chunk executed before the policy looks again (deterministic
+            evaluation only; PPO samples every step from the chunk's first action).
+        binary_gripper: Send the gripper (the last action dimension) fully open or fully closed, never between.
+        tokenizer_path: Image trunk: the encoder of this visual tokenizer (`roboscape-train-tokenizer`'s
+            pretrained_model, frozen) under a small conv head, instead of the conv stack (None).
         optimizer_lr: Learning rate of the SFT optimiser preset.
         optimizer_weight_decay: Weight decay of the SFT optimiser preset.
     """
@@ -52,6 +60,13 @@ class RoboscapeMLPConfig(PreTrainedConfig):
     value_hidden_dim: int = 256
     value_grad_scale: float = 0.0
 
+    # Imitation habits.
+    random_shift_pad: int = 0
+    chunk_size: int = 1
+    n_action_steps: int = 1
+    binary_gripper: bool = False
+    tokenizer_path: str | None = None
+
     # SFT optimiser preset.
     optimizer_lr: float = 3e-4
     optimizer_weight_decay: float = 1e-4
@@ -60,6 +75,12 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         super().__post_init__()
         if len(self.conv_channels) != 3:
             raise ValueError(f"conv_channels must have 3 entries, got {self.conv_channels!r}")
+        if not 1 <= self.n_action_steps <= self.chunk_size:
+            raise ValueError(
+                f"n_action_steps must be in [1, chunk_size={self.chunk_size}], got {self.n_action_steps!r}"
+            )
+        if self.random_shift_pad < 0:
+            raise ValueError(f"random_shift_pad must be >= 0, got {self.random_shift_pad!r}")
         if not 0 <= self.value_grad_scale <= 1:
             raise ValueError(f"value_grad_scale must be in [0, 1], got {self.value_grad_scale!r}")
         for name in ("image_feature_dim", "instruction_buckets", "instruction_dim", "hidden_dim", "value_hidden_dim"):
@@ -90,8 +111,8 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         return None
 
     @property
-    def action_delta_indices(self) -> None:
-        return None
+    def action_delta_indices(self) -> list[int] | None:
+        return list(range(self.chunk_size)) if self.chunk_size > 1 else None
 
     @property
     def reward_delta_indices(self) -> None:

@@ -1,12 +1,14 @@
 """The MLP baseline: images + instruction -> Gaussian over the normalised 7-D action, plus a state value.
 
-SFT (`lerobot-train`) fits the Gaussian's mean to the demonstrations; PPO samples from the Gaussian and trains
-the whole network, value head included (`lerobot_roboscape.rl.ActorCritic`). The value head reads the trunk's
-features through `scale_gradient` (by default it does not train them).
+SFT (`lerobot-train`) fits the Gaussian's mean to the demonstrations, optionally a chunk of the next actions on
+randomly shifted images; PPO samples from the Gaussian over the chunk's first action and trains the whole
+network, value head included (`lerobot_roboscape.rl.ActorCritic`). The value head reads the trunk's features
+through `scale_gradient` (by default it does not train them).
 """
 
 import re
 import zlib
+from collections import deque
 
 import torch
 import torch.nn.functional as F
@@ -17,6 +19,20 @@ from torch.distributions import Normal
 
 from lerobot_policy_roboscape_mlp.configuration_roboscape_mlp import RoboscapeMLPConfig
 from lerobot_roboscape.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+
+
+def random_shift(images_BCHW: Tensor, pad: int) -> Tensor:
+    """Each image translated by up to `pad` pixels in x and y, its edge repeated into the gap (DrQ's augmentation)."""
+    b, _, h, w = images_BCHW.shape
+    padded = F.pad(images_BCHW, (pad, pad, pad, pad), mode="replicate")
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, b)).tolist()
+    return torch.stack([padded[i, :, y : y + h, x : x + w] for i, (y, x) in enumerate(zip(dy, dx, strict=True))])
+
+
+def binarize_gripper(actions: Tensor) -> Tensor:
+    """The gripper (last dimension, normalised to [-1, 1]) set fully closed (-1) or fully open (1)."""
+    gripper = torch.where(actions[..., -1:] >= 0, 1.0, -1.0)
+    return torch.cat([actions[..., :-1], gripper], dim=-1)
 
 
 class RoboscapeMLPImageEncoder(nn.Module):
@@ -39,6 +55,34 @@ class RoboscapeMLPImageEncoder(nn.Module):
 
     def forward(self, images_BCHW: Tensor) -> Tensor:
         return F.relu(self.proj(self.convs(images_BCHW).flatten(1)))
+
+
+class RoboscapeMLPTokenizerTrunk(nn.Module):
+    """The visual tokenizer's encoder (frozen: the world model's view of the scene) under a small trainable conv
+    head. Its continuous latents, before quantisation, carry the most of what it saw."""
+
+    def __init__(self, config: RoboscapeMLPConfig):
+        super().__init__()
+        from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer, encoder_input
+
+        self.encoder_input = encoder_input
+
+        self.encoder = VisualTokenizer.from_pretrained(config.tokenizer_path).encoder.requires_grad_(False)
+        c1, c2, _ = config.conv_channels
+        bits = self.encoder.layers[-1].out_channels
+        self.head = nn.Sequential(
+            nn.Conv2d(bits, c1, kernel_size=3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(c1, c2, kernel_size=3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool2d(4),
+        )
+        self.proj = nn.Linear(c2 * 16, config.image_feature_dim)
+
+    def forward(self, images_BCHW: Tensor) -> Tensor:
+        with torch.no_grad():
+            latents = self.encoder.eval()(self.encoder_input(images_BCHW))
+        return F.relu(self.proj(self.head(latents).flatten(1)))
 
 
 class RoboscapeMLPInstructionEmbedding(nn.Module):
@@ -71,16 +115,17 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         self.config = config
         self.camera_keys = sorted(config.image_features)
         self.image_shape = tuple(config.image_features[self.camera_keys[0]].shape)
-        action_dim = config.action_feature.shape[0]
+        self.action_dim = action_dim = config.action_feature.shape[0]
 
-        self.image_encoder = RoboscapeMLPImageEncoder(config)
+        trunk = RoboscapeMLPTokenizerTrunk if config.tokenizer_path else RoboscapeMLPImageEncoder
+        self.image_encoder = trunk(config)
         self.instruction_embedding = RoboscapeMLPInstructionEmbedding(config)
         layers, width = [], len(self.camera_keys) * config.image_feature_dim + config.instruction_dim
         for _ in range(config.n_hidden_layers):
             layers += [nn.Linear(width, config.hidden_dim), nn.Tanh()]
             width = config.hidden_dim
         self.trunk = nn.Sequential(*layers)
-        self.action_mean = nn.Linear(width, action_dim)
+        self.action_mean = nn.Linear(width, config.chunk_size * action_dim)  # the chunk's actions, in order
         self.action_log_std = nn.Parameter(torch.full((action_dim,), config.init_log_std))
         self.value_head = nn.Sequential(
             nn.Linear(width, config.value_hidden_dim), nn.Tanh(), nn.Linear(config.value_hidden_dim, 1)
@@ -92,22 +137,38 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         return self.parameters()
 
     def reset(self):
-        pass  # no observation history, no action queue
+        self._action_queue = deque(maxlen=self.config.n_action_steps)
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
-        """SFT loss: mean squared error of the Gaussian's mean against the normalised demonstration action."""
-        mean = self.action_mean(self.features(batch))
-        loss = F.mse_loss(mean, batch[ACTION])
-        return loss, {"mse": loss.item()}
+        """SFT loss: mean squared error of the predicted chunk against the normalised demonstrated actions, the
+        steps past an episode's end left out."""
+        if self.config.random_shift_pad:
+            batch = {
+                **batch,
+                **{key: random_shift(batch[key], self.config.random_shift_pad) for key in self.camera_keys},
+            }
+        chunk = self.chunk(self.features(batch))
+        target = batch[ACTION].view_as(chunk)
+        error = F.mse_loss(chunk, target, reduction="none").mean(-1)  # (B, chunk_size)
+        keep = ~batch["action_is_pad"] if "action_is_pad" in batch else torch.ones_like(error, dtype=torch.bool)
+        loss = error[keep].mean()
+        return loss, {"mse": loss.item(), "mse_first": error[:, 0].mean().item()}
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        return self.select_action(batch).unsqueeze(1)  # (B, 1, action_dim)
+        """The predicted chunk's means (B, chunk_size, action_dim), for evaluation."""
+        chunk = self.chunk(self.features(batch)).clamp(-1, 1)
+        return binarize_gripper(chunk) if self.config.binary_gripper else chunk
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """The Gaussian's mean (B, action_dim): deterministic, for evaluation."""
-        return self.action_mean(self.features(batch)).clamp(-1, 1)
+        """The next action (B, action_dim): deterministic, for evaluation. A new chunk is predicted every
+        `n_action_steps` steps (every step by default); `reset()` between episodes."""
+        if not getattr(self, "_action_queue", None):
+            self.reset()
+            chunk = self.predict_action_chunk(batch)[:, : self.config.n_action_steps]
+            self._action_queue.extend(chunk.transpose(0, 1))
+        return self._action_queue.popleft()
 
     # What PPO needs (lerobot_roboscape.rl.ActorCritic).
 
@@ -118,7 +179,10 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         log_prob = distribution.log_prob(action).sum(-1)
         # [-1, 1] is the demonstrations' action range under MIN_MAX normalisation: the env gets the sample clipped
         # to it, PPO scores the unclipped one (as CleanRL).
-        return PolicySample(action.clamp(-1, 1), action, log_prob, self.value(features))
+        env_action = action.clamp(-1, 1)
+        if self.config.binary_gripper:
+            env_action = binarize_gripper(env_action)
+        return PolicySample(env_action, action, log_prob, self.value(features))
 
     def evaluate_actions(self, batch: dict, raw_action: Tensor) -> ActionEvaluation:
         features = self.features(batch)
@@ -137,8 +201,12 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
     def value(self, features: Tensor) -> Tensor:
         return self.value_head(scale_gradient(features, self.config.value_grad_scale)).squeeze(-1)
 
+    def chunk(self, features: Tensor) -> Tensor:
+        return self.action_mean(features).view(len(features), self.config.chunk_size, self.action_dim)
+
     def distribution(self, features: Tensor) -> Normal:
-        mean = self.action_mean(features)
+        """PPO's Gaussian over the next action: the chunk's first one (the rest only shaped the features in SFT)."""
+        mean = self.chunk(features)[:, 0]
         return Normal(mean, self.action_log_std.exp().expand_as(mean))
 
     def features(self, batch: dict) -> Tensor:
