@@ -160,3 +160,26 @@ def test_binary_gripper_is_fully_open_or_closed_and_ppo_scores_the_raw_sample():
         policy.distribution(policy.features(batch)).mean, policy.chunk(policy.features(batch))[:, 0]
     )
     torch.testing.assert_close(policy.evaluate_actions(batch, sample.raw_action).log_prob, sample.log_prob)
+
+
+def test_tokenizer_encoder_trunk_is_the_frozen_tokenizer_encoder(trained_tokenizer, tmp_path):
+    from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer, encoder_input
+
+    policy = make_policy(tokenizer_path=str(trained_tokenizer))
+    tokenizer = VisualTokenizer.from_pretrained(trained_tokenizer)
+    encoder = policy.image_encoder.encoder
+    assert not any(p.requires_grad for p in encoder.parameters())
+    images = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE)
+    torch.testing.assert_close(encoder(encoder_input(images)), tokenizer.encoder(encoder_input(images)))
+    # SFT trains the head, not the encoder.
+    batch = make_batch()
+    before = {k: v.clone() for k, v in encoder.state_dict().items()}
+    policy.train()
+    policy.forward(batch)[0].backward()
+    torch.optim.SGD([p for p in policy.parameters() if p.requires_grad], lr=0.1).step()
+    assert all(torch.equal(before[k], v) for k, v in encoder.state_dict().items())
+    policy.eval()
+    policy.save_pretrained(tmp_path)
+    torch.testing.assert_close(
+        RoboscapeMLPPolicy.from_pretrained(tmp_path).select_action(batch), policy.select_action(batch)
+    )
