@@ -24,23 +24,28 @@ import shutil
 import time
 from pathlib import Path
 
-# Policy habits, by name: lerobot-train arguments, and config changes applied at evaluation only.
+# Policy habits, by name, each spelled out in full (the policy's defaults are the kept ones). A variant trains with
+# its habits; an evaluation-only variant (a different gripper or chunk execution) reuses the checkpoints of the
+# variant it was trained as, with its evaluation habits written into a copy of the config.
+HABITS = ("random_shift_pad", "chunk_size", "n_action_steps", "binary_gripper")
+EVAL_HABITS = ("n_action_steps", "binary_gripper")
 VARIANTS = {
-    "baseline": ([], {}),  # the bench's MLP before the SFT issue
-    "shift": (["--policy.random_shift_pad=4"], {}),
-    "shift_gripper": (["--policy.random_shift_pad=4"], {"binary_gripper": True}),
-    "shift_chunk8": (["--policy.random_shift_pad=4", "--policy.chunk_size=8"], {}),
-    "shift_chunk8_gripper": (["--policy.random_shift_pad=4", "--policy.chunk_size=8"], {"binary_gripper": True}),
-    "shift_chunk8_exec4_gripper": (
-        ["--policy.random_shift_pad=4", "--policy.chunk_size=8"],
-        {"binary_gripper": True, "n_action_steps": 4},
-    ),
+    "baseline": (0, 1, 1, False),  # the bench's MLP before the SFT issue
+    "shift": (4, 1, 1, False),
+    "shift_gripper": (4, 1, 1, True),
+    "shift_chunk8": (4, 8, 1, False),
+    "shift_chunk8_gripper": (4, 8, 1, True),
+    "shift_chunk8_exec4_gripper": (4, 8, 4, True),  # the policy's defaults
 }
-TRAINED_AS = {  # evaluation-only variants reuse the checkpoints of the variant they were trained as
+TRAINED_AS = {
     "shift_gripper": "shift",
     "shift_chunk8_gripper": "shift_chunk8",
     "shift_chunk8_exec4_gripper": "shift_chunk8",
 }
+
+
+def habits(variant: str) -> dict:
+    return dict(zip(HABITS, VARIANTS[variant], strict=True))
 
 
 def parse_run(run: str) -> tuple[str, int | None]:
@@ -63,7 +68,12 @@ def train(args, variant: str, demos: int | None) -> tuple[Path, float]:
     lerobot_sft(
         folder,
         DatasetConfig(repo_id="local/roboscape_demos", root=args.dataset),
-        ["--policy.type=roboscape_mlp", "--policy.device=cpu", f"--seed={args.seed}", *VARIANTS[variant][0]],
+        [
+            "--policy.type=roboscape_mlp",
+            "--policy.device=cpu",
+            f"--seed={args.seed}",
+            *(f"--policy.{k}={str(v).lower()}" for k, v in habits(TRAINED_AS.get(variant, variant)).items()),
+        ],
         args.steps,
         args.batch_size,
         num_workers=2,
@@ -114,7 +124,9 @@ def run(args, variant: str, demos: int | None) -> list[dict]:
     for step in range(args.steps // args.checkpoints, args.steps + 1, args.steps // args.checkpoints):
         checkpoint = folder / "checkpoints" / f"{step:06d}" / "pretrained_model"
         last = step == args.steps
-        policy = with_eval_options(checkpoint, VARIANTS[variant][1], Path(args.out) / "policies" / name / str(step))
+        trained = habits(TRAINED_AS.get(variant, variant))
+        changes = {k: v for k, v in habits(variant).items() if k in EVAL_HABITS and v != trained[k]}
+        policy = with_eval_options(checkpoint, changes, Path(args.out) / "policies" / name / str(step))
         started, before = time.time(), len(rows)
         result = evaluate(
             args, policy, Path(args.out) / "eval" / name / str(step), args.final_splits if last else ["ind"]

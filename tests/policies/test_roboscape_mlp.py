@@ -10,6 +10,10 @@ from tests.conftest import IMAGE_SIZE
 CAMERAS = ("observation.images.third_view", "observation.images.wrist")
 
 
+# One action per look, unaugmented, a continuous gripper: the habits off, unless a test turns one on.
+NO_HABITS = dict(random_shift_pad=0, chunk_size=1, n_action_steps=1, binary_gripper=False)
+
+
 def make_policy(**overrides) -> RoboscapeMLPPolicy:
     features = {key: PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)) for key in CAMERAS}
     features["observation.state"] = PolicyFeature(FeatureType.STATE, (16,))
@@ -19,7 +23,7 @@ def make_policy(**overrides) -> RoboscapeMLPPolicy:
         hidden_dim=32,
         image_feature_dim=32,
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-        **overrides,
+        **(NO_HABITS | overrides),
     )
     torch.manual_seed(0)
     return RoboscapeMLPPolicy(config)

@@ -82,6 +82,10 @@ def fresh_mlp(tmp_path):
         hidden_dim=32,
         image_feature_dim=16,
         init_log_std=-1.0,
+        # The plain head: these tests check PPO, whose envs want 0.5 on every dimension, the gripper's included.
+        chunk_size=1,
+        n_action_steps=1,
+        binary_gripper=False,
         input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
     )
