@@ -15,7 +15,11 @@ A run is VARIANT:DEMOS (DEMOS per scene, or "all"); finished trainings and evalu
 
     python scripts/sft_curve.py --targets outputs/sft_curve/eval/<run>/<steps>/eval.json --out docs/results/sft
 
-writes the bench report's SFT target rows of one evaluation (IND, with OOD beside) to results.json.
+writes the bench report's SFT target rows of one evaluation (IND, with OOD beside) to results.json, and
+
+    python scripts/sft_curve.py --merge outputs/sft_habits/sft_curve.json outputs/sft_curve/sft_curve.json --out DIR
+
+one table and figure of several runs' sft_curve.json.
 """
 
 import argparse
@@ -168,28 +172,38 @@ def markdown(rows: list[dict]) -> str:
 
 
 def figure(rows: list[dict], path: Path) -> None:
+    """Top: IND success against SFT steps, one line per variant and data size. Bottom: against demonstrations
+    per scene, one line per variant and step count measured at more than one data size."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     families = sorted({r["family"] for r in rows if r["family"] != "all"})
-    fig, axes = plt.subplots(1, len(families), figsize=(5 * len(families), 3.6), squeeze=False)
-    for ax, family in zip(axes[0], families, strict=True):
-        curves = {}
-        for r in rows:
-            if r["family"] == family and r["split"] == "ind":
-                curves.setdefault((r["variant"], r["demos_per_scene"]), []).append(r)
-        for (variant, demos), points in sorted(curves.items(), key=str):
-            points.sort(key=lambda r: r["steps"])
-            steps = [r["steps"] for r in points]
-            rate = [r["success_rate"] for r in points]
-            low = [r["ci95"][0] for r in points]
-            high = [r["ci95"][1] for r in points]
-            line = ax.plot(steps, rate, marker="o", label=f"{variant}, {demos}/scene")[0]
-            ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.12)
-        ax.set(title=f"{family}: IND success", xlabel="SFT steps", ylabel="success rate", ylim=(0, 1))
-        ax.legend(fontsize=7)
+    fig, axes = plt.subplots(2, len(families), figsize=(5 * len(families), 7.2), squeeze=False)
+    sizes = sorted({r["demos_per_scene"] for r in rows}, key=lambda d: float("inf") if d == "all" else d)
+    for column, family in enumerate(families):
+        ind = [r for r in rows if r["family"] == family and r["split"] == "ind"]
+        for ax, x, group in ((axes[0, column], "steps", "demos_per_scene"), (axes[1, column], "demos", "steps")):
+            curves = {}
+            for r in ind:
+                curves.setdefault((r["variant"], r[group]), []).append(r)
+            for (variant, value), points in sorted(curves.items(), key=str):
+                if x == "demos" and len(points) < 2:
+                    continue
+                points.sort(key=lambda r: r["steps"] if x == "steps" else sizes.index(r["demos_per_scene"]))
+                xs = [r["steps"] if x == "steps" else sizes.index(r["demos_per_scene"]) for r in points]
+                line = ax.plot(xs, [r["success_rate"] for r in points], marker="o")[0]
+                line.set_label(f"{variant}, {value}/scene" if x == "steps" else f"{variant}, {value} steps")
+                low, high = zip(*(r["ci95"] for r in points), strict=True)
+                ax.fill_between(xs, low, high, color=line.get_color(), alpha=0.12)
+            ax.set(title=f"{family}: IND success", ylabel="success rate", ylim=(0, 1))
+            if x == "steps":
+                ax.set_xlabel("SFT steps")
+            else:
+                ax.set(xlabel="demonstrations per scene", xticks=range(len(sizes)), xticklabels=sizes)
+            if ax.lines:
+                ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -213,6 +227,7 @@ def main():
     parser.add_argument("--out", default="outputs/sft_curve")
     parser.add_argument("--runs", nargs="+", default=[], help="VARIANT:DEMOS_PER_SCENE (or VARIANT:all)")
     parser.add_argument("--targets", type=Path, help="an eval.json: write its SFT target rows and stop")
+    parser.add_argument("--merge", type=Path, nargs="+", help="sft_curve.json files: one table and figure of all")
     parser.add_argument("--families", nargs="+", default=["push", "pick_place"])
     parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument("--checkpoints", type=int, default=3, help="evaluated checkpoints, evenly spaced")
@@ -223,6 +238,8 @@ def main():
     args = parser.parse_args()
     if args.targets:
         return write_targets(args.targets, Path(args.out))
+    if args.merge:
+        return write_all([row for path in args.merge for row in json.loads(path.read_text())], Path(args.out))
     if not args.dataset or not args.runs:
         parser.error("--dataset and --runs are required to train and evaluate")
 
@@ -237,9 +254,14 @@ def main():
             r for r in rows if (r["variant"], r["demos_per_scene"], r["steps"], r["split"], r["family"]) not in keys
         ]
         rows += new
-        everything.write_text(json.dumps(rows, indent=1))
-        (out / "sft_curve.md").write_text(markdown(rows))
-        figure(rows, out / "sft_curve.png")
+        write_all(rows, out)
+
+
+def write_all(rows: list[dict], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sft_curve.json").write_text(json.dumps(rows, indent=1))
+    (out / "sft_curve.md").write_text(markdown(rows))
+    figure(rows, out / "sft_curve.png")
     print(markdown(rows))
 
 

@@ -21,6 +21,7 @@ def test_run_episodes_counts_what_the_env_reports(constant_action, expected):
         device="cpu",
         input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        binary_gripper=False,  # the env's target is 0.5 on every dimension, the gripper's included
     )
     policy = RoboscapeMLPPolicy(config)
     with torch.no_grad():  # a policy that always outputs `constant_action`
