@@ -61,7 +61,7 @@ class RoboscapeMLPConfig(PreTrainedConfig):
     value_grad_scale: float = 0.0
 
     # Imitation habits, each measured in docs/results/sft/report.md: the chunk and its open-loop execution are
-    # what lift SFT success (the policy no longer stalls by the object); the shift and the binary gripper are cheap.
+    # what lift SFT success; the shift and the binary gripper cost nothing.
     random_shift_pad: int = 4
     chunk_size: int = 8
     n_action_steps: int = 4
