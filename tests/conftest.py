@@ -9,7 +9,7 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 
 IMAGE_SIZE = 32
 # Session fixtures that run the simulator (a collection, a recorded file) or a command; a test using one is slow.
-SLOW_FIXTURES = {"demo_dataset", "recorded", "mlp_checkpoint", "act_checkpoint"}
+SLOW_FIXTURES = {"demo_dataset", "recorded", "mlp_checkpoint", "act_checkpoint", "control_set"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -2,7 +2,9 @@
 
     roboscape-eval-wm --dataset.repo_id=local/roboscape --dataset.root=outputs/datasets/roboscape_heldout \
         --tokenizer=outputs/tokenizer/pretrained_model --world_model=outputs/wm_action/pretrained_model \
-        --output_dir=outputs/fidelity
+        --output_dir=outputs/fidelity \
+        --controllability.repo_id=local/roboscape_controllability \
+        --controllability.root=outputs/datasets/roboscape_controllability   # optional: does it follow its actions?
 """
 
 import logging
@@ -21,9 +23,10 @@ def main(argv: list[str] | None = None):
     mean = report["mean"]
     print(
         f"PSNR {mean['prediction_psnr']:.2f} (tokenizer {mean['reconstruction_psnr']:.2f}), "
-        f"SSIM {mean['prediction_ssim']:.3f}, LPIPS {mean['prediction_lpips']:.3f}, "
-        f"done accuracy {report['done_teacher_forced']['accuracy']:.3f}"
+        f"SSIM {mean['prediction_ssim']:.3f}, LPIPS {mean['prediction_lpips']:.3f}"
     )
+    for name, regions in report.get("controllability", {}).items():
+        print(f"retrieval ({name}): " + ", ".join(f"{r} {v['retrieval']:.3f}" for r, v in regions.items()))
     print(f"Report in {cfg.output_dir.resolve()}: fidelity.md, fidelity.json, fidelity.png, side_by_side.mp4")
 
 

@@ -1,7 +1,7 @@
 """Planner rollouts in the task suite, spread over worker processes (one ManiSkill env per family each)."""
 
 import multiprocessing as mp
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +48,44 @@ def observation_masks(obs: dict, task_env: RoboscapeTabletopEnv) -> dict[str, np
     }
 
 
+class EpisodeRecorder:
+    """The frames of one episode as it runs: each observation before its action, and what followed the action."""
+
+    def __init__(self, task_env: RoboscapeTabletopEnv, segmentation: bool):
+        self.task_env, self.segmentation = task_env, segmentation
+        self.frames: dict[str, list] = {k: [] for k in ("state", "action", "reward", "success", "images", "masks")}
+
+    def observe(self, obs: dict) -> None:
+        self.frames["images"].append(observation_images(obs))
+        if self.segmentation:
+            self.frames["masks"].append(observation_masks(obs, self.task_env))
+        self.frames["state"].append(observation_state(obs))
+
+    def acted(self, action: np.ndarray, reward, info: dict) -> None:
+        self.frames["action"].append(action)
+        self.frames["reward"].append(float(reward[0]))
+        self.frames["success"].append(bool(info["success"][0]))
+
+    def episode(self, info: dict) -> Episode:
+        frames = self.frames
+        done = np.zeros(len(frames["action"]), dtype=bool)
+        done[-1] = True
+        cameras = frames["images"][0].keys()
+        episode = Episode(
+            images={cam: np.stack([f[cam] for f in frames["images"]]) for cam in cameras},
+            state=np.stack(frames["state"]),
+            action=np.stack(frames["action"]),
+            reward=np.asarray(frames["reward"], dtype=np.float32),
+            success=np.asarray(frames["success"], dtype=bool),
+            done=done,
+            task=self.task_env.instruction,
+            masks={cam: np.stack([f[cam] for f in frames["masks"]]) for cam in cameras} if self.segmentation else None,
+            info={"scene": self.task_env.scene_spec.id, "split": self.task_env.scene_spec.split, **info},
+        )
+        episode.info["success"] = episode.succeeded
+        return episode
+
+
 def run_planned_episode(
     env, job: EpisodeJob, suboptimal: SuboptimalConfig | None = None, failure: FailureConfig | None = None
 ) -> Episode:
@@ -56,55 +94,46 @@ def run_planned_episode(
     task_env: RoboscapeTabletopEnv = env.unwrapped
     rng = np.random.default_rng(job.seed)
     follower = plan_episode(task_env, job.kind, rng, suboptimal, failure)
-    frames: dict[str, list] = {"state": [], "action": [], "reward": [], "success": [], "images": [], "masks": []}
+    recorder = EpisodeRecorder(task_env, job.segmentation)
     settle = SETTLE_STEPS
     while True:
         tcp = task_env.agent.tcp_pose
         action = follower.act(tcp.p[0].cpu().numpy(), tcp.q[0].cpu().numpy())
-        frames["images"].append(observation_images(obs))
-        if job.segmentation:
-            frames["masks"].append(observation_masks(obs, task_env))
-        frames["state"].append(observation_state(obs))
+        recorder.observe(obs)
         obs, reward, terminated, truncated, info = env.step(action)
-        frames["action"].append(action)
-        frames["reward"].append(float(reward[0]))
-        frames["success"].append(bool(info["success"][0]))
+        recorder.acted(action, reward, info)
         if follower.done:
             settle -= 1
         if settle <= 0 or bool(truncated[0]):
             break
-    n = len(frames["action"])
-    done = np.zeros(n, dtype=bool)
-    done[-1] = True
-    cameras = frames["images"][0].keys()
-    episode = Episode(
-        images={cam: np.stack([f[cam] for f in frames["images"]]) for cam in cameras},
-        state=np.stack(frames["state"]),
-        action=np.stack(frames["action"]),
-        reward=np.asarray(frames["reward"], dtype=np.float32),
-        success=np.asarray(frames["success"], dtype=bool),
-        done=done,
-        task=task_env.instruction,
-        masks={cam: np.stack([f[cam] for f in frames["masks"]]) for cam in cameras} if job.segmentation else None,
-        info={
+    return recorder.episode(
+        {
             "task_family": job.family,
-            "scene": job.scene_id,
-            "split": task_env.scene_spec.split,
             "optimal": job.kind == "optimal",
             "kind": job.kind,
             "seed": job.seed,
             "skipped_waypoints": follower.skipped,
-        },
+        }
     )
-    episode.info["success"] = episode.succeeded
-    return episode
+
+
+def replay_actions(env, job: EpisodeJob, actions: np.ndarray, info: dict) -> Episode:
+    """Reset `env` into `job`'s scene and initial state (its seed) and apply `actions` (T, A) open loop."""
+    obs, _ = env.reset(seed=job.seed, options={"scene_id": job.scene_id})
+    recorder = EpisodeRecorder(env.unwrapped, job.segmentation)
+    for action in actions:
+        recorder.observe(obs)
+        obs, reward, _, _, step_info = env.step(action)
+        recorder.acted(action, reward, step_info)
+    return recorder.episode({"task_family": job.family, "seed": job.seed, **info})
 
 
 # Worker processes keep one env per family and switch scenes by reset options (a scene rebuild, no new env).
 _worker_envs: dict = {}
 
 
-def _worker_run(job: EpisodeJob) -> Episode:
+def worker_env(job: EpisodeJob):
+    """This process's env for the job's family and camera settings, made on first use."""
     key = (job.family, job.image_size, job.light_wrist_camera, job.segmentation)
     if key not in _worker_envs:
         _worker_envs[key] = make_task_env(
@@ -115,15 +144,20 @@ def _worker_run(job: EpisodeJob) -> Episode:
             max_episode_steps=COLLECT_MAX_STEPS,
             light_wrist_camera=job.light_wrist_camera,
         )
-    return run_planned_episode(_worker_envs[key], job)
+    return _worker_envs[key]
 
 
-def run_jobs(jobs: list[EpisodeJob], workers: int = 2) -> Iterator[Episode]:
-    """Episodes of `jobs`, in order, computed by `workers` processes (0 = in this process)."""
+def _worker_run(job: EpisodeJob) -> Episode:
+    return run_planned_episode(worker_env(job), job)
+
+
+def run_jobs(jobs: list, workers: int = 2, run: Callable = _worker_run) -> Iterator:
+    """`run(job)` of each job, in order, computed by `workers` processes (0 = in this process); `run` must be a
+    module-level function (it is sent to the workers by name)."""
     if workers <= 0:
         for job in jobs:
-            yield _worker_run(job)
+            yield run(job)
         return
     # SAPIEN's renderer does not survive fork; spawn clean interpreters.
     with mp.get_context("spawn").Pool(workers) as pool:
-        yield from pool.imap(_worker_run, jobs, chunksize=1)
+        yield from pool.imap(run, jobs, chunksize=1)

@@ -13,6 +13,7 @@ from lerobot_roboscape.tasks.base import ACTION_NAMES, CAMERA_NAMES, CONTROL_FRE
 from lerobot_roboscape.training import resolve_device
 
 CAMERAS = tuple(CAMERA_NAMES.values())
+DONE_SOURCES = ("world_model", "classifier")
 
 
 def check_episode_length(episode_length: int | None) -> None:
@@ -52,7 +53,12 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             hidden state, as iVideoGPT) or "proxy" (an image-to-reward network, as DiWA), fitted to the rule-based
             reward by roboscape-train-reward.
         reward_model: the baseline reward model (local directory or Hub repo id).
-        theta: done threshold of the goal and of success.
+        done_source: what says the task is done: "world_model" (the action and text models' done heads, the
+            paper's) or "classifier" (a success classifier on the decoded frames, `success_classifier`).
+        success_classifier: the success classifier (`roboscape-train-reward --reward.kind=success`), local
+            directory or Hub repo id.
+        theta: done threshold of the goal and of success (choose it on validation episodes: roboscape-eval-wm
+            reports the threshold that separates their success from failure best).
         theta_sps: done threshold of the sparse reward.
         alpha: weight of the sparse reward.
         beta: weight of the dense (similarity) reward.
@@ -89,6 +95,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     goal_source: str = "text_model"
     reward_type: str = "world_model"
     reward_model: str | None = None
+    done_source: str = "world_model"
+    success_classifier: str | None = None
     theta: float = 0.9
     theta_sps: float = 0.9
     alpha: float = 0.5
@@ -122,6 +130,13 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         if self.reward_type != "world_model" and not self.reward_model:
             raise InvalidInputError(
                 f"reward_type={self.reward_type} needs reward_model (train one with roboscape-train-reward)"
+            )
+        if self.done_source not in DONE_SOURCES:
+            raise InvalidInputError(f"done_source must be one of {DONE_SOURCES}, got {self.done_source!r}")
+        if self.done_source == "classifier" and not self.success_classifier:
+            raise InvalidInputError(
+                "done_source=classifier needs success_classifier (train one with roboscape-train-reward "
+                "--reward.kind=success)"
             )
         if self.goal_source == "text_model" and not self.text_world_model:
             raise InvalidInputError("goal_source=text_model needs text_world_model")

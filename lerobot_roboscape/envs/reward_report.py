@@ -2,9 +2,14 @@
 recorded trajectories, and how well each one's episode return separates successful from failed episodes.
 
 Frames are the dataset's own, read through the tokenizer (as the env's frames are); the world-model reward uses
-the goal the text model generates for the episode's first frame, and the action model reads the real frames
-(teacher forcing) for the done signal and the embedding features. As in the env (Algorithm 1), an episode is
-scored over its family's fixed horizon: past the recording's end its last frame holds, and so does each reward.
+the goal the text model generates for the episode's first frame, and the env's done source (the action model's
+head or the success classifier) reads the real frames (teacher forcing); the action model gives the embedding
+features. As in the env (Algorithm 1), an episode is scored over its family's fixed horizon: past the recording's
+end its last frame holds, and so does each reward.
+
+The goals are checked too: whether the text model reached done within the family's horizon from each start, and,
+for the successful episodes, whether the goal is nearer the episode's real final frame than its start frame, by
+the similarity in use (a grid shows start, goal and real final frame).
 """
 
 import json
@@ -39,6 +44,7 @@ class RewardReportConfig:
     output_dir: where reward_report.json, reward_report.md and reward_curves.png go.
     max_episodes: episodes reported, at most.
     plot_episodes: successful episodes drawn in the figure.
+    grid_episodes: successful episodes in the picture of goals (start, goal, real final frame).
     """
 
     env: RoboscapeWorldModelEnvConfig = field(default_factory=RoboscapeWorldModelEnvConfig)
@@ -48,6 +54,7 @@ class RewardReportConfig:
     output_dir: Path = Path("outputs/reward_report")
     max_episodes: int = 16
     plot_episodes: int = 4
+    grid_episodes: int = 8
 
 
 @torch.no_grad()
@@ -61,9 +68,9 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
     decoded = env._decode(tokens)  # (T, n, 3, H, W)
     goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
     actions = torch.from_numpy(episode.action).to(env.device)
-    done, features = env.action_model.teacher_forced(tokens[None], actions[None, :-1])
-    world_model, _ = env.replay(episode.index, tokens, done[0])
-    done, features = done[0, 1:], features[0, 1:]
+    done, features = env.teacher_forced_done(tokens, actions[:-1])
+    world_model, _ = env.replay(episode.index, tokens, done)
+    done, features = done[1:], features[1:]
     per_frame = {
         "world_model_dense": env.reward_fn(decoded[1:], goal[1:], done).dense,
         "rule_based": torch.from_numpy(episode.reward_label[1:]),
@@ -74,6 +81,27 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
         per_frame["proxy"] = models["proxy"](decoded[1:])
     held = np.minimum(np.arange(start.horizon), len(tokens) - 2)
     return {"world_model": world_model} | {k: v.float().cpu().numpy()[held] for k, v in per_frame.items()}
+
+
+@torch.no_grad()
+def goal_check(env: RoboscapeWorldModelEnv, episode) -> tuple[dict, torch.Tensor]:
+    """The goal of the episode's start, judged against its real start and final frames; and the three images
+    (3, n, 3, H, W): start, goal, real final frame, as the env decodes them."""
+    start = next(s for s in env.starts if s.episode_index == episode.index)
+    goal = env.goal_of(start)
+    images = env._decode(torch.stack([start.first_tokens, goal.tokens, start.last_tokens]))
+    goal_image = images[1:2].expand(2, -1, -1, -1, -1)
+    to_start, to_final = env.reward_fn(images[[0, 2]], goal_image, torch.zeros(2, device=env.device)).distance.tolist()
+    check = {
+        "reached": goal.reached,
+        "steps": goal.steps,
+        "horizon": start.horizon,
+        "reached_within_horizon": goal.reached and goal.steps <= start.horizon,
+        "distance_to_start": to_start,
+        "distance_to_final": to_final,
+        "nearer_final_than_start": to_final < to_start,
+    }
+    return check, images
 
 
 def write_reward_report(cfg: RewardReportConfig) -> dict:
@@ -88,19 +116,24 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     selected = [
         s.episode_index for s in env.starts if cfg.dataset.episodes is None or s.episode_index in cfg.dataset.episodes
     ][: cfg.max_episodes]
-    episodes = []
+    episodes, grid = [], []
     for index in selected:
         episode = read_episode(dataset, index)
         rewards = episode_rewards(env, episode, models)
+        goal, images = goal_check(env, episode)
+        success = bool(episode.done_label.max() > 0.5)
         episodes.append(
             {
                 "episode_index": index,
                 "task": episode.task,
                 "split": episode.info.get("split", ""),
-                "success": bool(episode.done_label.max() > 0.5),
+                "success": success,
+                "goal": goal,
                 "rewards": rewards,
             }
         )
+        if success and len(grid) < cfg.grid_episodes:
+            grid.append(images)
     success = np.array([e["success"] for e in episodes])
     summary = {}
     for kind in episodes[0]["rewards"]:
@@ -116,10 +149,22 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
             "mean_return_success": _mean(returns[success]),
             "mean_return_failure": _mean(returns[~success]),
         }
+    successful = [e["goal"] for e in episodes if e["success"]]
+    goals = {
+        "starts": len(episodes),
+        "reached_within_horizon": float(np.mean([e["goal"]["reached_within_horizon"] for e in episodes])),
+        "successful_starts": len(successful),
+        "nearer_final_than_start": float(np.mean([g["nearer_final_than_start"] for g in successful]))
+        if successful
+        else None,
+    }
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "summary": summary,
+        "goals": goals,
         "similarity": env.similarity,
+        "done_source": cfg.env.done_source,
+        "theta": cfg.env.theta,
         "episodes": [{**e, "rewards": {k: v.tolist() for k, v in e["rewards"].items()}} for e in episodes],
     }
     out = Path(cfg.output_dir)
@@ -130,7 +175,23 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         [e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],
         out / "reward_curves.png",
     )
+    if grid:
+        _plot_goals(torch.stack(grid), out / "goal_grid.png")
     return report
+
+
+def _plot_goals(images: torch.Tensor, path: Path) -> None:
+    """(N, 3, n, 3, H, W) start, goal, real final frame per episode -> a grid: a row per episode, the three
+    images side by side, views stacked."""
+    N, _, n, _, H, W = images.shape
+    grid = images.permute(0, 2, 4, 1, 5, 3).reshape(N * n * H, 3 * W, 3)  # rows: episode, view, y; cols: image, x
+    fig, ax = plt.subplots(figsize=(3 * 1.2, N * n * 1.2))
+    ax.imshow(grid.clamp(0, 1).cpu().numpy())
+    ax.set_xticks([W / 2, 3 * W / 2, 5 * W / 2], ["start", "goal (text model)", "real final"], fontsize=7)
+    ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def _mean(values: np.ndarray) -> float | None:
@@ -142,7 +203,8 @@ def _markdown(report: dict, n: int, n_success: int) -> str:
     lines = [
         f"# Reward report ({n} episodes, {n_success} successful)",
         "",
-        f"Dense reward's similarity: {report['similarity']}. Returns are summed over each family's fixed "
+        f"Dense reward's similarity: {report['similarity']}. Done: {report['done_source']} at threshold "
+        f"{report['theta']:.3f}. Returns are summed over each family's fixed "
         "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
         "one kind is present).",
         "",
@@ -154,6 +216,13 @@ def _markdown(report: dict, n: int, n_success: int) -> str:
             f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "
             f"{fmt(s['mean_return_failure'])} |"
         )
+    g = report["goals"]
+    lines += [
+        "",
+        f"Goals: the text model reached done within the family's horizon from {fmt(g['reached_within_horizon'])} of "
+        f"{g['starts']} starts; the goal is nearer the real final frame than the start frame in "
+        f"{fmt(g['nearer_final_than_start'])} of {g['successful_starts']} successful episodes.",
+    ]
     return "\n".join(lines) + "\n"
 
 

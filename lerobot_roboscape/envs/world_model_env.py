@@ -15,6 +15,7 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 import logging
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -44,6 +45,12 @@ GOAL_SOURCES = ("text_model", "dataset_last_frame")
 # Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
 # starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.
 GOAL_BATCH = 8
+
+
+class Goal(NamedTuple):
+    tokens: torch.Tensor  # (S,)
+    reached: bool  # the text model crossed theta (else its last generated frame is the goal)
+    steps: int  # frames generated up to the goal (0: the dataset's own last frame)
 
 
 @dataclass
@@ -154,8 +161,16 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
                     f"reward_type is {config.reward_type!r}"
                 )
+        self.success_classifier = None
+        if config.done_source == "classifier":
+            self.success_classifier = load_reward_model(config.success_classifier, self.device)
+            if self.success_classifier.config.kind != "success":
+                raise InvalidInputError(
+                    f"{config.success_classifier} is a {self.success_classifier.config.kind} reward model, not a "
+                    "success classifier (roboscape-train-reward --reward.kind=success)"
+                )
         self.starts, self.cameras, self.action_range = self._load_starts()
-        self._goal_cache: dict[int, tuple[torch.Tensor, bool]] = {}
+        self._goal_cache: dict[int, Goal] = {}
 
         size, n = self.tokenizer.config.image_size, len(self.cameras)
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
@@ -215,17 +230,37 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return self.tokenizer.decode_views(tokens_BS, self._n_cameras)
 
     @torch.no_grad()
+    def done_of(self, tokens_BS: torch.Tensor, model_done: torch.Tensor, images=None) -> torch.Tensor:
+        """The done probability (B,) of frames, from the configured source: the world model's own head
+        (`model_done`, what it said when it made or read the frames) or the success classifier on the decoded
+        frames (`images`, when already decoded)."""
+        if self.success_classifier is None:
+            return model_done
+        return self.success_classifier.success_probability(self._decode(tokens_BS) if images is None else images)
+
+    @torch.no_grad()
+    def teacher_forced_done(self, tokens_TS: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Done probability (T,) of known frames of one episode, and the action model's features (T, C) of them,
+        as the action model reads them one after the other (actions (T - 1, A), action t leading to frame t + 1)."""
+        done, features = self.action_model.teacher_forced(tokens_TS[None], actions[None])
+        return self.done_of(tokens_TS, done[0]), features[0]
+
+    @torch.no_grad()
     def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:
         """Goal tokens (B, S) of these starts, generated once per start and cached; and whether the text model
-        crossed theta (when it never does, the last generated frame is the goal)."""
+        crossed theta (when it never does, the last generated frame is the goal). `goal_of` has the details."""
         missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self._goal_cache]
         if missing and self.config.goal_source == "dataset_last_frame":
             for s in missing:
-                self._goal_cache[s.episode_index] = (s.last_tokens, True)
+                self._goal_cache[s.episode_index] = Goal(s.last_tokens, True, 0)
         elif missing:
             self._generate_goals(missing)
         goals = [self._goal_cache[s.episode_index] for s in starts]
-        return torch.stack([g for g, _ in goals]), [reached for _, reached in goals]
+        return torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
+
+    def goal_of(self, start: EpisodeStart) -> Goal:
+        self.goals_for([start])
+        return self._goal_cache[start.episode_index]
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
         for chunk in range(0, len(starts), GOAL_BATCH):
@@ -239,11 +274,14 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         rollout = Rollout.start(model, prompt, control)
         goal = prompt[:, 0].clone()
         reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
-        for _ in range(self.config.max_goal_steps):
+        steps = torch.full((len(padded),), self.config.max_goal_steps, device=prompt.device)
+        for step in range(1, self.config.max_goal_steps + 1):
             frame, done = rollout.predict_next_frame(control)
+            done = self.done_of(frame, done)
             newly = (done >= theta) & ~reached
             goal[newly] = frame[newly]
             goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
+            steps[newly] = step
             reached |= newly
             if reached.all():
                 break
@@ -257,7 +295,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     s.episode_index,
                     s.task,
                 )
-            self._goal_cache[s.episode_index] = (goal[i], bool(reached[i]))
+            self._goal_cache[s.episode_index] = Goal(goal[i], bool(reached[i]), int(steps[i]))
 
     # ---- gymnasium API -------------------------------------------------------------------------------------
 
@@ -303,6 +341,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
         tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
         frames = self._decode(tokens)
+        done = self.done_of(tokens, done, frames)
         parts = self.reward_fn(frames, self._goals, done)
         live = ~self._book.finished
         self._frames = torch.where(

@@ -64,7 +64,9 @@ def _fidelity_summary(report_dir: Path) -> dict:
         "episodes": len(report.get("episodes", [])) or "-",
         "prompt_frames": report["prompt_frames"],
         "lpips": report["lpips_trunk"],
-        "done_accuracy": f"{report['done_teacher_forced']['accuracy']:.3f}",
+        "retrieval": f"{report['controllability']['world_model']['whole_frame']['retrieval']:.3f}"
+        if "controllability" in report
+        else "- (not measured: no controllability set)",
     }
 
 

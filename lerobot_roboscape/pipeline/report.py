@@ -16,8 +16,10 @@ import torch
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
 from lerobot_roboscape.pipeline.stages import (
+    CONTROL_DIR,
     CONVERTED_DIR,
     DEMOS_DIR,
+    DONE_REPORT_DIR,
     EVAL_DIR,
     FIDELITY_DIR,
     HELDOUT_DIR,
@@ -31,6 +33,8 @@ from lerobot_roboscape.pipeline.stages import (
     TABLES_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
+    SUCCESS_CLASSIFIER,
+    VALIDATION_DIR,
     reward_model_dir,
     rl_dir,
     sft_dir,
@@ -47,22 +51,38 @@ import matplotlib.pyplot as plt  # noqa: E402
 TOKENIZER_OBJECT_SURVIVAL = 0.95
 TOKENIZER_OBJECT_PSNR_DB = 20.0
 TOKENIZER_PSNR_DB = 27.0
+# The world models', done and reward, on held-out OOD episodes with failures (issue 28).
 WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the first WM_STEPS steps, below the tokenizer's reconstruction
 WM_STEPS = 8
-DONE_ROC_AUC = 0.9
-REWARD_ROC_AUC = 0.8
+RETRIEVAL = 0.9  # rollouts nearer their own real future than the K - 1 others' (world_model/controllability.py)
+DONE_ROC_AUC_TEACHER_FORCED = 0.95
+DONE_ROC_AUC_OPEN_LOOP = 0.9
+DONE_FAILED_CALLED_DONE = 0.1  # share of failed episodes the done signal calls done, at the chosen threshold
+GOAL_REACHED = 0.9
+GOAL_NEARER_FINAL = 0.9
+REWARD_ROC_AUC = 0.9
 # SFT, in domain, per family (issue 27): a policy PPO can improve must already succeed sometimes.
 SFT_IND_SUCCESS = {"push": 0.6, "pick_place": 0.15}
 
 # The folders under output_dir (as stages.py names them), by the stage that makes them (for the time table).
 STAGE_FOLDERS = {
-    "collect (demonstrations, held-out, trajectory file)": [DEMOS_DIR, HELDOUT_DIR, CONVERTED_DIR],
+    "collect (demonstrations, held-out, validation, controllability set, trajectory file)": [
+        DEMOS_DIR,
+        HELDOUT_DIR,
+        VALIDATION_DIR,
+        CONTROL_DIR,
+        CONVERTED_DIR,
+    ],
     "tokenizer": [TOKENIZER_DIR],
     "tokenizer report": [TOKENIZER_REPORT_DIR],
     "action world model (with the token cache)": [world_model_dir("action")],
     "text world model": [world_model_dir("text")],
     "fidelity report": [FIDELITY_DIR],
-    "reward models and reward report": [*map(reward_model_dir, REWARD_BASELINES), REWARD_REPORT_DIR],
+    "reward models, success classifier, done and reward reports": [
+        *map(reward_model_dir, (*REWARD_BASELINES, SUCCESS_CLASSIFIER)),
+        DONE_REPORT_DIR,
+        REWARD_REPORT_DIR,
+    ],
     "SFT (lerobot-train)": [*map(sft_dir, POLICIES)],
 }
 
@@ -73,9 +93,10 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     tokenizer = json.loads((out / TOKENIZER_REPORT_DIR / "tokenizer_report.json").read_text())
     fidelity = json.loads((out / FIDELITY_DIR / "fidelity.json").read_text())
+    done = json.loads((out / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((out / REWARD_REPORT_DIR / "reward_report.json").read_text())
     table = json.loads((out / TABLES_DIR / "tables.json").read_text())
-    targets = tokenizer_targets(tokenizer) | measure_targets(fidelity, rewards, table, cfg.families)
+    targets = tokenizer_targets(tokenizer) | measure_targets(fidelity, done, rewards, table, cfg.families)
     times = stage_times(cfg, out)
     results = {
         "scale": cfg.scale,
@@ -86,8 +107,10 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "table": table,
         "stage_seconds": times,
         "tokenizer": tokenizer["views"],
-        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "done_whole_episode_open_loop")},
+        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "controllability") if k in fidelity},
+        "done": {k: done[k] for k in ("chosen", "sources")},
         "reward": rewards["summary"],
+        "goals": rewards["goals"],
         "similarity": rewards["similarity"],
     }
     (folder / "results.json").write_text(json.dumps(results, indent=2))
@@ -102,6 +125,8 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     for source, name in (
         (out / FIDELITY_DIR / "fidelity.png", "fidelity.png"),
         (out / REWARD_REPORT_DIR / "reward_curves.png", "reward_curves.png"),
+        (out / REWARD_REPORT_DIR / "goal_grid.png", "goal_grid.png"),
+        (out / DONE_REPORT_DIR / "done_curves.png", "done_curves.png"),
         (out / TABLES_DIR / "tables.png", "tables.png"),
     ):
         shutil.copy2(source, folder / name)
@@ -138,32 +163,78 @@ def tokenizer_targets(report: dict) -> dict:
     return targets
 
 
-def measure_targets(fidelity: dict, rewards: dict, table: dict, families: list[str]) -> dict:
-    """{target: {"value", "goal", "met"}} for each target of the bench experiment."""
+def world_model_targets(fidelity: dict, done: dict, rewards: dict) -> dict:
+    """The world models' targets: controllability, open-loop fidelity, the done signal, the goals and the reward,
+    from the fidelity, done and reward reports on held-out OOD episodes."""
     per_step = fidelity["per_step"]
     steps = min(WM_STEPS, len(per_step["prediction_psnr"]))
     prediction = float(np.mean(per_step["prediction_psnr"][:steps]))
     reconstruction = float(np.mean(per_step["reconstruction_psnr"][:steps]))
-    targets = {
-        f"action WM open-loop PSNR, first {steps} steps (dB; tokenizer {reconstruction:.2f})": _target(
-            prediction,
-            f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
-            prediction >= reconstruction - WM_PSNR_GAP_DB,
-        ),
-    }
-    done = fidelity["done_whole_episode_open_loop"]["roc_auc"]
-    targets["done ROC-AUC, held-out episodes generated open loop"] = _target(
-        done, f">= {DONE_ROC_AUC}", done is not None and done >= DONE_ROC_AUC
+    targets = {}
+    for region, measures in fidelity.get("controllability", {}).get("world_model", {}).items():
+        ignoring = fidelity["controllability"]["ignoring_actions"][region]["retrieval"]
+        targets[f"action WM retrieval of its own future among 4 action sequences, {region.replace('_', ' ')}"] = (
+            _target(
+                measures["retrieval"],
+                f">= {RETRIEVAL}",
+                measures["retrieval"] >= RETRIEVAL,
+                f"{measures['starts']} starts; a model ignoring the actions: {ignoring:.3f}",
+            )
+        )
+    targets[f"action WM open-loop PSNR, first {steps} steps (dB; tokenizer {reconstruction:.2f})"] = _target(
+        prediction,
+        f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
+        prediction >= reconstruction - WM_PSNR_GAP_DB,
+    )
+    source, theta = done["chosen"]["source"], done["chosen"]["theta"]
+    chosen = done["sources"][source]
+    for mode, goal in (("teacher_forced", DONE_ROC_AUC_TEACHER_FORCED), ("open_loop", DONE_ROC_AUC_OPEN_LOOP)):
+        if chosen[mode] is None:
+            continue
+        auc = chosen[mode]["frame_roc_auc"]
+        targets[f"done ROC-AUC, {mode.replace('_', ' ')}, frames of held-out OOD episodes ({source})"] = _target(
+            auc, f">= {goal}", auc is not None and auc >= goal, f"episodes: {_fmt(chosen[mode]['episode_roc_auc'])}"
+        )
+        c = chosen[mode]["confusion"]
+        rate = c["failed_called_done_rate"]
+        targets[f"done: failed episodes called done at the threshold, {mode.replace('_', ' ')} ({source})"] = _target(
+            rate,
+            f"<= {DONE_FAILED_CALLED_DONE}",
+            rate is not None and rate <= DONE_FAILED_CALLED_DONE,
+            f"threshold {theta:.3f} chosen on validation episodes; {c['failed_called_done']} of "
+            f"{c['failed_called_done'] + c['failed_not_done']} failed, {c['success_called_done']} of "
+            f"{c['success_called_done'] + c['success_missed']} successful called done",
+        )
+    goals = rewards["goals"]
+    targets["goal: text model reaches done within the family's horizon (share of held-out starts)"] = _target(
+        goals["reached_within_horizon"],
+        f">= {GOAL_REACHED}",
+        goals["reached_within_horizon"] >= GOAL_REACHED,
+        f"{goals['starts']} starts",
+    )
+    nearer = goals["nearer_final_than_start"]
+    targets[f"goal frame nearer the real final frame than the start ({rewards['similarity']} similarity)"] = _target(
+        nearer,
+        f">= {GOAL_NEARER_FINAL}",
+        nearer is not None and nearer >= GOAL_NEARER_FINAL,
+        f"{goals['successful_starts']} successful episodes",
     )
     summary = rewards["summary"]
     ours = summary["world_model"]["roc_auc_of_return"]
-    baselines = {k: summary[k]["roc_auc_of_return"] for k in ("embedding", "proxy") if k in summary}
+    baselines = {k: summary[k]["roc_auc_of_return"] for k in REWARD_BASELINES if k in summary}
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _target(
         ours,
         f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({_fmt(v)})" for k, v in baselines.items()),
         ours is not None and ours >= REWARD_ROC_AUC and beats,
+        f"similarity: {rewards['similarity']}; done: {rewards['done_source']} at {rewards['theta']:.3f}",
     )
+    return targets
+
+
+def measure_targets(fidelity: dict, done: dict, rewards: dict, table: dict, families: list[str]) -> dict:
+    """{target: {"value", "goal", "met"}} for each target of the bench experiment."""
+    targets = world_model_targets(fidelity, done, rewards)
     targets |= sft_targets(table, families)
     for policy, methods in table.items():
         wm = methods.get(RL_WORLD_MODEL)
@@ -390,7 +461,21 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         "",
         "![fidelity](fidelity.png)",
         "",
+        "## Done",
+        "",
+        f"Chosen on the validation episodes: {results['done']['chosen']['source']} at threshold "
+        f"{results['done']['chosen']['theta']:.3f}. Along held-out episodes (solid: success, dashed: failure; the "
+        "vertical lines mark the recorded success):",
+        "",
+        "![done curves](done_curves.png)",
+        "",
         "## Reward",
+        "",
+        f"Start, goal generated by the text model and real final frame of held-out successful episodes "
+        f"(the goal is nearer the real final frame than the start in {_fmt(results['goals']['nearer_final_than_start'])} "
+        "of them):",
+        "",
+        "![goals](goal_grid.png)",
         "",
         f"Dense reward's similarity: {results['similarity']}. ROC-AUC of the episode return "
         "between successful and failed held-out episodes:",

@@ -75,16 +75,22 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     mean = fidelity["mean"]
     print(
         f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
-        f"SSIM {mean['prediction_ssim']:.2f}, whole-episode done ROC-AUC "
-        f"{fidelity['done_whole_episode_open_loop']['roc_auc']}"
+        f"SSIM {mean['prediction_ssim']:.2f}"
+        + "".join(
+            f", retrieval {region} {m['retrieval']:.2f}"
+            for region, m in fidelity.get("controllability", {}).get("world_model", {}).items()
+        )
     )
     artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.FIDELITY_DIR / "fidelity.md")
     artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / stages.FIDELITY_DIR / "side_by_side.mp4")
 
-    clock("reward models and the reward report (held-out episodes)")
-    baselines = stages.reward_models(cfg, out, data, tokenizer, models)
-    wm_env = stages.world_model_env(cfg, data, tokenizer, models)
-    rewards = stages.reward_report(cfg, out, data, wm_env, baselines)
+    clock("reward models, the done signal and the reward report (held-out episodes)")
+    trained = stages.reward_models(cfg, out, data, tokenizer, models)
+    done = stages.done_report(cfg, out, data, tokenizer, models, trained)
+    print(f"done: {done['chosen']['source']} at threshold {done['chosen']['theta']:.3f}")
+    artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.DONE_REPORT_DIR / "done_report.md")
+    wm_env = stages.world_model_env(cfg, data, tokenizer, models, done, trained)
+    rewards = stages.reward_report(cfg, out, data, wm_env, trained)
     print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
     artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.REWARD_REPORT_DIR / "reward_report.md")
 

@@ -21,6 +21,7 @@ from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, LAST, last_checkpo
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
+from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
@@ -36,6 +37,7 @@ from lerobot_roboscape.evaluation.success_rate import (
 )
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.reward.baselines import RewardModelConfig
+from lerobot_roboscape.reward.done_report import DoneReportConfig, evaluate_done
 from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConfig, train_reward_model
 from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
 from lerobot_roboscape.tasks import select_scenes
@@ -49,6 +51,8 @@ from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldMode
 logger = logging.getLogger(__name__)
 STAGE_FILE = "stage.json"
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
+VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
+CONTROL_SEED = 70_000  # and the starts of the controllability set
 SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
     "Supervised finetune",
     "RL w. ManiSkill (one scene)",
@@ -57,12 +61,16 @@ SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
 )
 POLICIES = ("roboscape_mlp", "openvla")
 REWARD_BASELINES = ("embedding", "proxy")
+SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classifier (a done source)
 
 
 # ---- where the stages write: folders under output_dir (the report and the run's summary read them here) ---------
 
 DEMOS_DIR = "datasets/roboscape_demos"
 HELDOUT_DIR = "datasets/roboscape_heldout"
+VALIDATION_DIR = "datasets/roboscape_validation"
+CONTROL_DIR = "datasets/roboscape_controllability"
+DONE_REPORT_DIR = "done_report"
 CONVERTED_DIR = "datasets/maniskill_converted"
 TRAJECTORIES_DIR = "maniskill_trajectories"
 TOKENIZER_DIR = "tokenizer"
@@ -161,10 +169,15 @@ def stage_seconds(folder: Path) -> float | None:
 class Datasets:
     """train: the demonstrations (IND scenes; successful, suboptimal and failed attempts). heldout: episodes the
     models never saw, for the fidelity and reward reports (OOD scenes, half failed; or one converted episode).
-    trajectory_file: the recorded ManiSkill .h5 that `roboscape-convert` read."""
+    validation: episodes the done threshold is chosen on (IND scenes, new initial states, half failed; the
+    demonstrations themselves at the scales without held-out scenes). controllability: K action sequences from
+    each of some OOD starts (demos/controllability.py), or None. trajectory_file: the recorded ManiSkill .h5 that
+    `roboscape-convert` read."""
 
     train: DatasetConfig
     heldout: DatasetConfig
+    validation: DatasetConfig
+    controllability: DatasetConfig | None
     trajectory_file: Path
 
 
@@ -231,7 +244,43 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
             ),
             cfg.fresh,
         )
-    return Datasets(train, heldout, h5)
+    validation, controllability = train, None
+    if cfg.heldout_scenes:
+        validation = _collect(
+            CollectConfig(
+                repo_id="local/roboscape_validation",
+                root=str(out / VALIDATION_DIR),
+                families=cfg.families,
+                split="ind",
+                max_scenes=cfg.scenes,
+                episodes_per_scene=1,
+                failed_fraction=0.5,
+                seed=VALIDATION_SEED,
+                image_size=cfg.image_size,
+                workers=cfg.workers,
+                keep_failed=True,
+                segmentation=True,
+            ),
+            cfg.fresh,
+        )
+        control = ControllabilityConfig(
+            repo_id="local/roboscape_controllability",
+            root=str(out / CONTROL_DIR),
+            families=cfg.families,
+            split="ood",
+            max_scenes=cfg.heldout_scenes,
+            seed=CONTROL_SEED,
+            image_size=cfg.image_size,
+            workers=cfg.workers,
+            overwrite=True,
+        )
+        folder = Path(control.root)
+        if not is_done(folder, control, cfg.fresh):
+            start(folder)
+            collect_controllability(control)
+            mark_done(folder, control)
+        controllability = DatasetConfig(repo_id=control.repo_id, root=control.root)
+    return Datasets(train, heldout, validation, controllability, h5)
 
 
 # ---- models ------------------------------------------------------------------------------------------------------
@@ -304,16 +353,18 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
 def reward_models(
     cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
 ) -> dict[str, Path]:
-    """Train the paper's baseline rewards (embedding-based and proxy-based); {} when reward_model_steps is 0."""
+    """Train the paper's baseline rewards (embedding-based and proxy-based) and the success classifier; {} when
+    reward_model_steps is 0."""
     trained = {}
-    for kind in REWARD_BASELINES if cfg.reward_model_steps else ():
+    for kind in (*REWARD_BASELINES, SUCCESS_CLASSIFIER) if cfg.reward_model_steps else ():
         folder = out / reward_model_dir(kind)
         train = TrainRewardConfig(
             reward=RewardModelConfig(kind=kind),
             dataset=data.train,
             tokenizer=str(tokenizer_path),
             action_world_model=str(models["action"]),
-            train=RewardTrainingConfig(steps=cfg.reward_model_steps),
+            # The embedding head reads clips of the action model's window; the image networks single frames.
+            train=RewardTrainingConfig(steps=cfg.reward_model_steps, batch_size=8 if kind == "embedding" else 32),
             output_dir=folder,
             cache_dir=out / TOKEN_CACHE_DIR,
             device=cfg.device,
@@ -326,10 +377,46 @@ def reward_models(
     return trained
 
 
+def done_report(
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path], trained: dict
+) -> dict:
+    """Which done signal the env trusts (the action model's head or the success classifier) and its threshold,
+    chosen on the validation episodes and measured on the held-out ones; returns the report."""
+    folder = out / DONE_REPORT_DIR
+    classifier = trained.get(SUCCESS_CLASSIFIER)
+    report_cfg = DoneReportConfig(
+        dataset=spread(data.heldout, cfg.report_episodes),
+        validation=data.validation,
+        tokenizer=str(tokenizer_path),
+        world_model=str(models["action"]),
+        success_classifier=_str(classifier),
+        output_dir=folder,
+        device=cfg.device,
+    )
+    if not is_done(folder, report_cfg, cfg.fresh):
+        start(folder)
+        evaluate_done(report_cfg)
+        mark_done(folder, report_cfg)
+    return json.loads((folder / "done_report.json").read_text())
+
+
 def world_model_env(
-    cfg: PipelineConfig, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
+    cfg: PipelineConfig,
+    data: Datasets,
+    tokenizer_path: Path,
+    models: dict[str, Path],
+    done: dict | None = None,
+    trained: dict | None = None,
 ) -> RoboscapeWorldModelEnvConfig:
-    """The `roboscape_wm` env of these models, starting from the demonstrations' first frames."""
+    """The `roboscape_wm` env of these models, starting from the demonstrations' first frames; with a done report,
+    its chosen done source and threshold (for success, the goal and the sparse reward)."""
+    chosen = dict(done_source="world_model")
+    if done is not None:
+        source, theta = done["chosen"]["source"], done["chosen"]["theta"]
+        classifier = (trained or {}).get(SUCCESS_CLASSIFIER) if source == "classifier" else None
+        # A threshold above 1 (no validation episode separated) can never fire; keep the env's range.
+        theta = float(min(max(theta, 1e-3), 1.0))
+        chosen = dict(done_source=source, success_classifier=_str(classifier), theta=theta, theta_sps=theta)
     return RoboscapeWorldModelEnvConfig(
         dataset_repo_id=data.train.repo_id,
         dataset_root=data.train.root,
@@ -341,6 +428,7 @@ def world_model_env(
         max_goal_steps=cfg.max_goal_steps,
         allow_random_lpips=True,
         device=cfg.device,
+        **chosen,
     )
 
 
@@ -365,6 +453,7 @@ def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Pat
         world_model=str(models["action"]),
         output_dir=folder,
         max_episodes=cfg.report_episodes,
+        controllability=data.controllability,
         allow_random_lpips=True,
         device=cfg.device,
     )

@@ -1,8 +1,12 @@
-"""The paper's baseline rewards (section 4.1), fitted to the rule-based reward labels of the dataset.
+"""Learned rewards read from frames: the paper's baselines (section 4.1) and a success classifier.
 
-- Embedding-based (iVideoGPT): an MLP head on the action world model's hidden state of the current frame.
-- Proxy-based (DiWA): a separate network from the current images to the reward.
-Both are trained by `roboscape-train-reward` and used by `roboscape_wm` with `--env.reward_type=embedding|proxy`.
+- Embedding-based (iVideoGPT): an MLP head on the action world model's hidden state of the current frame, fitted
+  to the rule-based reward labels.
+- Proxy-based (DiWA): a separate network from the current images to the rule-based reward.
+- Success (DIAMOND's termination head, RLinf's reward classifier): the proxy's network from the current images to
+  the logit of "the task is accomplished in this frame", fitted to the done labels with a balanced loss. It is an
+  alternative to the action world model's done head (`--env.done_source=classifier`).
+All are trained by `roboscape-train-reward`; `roboscape_wm` uses the first two with `--env.reward_type`.
 """
 
 from dataclasses import dataclass
@@ -13,14 +17,17 @@ from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.weights import CheckedHubMixin
+from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
 
-REWARD_KINDS = ("embedding", "proxy")
+REWARD_KINDS = ("embedding", "proxy", "success")
+IMAGE_KINDS = ("proxy", "success")  # read decoded images; the embedding reads world-model features
 
 
 @dataclass
 class RewardModelConfig:
     """Args:
-    kind: "embedding" (head on the world model's hidden state) or "proxy" (image network).
+    kind: "embedding" (head on the world model's hidden state), "proxy" (image network) or "success" (image
+        network giving the logit of success).
     d_model: width of the world model's hidden state (embedding; taken from the world model).
     image_size: camera image side (proxy; taken from the tokenizer).
     n_cameras: views per frame (proxy).
@@ -43,8 +50,8 @@ class RewardModelConfig:
 class RewardModel(
     nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "reward-model", "robotics"]
 ):
-    """Predicts the rule-based reward of a frame, from world-model features (B, d_model) or images
-    (B, n_cameras, 3, H, W) in [0, 1], depending on `config.kind`."""
+    """Predicts the rule-based reward of a frame (embedding, proxy) or the logit of its success (success), from
+    world-model features (B, d_model) or images (B, n_cameras, 3, H, W) in [0, 1], depending on `config.kind`."""
 
     def __init__(self, config: RewardModelConfig):
         super().__init__()
@@ -54,7 +61,7 @@ class RewardModel(
             # Token-averaged hidden states share a large common part and differ little between frames;
             # standardising each feature over the data (batch statistics) exposes the differences.
             self.encoder = nn.BatchNorm1d(config.d_model)
-        else:
+        else:  # proxy and success
             c = config.channels
             self.encoder = nn.Sequential(  # shared over views; the views' features are concatenated
                 nn.Conv2d(3, c, 4, 2, 1),
@@ -70,7 +77,7 @@ class RewardModel(
         self.head = nn.Sequential(nn.Linear(width, config.hidden), nn.SiLU(), nn.Linear(config.hidden, 1))
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
-        if self.config.kind == "proxy":
+        if self.config.kind in IMAGE_KINDS:
             B, n = inputs.shape[:2]
             if n != self.config.n_cameras or inputs.shape[-1] != self.config.image_size:
                 raise ValueError(
@@ -80,6 +87,15 @@ class RewardModel(
             return self.head(self.encoder(inputs.flatten(0, 1) * 2 - 1).reshape(B, -1)).squeeze(-1)
         return self.head(self.encoder(inputs)).squeeze(-1)
 
+    @torch.no_grad()
+    def success_probability(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, n_cameras, 3, H, W) in [0, 1] -> (B,) probability that the task is accomplished (kind success)."""
+        return torch.sigmoid(self(images).float())
+
     def compute_loss(self, inputs: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        loss = F.mse_loss(self(inputs), labels)
+        """labels: the rule-based reward, or the done labels for the success kind."""
+        if self.config.kind == "success":
+            loss = balanced_bce(self(inputs), labels)
+        else:
+            loss = F.mse_loss(self(inputs), labels)
         return loss, {"loss": loss.item()}

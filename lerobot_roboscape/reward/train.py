@@ -1,7 +1,8 @@
-"""Training the baseline reward models on the rule-based reward labels of a pre-tokenised dataset.
+"""Training the learned rewards on the labels of a pre-tokenised dataset: the rule-based reward (embedding, proxy)
+or the done labels (success).
 
 The embedding head reads the frozen action world model's hidden states of real clips (teacher forcing); the proxy
-network reads frames decoded by the tokenizer, the images it will see inside `roboscape_wm`.
+and success networks read frames decoded by the tokenizer, the images they will see inside `roboscape_wm`.
 """
 
 import logging
@@ -13,7 +14,7 @@ from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
+from lerobot_roboscape.reward.baselines import IMAGE_KINDS, RewardModel, RewardModelConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import TrainingConfig, fit
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
@@ -33,11 +34,13 @@ class RewardTrainingConfig(TrainingConfig):
 @dataclass
 class TrainRewardConfig:
     """Args:
-    reward: the reward model (--reward.kind=embedding|proxy, widths).
-    dataset: the LeRobot dataset with `next.reward` labels; --dataset.episodes picks the training episodes.
+    reward: the reward model (--reward.kind=embedding|proxy|success, widths).
+    dataset: the LeRobot dataset with `next.reward` and `next.success` labels; --dataset.episodes picks the training
+        episodes.
     tokenizer: the tokenizer of the world models (local directory or Hub repo id).
-    action_world_model: the action world model whose hidden states the embedding head reads.
-    train: optimisation, logging, checkpoints and resume.
+    action_world_model: the action world model whose hidden states the embedding head reads (embedding only).
+    train: optimisation, logging, checkpoints and resume; batch_size counts clips of the action model's window
+        (embedding) or single frames (proxy, success).
     output_dir: checkpoints, logs and the final model (output_dir/pretrained_model).
     cache_dir: where token caches are built and found.
     token_cache: use this existing cache (it must match the dataset and tokenizer).
@@ -57,27 +60,31 @@ class TrainRewardConfig:
 
 def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
     cache = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
-    world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).eval().requires_grad_(False)
-    if world_model.config.control != "action":
-        raise InvalidInputError(
-            f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one"
-        )
-    cfg.reward.d_model = world_model.config.d_model
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)
-    batches = ClipSampler(cache, episodes, world_model.config.window, cfg.train.batch_size, cfg.train.seed)
+    images = cfg.reward.kind in IMAGE_KINDS
+    world_model, window = None, 1  # an image network reads single frames
+    if not images:
+        world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
+        if world_model.config.control != "action":
+            raise InvalidInputError(
+                f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one"
+            )
+        cfg.reward.d_model, window = world_model.config.d_model, world_model.config.window
+    batches = ClipSampler(cache, episodes, window, cfg.train.batch_size, cfg.train.seed)
 
     def loss_fn(model, batch):
-        world_model.to(batch["tokens"].device)
-        tokenizer.to(batch["tokens"].device)
         with torch.no_grad():
-            if cfg.reward.kind == "embedding":
+            if images:
+                tokenizer.to(batch["tokens"].device)
+                inputs = tokenizer.decode_views(batch["tokens"].flatten(0, 1), cfg.reward.n_cameras)
+            else:
+                world_model.to(batch["tokens"].device)
                 control = world_model.encode_control(batch["actions"], batch["no_action"])
                 inputs = world_model.compute_hidden(batch["tokens"], control)[0].mean(dim=2).flatten(0, 1)
-            else:
-                inputs = tokenizer.decode_views(batch["tokens"].flatten(0, 1), cfg.reward.n_cameras)
-        return model.compute_loss(inputs, batch["reward"].flatten())
+        labels = batch["done" if cfg.reward.kind == "success" else "reward"]
+        return model.compute_loss(inputs, labels.flatten())
 
     set_seed(cfg.train.seed)
     model = RewardModel(cfg.reward)

@@ -5,6 +5,7 @@ import draccus
 from lerobot_roboscape.errors import InvalidInputError
 
 CONTROLS = ("action", "text")
+DONE_LOSSES = ("balanced_bce", "rmse")
 
 
 @dataclass
@@ -35,7 +36,10 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
         done_hidden: hidden width of the done head.
-        done_weight: weight of the done RMSE in the loss.
+        done_weight: weight of the done loss.
+        done_loss: "balanced_bce" (binary cross-entropy averaged over done frames and over the others separately,
+            so that the rare done frames weigh as much as the rest) or "rmse" (the paper's RMSE of the done
+            probability, which a head predicting "never done" nearly minimises when done frames are few).
     """
 
     # Control.
@@ -61,6 +65,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     clean_frame_prob: float = 0.25
     done_hidden: int = 128
     done_weight: float = 1.0
+    done_loss: str = "balanced_bce"
 
     def __post_init__(self):
         if self.control not in CONTROLS:
@@ -69,6 +74,8 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             raise InvalidInputError(f"d_model={self.d_model} must split into n_head={self.n_head} heads of even width")
         if not 1 <= self.prompt_frames < self.window:
             raise InvalidInputError(f"prompt_frames={self.prompt_frames} must be in [1, window={self.window})")
+        if self.done_loss not in DONE_LOSSES:
+            raise InvalidInputError(f"done_loss must be one of {DONE_LOSSES}, got {self.done_loss!r}")
         if self.maskgit_steps < 1:
             raise InvalidInputError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
 

@@ -2,9 +2,9 @@
 
 For each episode the model reads `prompt_frames` real frames, then generates `horizon` frames from the recorded
 actions alone. Per horizon step it reports PSNR, SSIM and LPIPS of the decoded prediction against the real frame,
-next to the tokenizer's own reconstruction of the real frame (the best the world model could do). The done head
-is scored against the recorded success labels, both teacher-forced (reading the real frames) and open-loop, and on
-the failed episodes alone: how often it calls a failed attempt done (its false positives).
+next to the tokenizer's own reconstruction of the real frame (the best the world model could do), on the whole
+frame and on the task object's region. The done signals have their own report (reward/done_report.py), and so does
+whether the model follows its actions (world_model/controllability.py).
 """
 
 import json
@@ -19,7 +19,6 @@ import matplotlib
 import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
-from torchmetrics.functional.classification import binary_auroc
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
@@ -28,6 +27,7 @@ from lerobot_roboscape.image_fidelity import frame_measures
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.world_model.controllability import ControllabilityReportConfig, evaluate_controllability
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 matplotlib.use("Agg")
@@ -60,7 +60,8 @@ class FidelityConfig:
     horizon: generated frames compared per episode.
     max_episodes: episodes evaluated, at most.
     video_episodes: episodes shown in the side-by-side video.
-    done_threshold: done probability counted as "done" for accuracy and false positives.
+    controllability: a controllability set (`roboscape-collect-control`); when given, the report also says whether
+        the model follows its actions (world_model/controllability.py, controllability.json).
     lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
     allow_random_lpips: report LPIPS from a random trunk when no weights are found (marked in the report).
     device: "auto", "cpu" or "cuda".
@@ -74,7 +75,7 @@ class FidelityConfig:
     horizon: int = 16
     max_episodes: int = 8
     video_episodes: int = 2
-    done_threshold: float = 0.5
+    controllability: DatasetConfig | None = None
     lpips_weights: Path | None = None
     allow_random_lpips: bool = False
     device: str = "auto"
@@ -104,63 +105,6 @@ def _object_metrics(pred, real, labels) -> dict[str, np.ndarray]:
         }
 
 
-def _done_scores(prob: np.ndarray, label: np.ndarray, threshold: float) -> dict:
-    positives = label > 0.5
-    scores = {
-        "accuracy": float(((prob >= threshold) == positives).mean()),
-        "frames": int(len(label)),
-        "positive_frames": int(positives.sum()),
-    }
-    if 0 < positives.sum() < len(label):
-        scores["roc_auc"] = float(binary_auroc(torch.from_numpy(prob), torch.from_numpy(positives.astype(np.int64))))
-    else:
-        scores["roc_auc"] = None  # undefined with one class only
-    return scores
-
-
-def _false_positives(
-    episodes: list[dict], tf_prob: list[np.ndarray], ol_prob: list[np.ndarray], threshold: float
-) -> dict | None:
-    """How often the done head calls a failed attempt (an episode never recorded done) done: over its frames,
-    teacher-forced and open-loop, and per episode (`predicted_success`: its highest teacher-forced probability).
-    None without a failed episode."""
-    failed = [i for i, e in enumerate(episodes) if not e["recorded_success"]]
-    if not failed:
-        return None
-
-    def rate(flagged: np.ndarray) -> dict:
-        return {"rate": float(flagged.mean()), "flagged": int(flagged.sum()), "total": int(flagged.size)}
-
-    return {
-        "threshold": threshold,
-        "failed_episodes": len(failed),
-        "frames_teacher_forced": rate(np.concatenate([tf_prob[i] for i in failed]) >= threshold),
-        "frames_open_loop": rate(np.concatenate([ol_prob[i] for i in failed]) >= threshold),
-        "episodes": rate(np.array([episodes[i]["predicted_success"] for i in failed])),
-    }
-
-
-@torch.no_grad()
-def _whole_episode_done(
-    model: STWorldModel, episodes: list[tuple], rows: list[dict], prompt: int, batch_size: int = 16
-) -> dict:
-    """Success as the world model imagines it: each episode generated open loop from its prompt frames and its
-    recorded actions to its end (as in a rollout of `roboscape_wm`); its score is the highest done probability.
-    ROC-AUC of that score against the recorded success (None with one kind of episode only)."""
-    scores = []
-    for start in range(0, len(episodes), batch_size):
-        chunk = episodes[start : start + batch_size]
-        length = max(len(actions) for _, actions in chunk)  # frames; shorter episodes repeat their last action
-        actions = torch.stack([torch.cat([a, a[-1:].expand(length - len(a), -1)]) for _, a in chunk])
-        _, done = model.generate(torch.stack([p for p, _ in chunk]), length - prompt, actions=actions[:, : length - 1])
-        scores += [float(d[: len(a) - prompt].max()) for d, (_, a) in zip(done, chunk, strict=True)]
-    labels = np.array([row["recorded_success"] for row in rows])
-    auc = None
-    if 0 < labels.sum() < len(labels):
-        auc = float(binary_auroc(torch.tensor(scores), torch.from_numpy(labels.astype(np.int64))))
-    return {"roc_auc": auc, "episodes": len(scores), "successful": int(labels.sum()), "max_done": scores}
-
-
 def _side_by_side(real, pred, prompt: int) -> np.ndarray:
     """(T, n_cameras, 3, H, W) real and predicted -> (T, n_cameras * H, 2 * W, 3) uint8: real left, predicted right.
     Prompt frames show the real frame on both sides."""
@@ -188,7 +132,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     per_step = {
         f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction") for m in metrics
     }
-    tf_prob, tf_label, ol_prob, ol_label, episodes_out, videos, whole = [], [], [], [], [], [], []
+    episodes_out, videos = [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
         episode = read_episode(dataset, index)
         tokens = tokenizer.encode_views(
@@ -201,7 +145,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 "episode %d has %d frames, not more than the %d prompt frames: skipped", index, len(tokens), prompt
             )
             continue
-        pred_tokens, pred_done = model.generate(
+        pred_tokens, _ = model.generate(
             tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1]
         )
         real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
@@ -220,25 +164,11 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 for step, value in enumerate(per_frame):
                     if not np.isnan(value):
                         per_step[f"{kind}_{metric}"][step].append(float(value))
-        tf = model.teacher_forced(tokens[None], actions[None, :-1])[0][0].cpu().numpy()
-        tf_prob.append(tf)
-        tf_label.append(episode.done_label)
-        ol_prob.append(pred_done[0].cpu().numpy())
-        ol_label.append(episode.done_label[prompt : prompt + horizon])
-        recorded = bool(episode.done_label.max() > 0.5)
         episodes_out.append(
-            {
-                "episode_index": index,
-                "task": episode.task,
-                "frames": len(tokens),
-                "horizon": horizon,
-                "recorded_success": recorded,
-                "predicted_success": bool(tf.max() >= cfg.done_threshold),
-            }
+            {"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon}
         )
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
-        whole.append((tokens[:prompt], actions))
     if not episodes_out:
         raise InvalidInputError(f"no episode of {dataset.root} is longer than the {prompt} prompt frames")
 
@@ -248,15 +178,14 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "lpips_trunk": "random (not perceptual)" if lpips_metric.random_trunk else "pretrained",
         "per_step": {k: [float(np.mean(v)) if v else None for v in steps] for k, steps in per_step.items()},
         "mean": {k: float(np.mean(sum(steps, []))) if any(steps) else None for k, steps in per_step.items()},
-        "done_teacher_forced": _done_scores(np.concatenate(tf_prob), np.concatenate(tf_label), cfg.done_threshold),
-        "done_open_loop": _done_scores(np.concatenate(ol_prob), np.concatenate(ol_label), cfg.done_threshold),
-        "episode_success_accuracy": float(
-            np.mean([e["recorded_success"] == e["predicted_success"] for e in episodes_out])
-        ),
-        "done_false_positive": _false_positives(episodes_out, tf_prob, ol_prob, cfg.done_threshold),
-        "done_whole_episode_open_loop": _whole_episode_done(model, whole, episodes_out, prompt),
         "episodes": episodes_out,
     }
+    if cfg.controllability is not None:
+        report["controllability"] = evaluate_controllability(
+            ControllabilityReportConfig(
+                cfg.controllability, cfg.tokenizer, cfg.world_model, cfg.output_dir, cfg.horizon, cfg.device
+            )
+        )["summary"]
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
     return report
 
@@ -293,35 +222,6 @@ def markdown_table(report: dict) -> str:
     for i in range(steps):
         cells = [fmt(per_step[f"{kind}_{m}"][i]) for m in metrics for kind in ("prediction", "reconstruction")]
         lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
-    for name in ("done_teacher_forced", "done_open_loop"):
-        d = report[name]
-        lines.append(
-            f"\n{name}: accuracy {d['accuracy']:.3f}, ROC-AUC {fmt(d['roc_auc'])} "
-            f"({d['positive_frames']}/{d['frames']} done frames)"
-        )
-    lines.append(f"\nepisode success predicted correctly: {report['episode_success_accuracy']:.3f}")
-    whole = report["done_whole_episode_open_loop"]
-    lines.append(
-        f"\nwhole episodes generated open loop from their actions: ROC-AUC {fmt(whole['roc_auc'])} of the "
-        f"highest done probability against success ({whole['successful']}/{whole['episodes']} successful)"
-    )
-    fp = report["done_false_positive"]
-    if fp is None:
-        lines.append("\ndone false positives: no failed episode among those evaluated")
-    else:
-        lines += [
-            f"\ndone false positives on {fp['failed_episodes']} failed episodes (done probability >= "
-            f"{fp['threshold']}):\n",
-            "| counted over | rate | flagged / total |",
-            "|---|---:|---:|",
-        ]
-        rows = {
-            "frames, teacher-forced": "frames_teacher_forced",
-            "frames, open-loop": "frames_open_loop",
-            "episodes (highest teacher-forced)": "episodes",
-        }
-        for name, key in rows.items():
-            lines.append(f"| {name} | {fp[key]['rate']:.3f} | {fp[key]['flagged']}/{fp[key]['total']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -21,6 +21,15 @@ from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 TEXT_ENCODER_DIR = "text_encoder"
 
 
+def balanced_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy with each class averaged on its own, then the two averaged: a rare positive class
+    weighs as much as the common negative one (a class absent from the batch drops out)."""
+    per_item = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
+    positive = labels > 0.5
+    parts = [per_item[m].mean() for m in (positive, ~positive) if m.any()]
+    return torch.stack(parts).mean()
+
+
 class STWorldModel(
     nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "world-model", "robotics"]
 ):
@@ -101,15 +110,20 @@ class STWorldModel(
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
         token_loss = F.cross_entropy(logits[mask].float(), tokens[mask]) if mask.any() else logits.sum() * 0
-        done_rmse = torch.sqrt(F.mse_loss(torch.sigmoid(done_logits.float()), done) + 1e-8)
-        loss = token_loss + self.config.done_weight * done_rmse
+        done_loss = self.done_loss(done_logits.float(), done)
+        loss = token_loss + self.config.done_weight * done_loss
         accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
         return loss, {
             "loss": loss.item(),
             "token_ce": token_loss.item(),
             "token_acc": accuracy.item(),
-            "done_rmse": done_rmse.item(),
+            "done_loss": done_loss.item(),
         }
+
+    def done_loss(self, logits: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        if self.config.done_loss == "rmse":
+            return torch.sqrt(F.mse_loss(torch.sigmoid(logits), done) + 1e-8)
+        return balanced_bce(logits, done)
 
     def forward(self, batch: dict) -> tuple[torch.Tensor, dict]:
         return self.compute_loss(batch)

@@ -10,15 +10,12 @@ frames of the window without theirs.
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
+from torch import nn
 
 from lerobot_roboscape.world_model.control_encoders import Control
 from lerobot_roboscape.world_model.st_transformer import KVCache
-
-if TYPE_CHECKING:
-    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 
 @dataclass
@@ -26,7 +23,7 @@ class Rollout:
     """What a running generation remembers: the last `window - 1` frames as tokens, their controls, and (with the
     cache) every layer's keys and values of those frames."""
 
-    model: "STWorldModel"
+    model: nn.Module  # an STWorldModel (not imported: it imports this module to generate)
     tokens: torch.Tensor  # (B, T, S) long
     control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
     cache: KVCache | None  # None when generating by recomputing the window
@@ -36,7 +33,7 @@ class Rollout:
 
     @classmethod
     @torch.no_grad()
-    def start(cls, model: "STWorldModel", prompt_BPS, control: Control, use_cache: bool = True) -> "Rollout":
+    def start(cls, model: nn.Module, prompt_BPS, control: Control, use_cache: bool = True) -> "Rollout":
         """Read the prompt frames (real tokens) with their controls."""
         hidden_BTSC, kvs = model.compute_hidden(prompt_BPS, control)
         cache = KVCache(kvs, model.config.window) if use_cache else None

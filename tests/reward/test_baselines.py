@@ -15,7 +15,7 @@ from tests.conftest import IMAGE_SIZE
 def reward_models(demo_dataset, trained_tokenizer, token_cache, world_models, tmp_path_factory):
     _, root = demo_dataset
     dirs, losses = {}, {}
-    for kind in ("embedding", "proxy"):
+    for kind in ("embedding", "proxy", "success"):
         out = tmp_path_factory.mktemp(f"reward_{kind}")
         cfg = draccus.parse(
             TrainRewardConfig,
@@ -29,7 +29,7 @@ def reward_models(demo_dataset, trained_tokenizer, token_cache, world_models, tm
                 f"--output_dir={out}",
                 "--train.steps=500",
                 "--train.save_freq=500",
-                "--train.batch_size=4",
+                f"--train.batch_size={4 if kind == 'embedding' else 16}",  # clips of 4 frames, or frames
                 "--train.warmup_steps=5",
                 "--train.log_freq=1",
                 "--train.lr=3e-3",
@@ -52,8 +52,31 @@ def _logged_losses(out):
 def test_reward_models_fit_the_rule_based_labels(reward_models, token_cache):
     _, losses = reward_models
     label_variance = float(np.var(token_cache.rewards))  # the error of always predicting the mean reward
-    for kind, values in losses.items():
+    for kind in ("embedding", "proxy"):
+        values = losses[kind]
         assert np.mean(values[-25:]) < 0.7 * label_variance, (kind, np.mean(values[-25:]), label_variance)
+
+
+def test_success_classifier_learns_the_rare_done_frames(reward_models, token_cache):
+    dirs, losses = reward_models
+    # A constant guess scores ln 2 on the balanced loss, whatever the share of done frames.
+    assert np.mean(losses["success"][-25:]) < 0.6 * np.log(2), np.mean(losses["success"][-25:])
+    model = RewardModel.from_pretrained(dirs["success"]).eval()
+    assert model.config.kind == "success"
+    images = torch.rand(3, 2, 3, IMAGE_SIZE, IMAGE_SIZE)
+    p = model.success_probability(images)
+    assert p.shape == (3,) and ((p >= 0) & (p <= 1)).all()
+
+
+def test_balanced_loss_weighs_the_rare_class_as_much_as_the_common_one():
+    from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
+
+    labels = torch.tensor([1.0] + [0.0] * 19)
+    never_done = torch.full((20,), -4.0)  # what an RMSE-trained head drifts to when done frames are rare
+    plain = torch.nn.functional.binary_cross_entropy_with_logits(never_done, labels)
+    assert balanced_bce(never_done, labels) > 5 * plain
+    assert torch.isclose(balanced_bce(never_done[1:], labels[1:]), plain * 0 + torch.nn.functional.softplus(
+        torch.tensor(-4.0)))  # one class only: its own mean
 
 
 def test_reward_model_round_trip_and_bad_input(tmp_path):
@@ -66,6 +89,63 @@ def test_reward_model_round_trip_and_bad_input(tmp_path):
         model(torch.rand(3, 1, 3, 32, 32))
     with pytest.raises(ValueError, match="kind must be one of"):
         RewardModelConfig(kind="learned")
+
+
+def test_env_takes_done_from_the_success_classifier(reward_models, env_config):
+    dirs, _ = reward_models
+    small = dict(episode_length=3, max_goal_steps=2, theta=0.5)
+    cfg = env_config(done_source="classifier", success_classifier=str(dirs["success"]), **small)
+    env = RoboscapeWorldModelEnv(cfg, num_envs=2)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.zeros((2, 7), np.float32))
+    classifier = RewardModel.from_pretrained(dirs["success"]).eval()
+    np.testing.assert_allclose(
+        info["done_probability"], classifier.success_probability(env._frames).numpy(), rtol=1e-5, atol=1e-6
+    )
+    with pytest.raises(ValueError, match="needs success_classifier"):
+        env_config(done_source="classifier", **small)
+    with pytest.raises(ValueError, match="not a success classifier"):
+        RoboscapeWorldModelEnv(env_config(done_source="classifier", success_classifier=str(dirs["proxy"]), **small))
+
+
+def test_done_report_chooses_source_and_threshold_on_validation(
+    reward_models, demo_dataset, trained_tokenizer, world_models, tmp_path
+):
+    from lerobot_roboscape.reward.done_report import DoneReportConfig, evaluate_done
+
+    _, root = demo_dataset
+    dirs, _ = reward_models
+    cfg = draccus.parse(
+        DoneReportConfig,
+        args=[
+            "--dataset.repo_id=test/demos",
+            f"--dataset.root={root}",
+            "--dataset.episodes=[1,2,3,4]",
+            "--validation.repo_id=test/demos",
+            f"--validation.root={root}",
+            f"--tokenizer={trained_tokenizer}",
+            f"--world_model={world_models['action']}",
+            f"--success_classifier={dirs['success']}",
+            f"--output_dir={tmp_path}",
+        ],
+    )
+    report = evaluate_done(cfg)
+    for name in ("done_report.json", "done_report.md", "done_curves.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert set(report["sources"]) == {"world_model", "classifier"}
+    validation_auc = {s: v["validation"]["frame_roc_auc"] for s, v in report["sources"].items()}
+    assert report["chosen"]["source"] == max(validation_auc, key=validation_auc.get)
+    facts = {row["episode_index"]: row for row in read_episode_info(root)}
+    failed = sum(not facts[i]["success"] for i in (1, 2, 3, 4))
+    for source in report["sources"].values():
+        assert source["theta_from"] == "validation"
+        for mode in ("teacher_forced", "open_loop"):
+            c = source[mode]["confusion"]
+            assert c["failed_called_done"] + c["failed_not_done"] == failed
+            assert sum(v for k, v in c.items() if k != "failed_called_done_rate") == 4
+    for episode in report["episodes"]:
+        lengths = {len(v) for v in episode["scores"].values()}
+        assert len(lengths) == 1, "open-loop and teacher-forced scores cover every frame"
 
 
 @pytest.mark.parametrize("kind", ["embedding", "proxy"])

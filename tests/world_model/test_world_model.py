@@ -64,7 +64,7 @@ def test_shapes_and_loss(control):
     assert len(kvs) == 2 and kvs[0][0].shape == (2 * 8, 2, 4, 16)  # (B * S, heads, T, head_dim)
     loss, logs = model.train()(batch)
     loss.backward()
-    assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_rmse"}
+    assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_loss"}
 
 
 @pytest.mark.parametrize("control", ["action", "text"])

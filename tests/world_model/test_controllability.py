@@ -1,0 +1,82 @@
+import numpy as np
+import pytest
+from lerobot.configs.default import DatasetConfig
+
+from lerobot_roboscape.dataset.reader import episode_facts, read_episode
+from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability, offsets
+from lerobot_roboscape.world_model.controllability import (
+    ControllabilityReportConfig,
+    evaluate_controllability,
+    retrieval_accuracy,
+)
+from tests.conftest import IMAGE_SIZE
+
+SEQUENCES, STEPS = 3, 5
+
+
+@pytest.fixture(scope="module")
+def control_set(tmp_path_factory):
+    root = tmp_path_factory.mktemp("control") / "set"
+    cfg = ControllabilityConfig(
+        root=str(root),
+        families=["push"],
+        max_scenes=1,
+        starts_per_scene=1,
+        sequences=SEQUENCES,
+        steps=STEPS,
+        image_size=IMAGE_SIZE,
+        workers=0,
+    )
+    return collect_controllability(cfg), root
+
+
+def test_retrieval_counts_own_future_and_shares_ties():
+    assert retrieval_accuracy(np.array([[3.0, 1.0], [0.0, 2.0]])) == 1.0
+    assert retrieval_accuracy(np.array([[1.0, 3.0], [2.0, 0.0]])) == 0.0
+    assert retrieval_accuracy(np.ones((4, 4))) == 0.25  # one rollout for every sequence: chance
+
+
+def test_offsets_are_distinct_directions_of_the_given_length():
+    out = offsets(seed=5, sequences=4, length=0.6)
+    assert np.all(out[0] == 0)
+    np.testing.assert_allclose(np.linalg.norm(out[1:], axis=1), 0.6, rtol=1e-5)
+    cosines = out[1:] @ out[1:].T / 0.36
+    assert (cosines[~np.eye(3, dtype=bool)] < 0.9).all()
+
+
+def test_sequences_share_their_start_and_part_ways(control_set):
+    dataset, _ = control_set
+    episodes = [read_episode(dataset, i) for i in range(SEQUENCES)]
+    facts = [episode_facts(dataset, i) for i in range(SEQUENCES)]
+    assert [f["sequence"] for f in facts] == list(range(SEQUENCES)) and {f["start"] for f in facts} == {0}
+    for e in episodes[1:]:
+        # The same initial state (the first frame) under different actions: the frames part ways.
+        np.testing.assert_array_equal(e.images["third_view"][0], episodes[0].images["third_view"][0])
+        assert np.abs(e.images["third_view"][-1].astype(int) - episodes[0].images["third_view"][-1]).mean() > 0.5
+        drift = e.action[:, :3] - episodes[0].action[:, :3]
+        assert np.abs(drift).max() > 0.1
+
+
+def test_controllability_report(control_set, trained_tokenizer, world_models, tmp_path):
+    _, root = control_set
+    cfg = ControllabilityReportConfig(
+        dataset=DatasetConfig(repo_id="local/roboscape_controllability", root=str(root)),
+        tokenizer=str(trained_tokenizer),
+        world_model=str(world_models["action"]),
+        output_dir=tmp_path,
+        horizon=STEPS - 1,
+    )
+    report = evaluate_controllability(cfg)
+    assert (tmp_path / "controllability.json").is_file()
+    (start,) = report["starts"]
+    for name in ("world_model", "ignoring_actions"):
+        assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
+    # The null-action model makes one rollout for all sequences: retrieval is exactly chance.
+    assert report["summary"]["ignoring_actions"]["whole_frame"]["retrieval"] == pytest.approx(1 / SEQUENCES)
+    assert 0 <= report["summary"]["world_model"]["whole_frame"]["retrieval"] <= 1
+    with pytest.raises(ValueError, match="need"):
+        evaluate_controllability(
+            ControllabilityReportConfig(
+                cfg.dataset, cfg.tokenizer, cfg.world_model, tmp_path, horizon=STEPS + 3
+            )
+        )
