@@ -1,12 +1,13 @@
 """Env steps/s of `roboscape_wm` (world models) against `roboscape_maniskill` (the simulator) at equal batch and
 image size, and where a world-model step's time goes: next-frame generation (MaskGIT), decoding the frame to
-pixels (tokenizer) and the reward (similarity to the goal, done).
+pixels (tokenizer), the reward (similarity to the goal, done) and, with `--done-source=classifier`, the success
+classifier on the decoded frames.
 
 Uses the models and dataset of a pipeline run (`roboscape-demo`: tiny models; --demo-dir=outputs/bench: the bench
 scale's 16x16-grid models).
 
     python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
-    python scripts/benchmark_envs.py --demo-dir outputs/bench
+    python scripts/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
 """
 
 import argparse
@@ -58,6 +59,12 @@ def main():
     parser.add_argument("--demo-dir", type=Path, default=Path("outputs/demo"))
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument(
+        "--done-source",
+        choices=["world_model", "classifier"],
+        default="world_model",
+        help="classifier: the success classifier of --demo-dir/reward_success decides done",
+    )
     args = parser.parse_args()
     demo = args.demo_dir
     torch.manual_seed(0)
@@ -73,6 +80,10 @@ def main():
         episode_length=10_000,
         max_goal_steps=20,
         theta=1.0,  # no episode ends mid-run
+        done_source=args.done_source,
+        success_classifier=str(demo / "reward_success" / "pretrained_model")
+        if args.done_source == "classifier"
+        else None,
     )
     image_size = wm_config.image_size
     ms_config = RoboscapeManiSkillEnvConfig(image_size=image_size, episode_length=10_000)
@@ -81,7 +92,7 @@ def main():
         f"{args.steps} steps per measurement"
     )
     print(
-        f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
+        f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} {'done':>7} "
         f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}"
     )
     predict_next_frame = Rollout.predict_next_frame
@@ -91,10 +102,11 @@ def main():
             "generate": Timed(predict_next_frame),
             "decode": Timed(wm._decode),
             "reward": Timed(wm.reward_fn.forward),
+            "done": Timed(wm.done_of),
         }
-        Rollout.predict_next_frame, wm._decode, wm.reward_fn.forward = timers.values()
+        Rollout.predict_next_frame, wm._decode, wm.reward_fn.forward, wm.done_of = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
-        widths = (9, 7, 7)  # of the generate, decode and reward columns
+        widths = (9, 7, 7, 7)  # of the generate, decode, reward and done columns
         shares = " ".join(f"{t.seconds / wm_seconds:>{w}.0%}" for t, w in zip(timers.values(), widths, strict=True))
         ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
         ms_rate, _ = steps_per_second(ms, args.steps)

@@ -98,7 +98,12 @@ def run_start(task: StartJob) -> list[Episode]:
     for k, offset in enumerate(offsets(task.job.seed, task.sequences, task.offset)):
         perturbed = actions.copy()
         perturbed[:, TRANSLATION] = np.clip(perturbed[:, TRANSLATION] + offset, -1.0, 1.0)
-        facts = {"start": task.start, "sequence": k, "offset": [round(float(v), 4) for v in offset], "kind": "controllability"}
+        facts = {
+            "start": task.start,
+            "sequence": k,
+            "offset": [round(float(v), 4) for v in offset],
+            "kind": "controllability",
+        }
         episodes.append(replay_actions(env, task.job, perturbed, facts))
     return episodes
 

@@ -94,8 +94,6 @@ class RewardModel(
 
     def compute_loss(self, inputs: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """labels: the rule-based reward, or the done labels for the success kind."""
-        if self.config.kind == "success":
-            loss = balanced_bce(self(inputs), labels)
-        else:
-            loss = F.mse_loss(self(inputs), labels)
+        fit = balanced_bce if self.config.kind == "success" else F.mse_loss
+        loss = fit(self(inputs), labels)
         return loss, {"loss": loss.item()}

@@ -136,6 +136,7 @@ def score_episodes(dataset, sources: DoneSources, open_loop: bool, batch_size: i
         )
         if open_loop and len(tokens) > sources.model.config.prompt_frames:
             pending.append((episodes[-1], tokens, actions))
+    pending.sort(key=lambda item: len(item[2]))  # batches of similar lengths pad less
     for start in range(0, len(pending), batch_size):
         chunk = pending[start : start + batch_size]
         for (episode, _, _), scores in zip(chunk, sources.open_loop([(t, a) for _, t, a in chunk]), strict=True):

@@ -16,6 +16,7 @@ from collections import defaultdict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
@@ -38,8 +39,9 @@ class ControllabilityReportConfig:
     dataset: a controllability set (`roboscape-collect-control`): episodes with `start` and `sequence` facts.
     tokenizer: the world model's tokenizer.
     world_model: the action world model.
-    output_dir: where controllability.json goes.
+    output_dir: where controllability.json and controllability.png go.
     horizon: generated frames compared per rollout (each sequence needs horizon + 1 frames).
+    picture_starts: starts drawn in controllability.png (each sequence's real future beside its rollout).
     device: "auto", "cpu" or "cuda".
     """
 
@@ -48,6 +50,7 @@ class ControllabilityReportConfig:
     world_model: str = "outputs/world_model_action/pretrained_model"
     output_dir: Path = Path("outputs/controllability")
     horizon: int = 16
+    picture_starts: int = 4
     device: str = "auto"
 
 
@@ -100,7 +103,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
     if model.config.control != "action":
         raise InvalidInputError(f"{cfg.world_model} is a {model.config.control} world model, not an action one")
     cameras, n, T = camera_names(dataset), model.config.n_cameras, cfg.horizon
-    per_start = []
+    per_start, pictures = [], []
     for start, indices in _groups(dataset).items():
         episodes = [read_episode(dataset, i) for i in indices]
         if min(len(e.action) for e in episodes) < T + 1:
@@ -139,6 +142,8 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
                 for region in REGIONS
                 if not np.isnan(sims[region]).any()
             }
+            if name == "world_model" and len(pictures) < cfg.picture_starts:
+                pictures.append((real, pred))
         per_start.append(row)
         logger.info("start %d: retrieval %s", start, {r: v["retrieval"] for r, v in row["world_model"].items()})
     if not per_start:
@@ -167,7 +172,23 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "controllability.json").write_text(json.dumps(report, indent=2))
+    picture(pictures, out / "controllability.png")
     return report
+
+
+def picture(starts: list[tuple[torch.Tensor, torch.Tensor]], path: Path, columns: int = 4) -> None:
+    """Per start, a row per action sequence: its real future (left) and the rollout (right) at `columns` evenly
+    spaced steps, first view. real/pred: (K, T, n, 3, H, W)."""
+    blocks = []
+    for real, pred in starts:
+        steps = np.linspace(0, real.shape[1] - 1, columns).round().astype(int)
+        rows = [
+            torch.cat([torch.cat(list(real[k, steps, 0]), -1), torch.cat(list(pred[k, steps, 0]), -1)], -1)
+            for k in range(real.shape[0])
+        ]
+        blocks.append(torch.cat(rows, -2))
+    image = torch.cat(blocks, -2).clamp(0, 1).permute(1, 2, 0).cpu().numpy()
+    iio.imwrite(path, (image * 255).round().astype(np.uint8))
 
 
 def _own_and_other(matrices: list[list[list[float]]]) -> tuple[list[float], list[float]]:

@@ -145,9 +145,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 "episode %d has %d frames, not more than the %d prompt frames: skipped", index, len(tokens), prompt
             )
             continue
-        pred_tokens, _ = model.generate(
-            tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1]
-        )
+        pred_tokens, _ = model.generate(tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1])
         real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
         real = real.to(device).float() / 255  # (T, n, 3, H, W)
         target = real[prompt : prompt + horizon]
@@ -164,9 +162,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 for step, value in enumerate(per_frame):
                     if not np.isnan(value):
                         per_step[f"{kind}_{metric}"][step].append(float(value))
-        episodes_out.append(
-            {"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon}
-        )
+        episodes_out.append({"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon})
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
     if not episodes_out:
@@ -183,7 +179,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
     if cfg.controllability is not None:
         report["controllability"] = evaluate_controllability(
             ControllabilityReportConfig(
-                cfg.controllability, cfg.tokenizer, cfg.world_model, cfg.output_dir, cfg.horizon, cfg.device
+                cfg.controllability, cfg.tokenizer, cfg.world_model, cfg.output_dir, cfg.horizon, device=cfg.device
             )
         )["summary"]
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)

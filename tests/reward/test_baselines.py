@@ -75,8 +75,9 @@ def test_balanced_loss_weighs_the_rare_class_as_much_as_the_common_one():
     never_done = torch.full((20,), -4.0)  # what an RMSE-trained head drifts to when done frames are rare
     plain = torch.nn.functional.binary_cross_entropy_with_logits(never_done, labels)
     assert balanced_bce(never_done, labels) > 5 * plain
-    assert torch.isclose(balanced_bce(never_done[1:], labels[1:]), plain * 0 + torch.nn.functional.softplus(
-        torch.tensor(-4.0)))  # one class only: its own mean
+    assert torch.isclose(
+        balanced_bce(never_done[1:], labels[1:]), plain * 0 + torch.nn.functional.softplus(torch.tensor(-4.0))
+    )  # one class only: its own mean
 
 
 def test_reward_model_round_trip_and_bad_input(tmp_path):

@@ -67,7 +67,7 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
         horizon=STEPS - 1,
     )
     report = evaluate_controllability(cfg)
-    assert (tmp_path / "controllability.json").is_file()
+    assert (tmp_path / "controllability.json").is_file() and (tmp_path / "controllability.png").is_file()
     (start,) = report["starts"]
     for name in ("world_model", "ignoring_actions"):
         assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
@@ -76,7 +76,5 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
     assert 0 <= report["summary"]["world_model"]["whole_frame"]["retrieval"] <= 1
     with pytest.raises(ValueError, match="need"):
         evaluate_controllability(
-            ControllabilityReportConfig(
-                cfg.dataset, cfg.tokenizer, cfg.world_model, tmp_path, horizon=STEPS + 3
-            )
+            ControllabilityReportConfig(cfg.dataset, cfg.tokenizer, cfg.world_model, tmp_path, horizon=STEPS + 3)
         )
