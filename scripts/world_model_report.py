@@ -10,7 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
-from lerobot_roboscape.pipeline.report import machine, world_model_figure, world_model_targets
+from lerobot_roboscape.pipeline.report import machine, world_model_figure, world_model_results, world_model_targets
 from lerobot_roboscape.pipeline.stages import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR
 
 FIGURES = {
@@ -36,15 +36,7 @@ def main():
     done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
     targets = world_model_targets(fidelity, done, rewards)
-    results = {
-        "machine": machine(),
-        "targets": targets,
-        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "controllability") if k in fidelity},
-        "done": {k: done[k] for k in ("chosen", "sources")},
-        "reward": rewards["summary"],
-        "goals": rewards["goals"],
-        "similarity": rewards["similarity"],
-    }
+    results = {"machine": machine(), "targets": targets, **world_model_results(fidelity, done, rewards)}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     for folder, names in (FIGURES | {k: FIGURES[k] + REPORTS[k] for k in REPORTS}).items():
         for name in names:

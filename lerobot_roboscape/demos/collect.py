@@ -153,17 +153,27 @@ def collect(cfg: CollectConfig) -> LeRobotDataset:
     episodes = run_jobs([jobs[k] for k in todo], cfg.workers)
     for k, episode in tqdm(zip(todo, episodes, strict=True), total=len(todo), desc="collecting", unit="episode"):
         episode.save(files[k])
-    dataset = write_dataset(
+    dataset = write_task_dataset(
         (Episode.load(file) for file in files),
         cfg.repo_id,
         root,
-        fps=CONTROL_FREQ,
-        state_names=STATE_NAMES,
-        action_names=ACTION_NAMES,
-        robot_type="panda",
         overwrite=cfg.overwrite,
         total=len(jobs),
         keep=lambda episode: cfg.keep_failed or episode.succeeded,
     )
     shutil.rmtree(work)
     return dataset
+
+
+def write_task_dataset(episodes, repo_id: str, root: Path, **kwargs) -> LeRobotDataset:
+    """`write_dataset` with the task suite's rate, state and action names and robot."""
+    return write_dataset(
+        episodes,
+        repo_id,
+        root,
+        fps=CONTROL_FREQ,
+        state_names=STATE_NAMES,
+        action_names=ACTION_NAMES,
+        robot_type="panda",
+        **kwargs,
+    )

@@ -16,11 +16,11 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
-from lerobot_roboscape.dataset.writer import check_target, write_dataset
+from lerobot_roboscape.dataset.writer import check_target
+from lerobot_roboscape.demos.collect import write_task_dataset
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, run_jobs, run_planned_episode, worker_env
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
-from lerobot_roboscape.tasks.base import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 
 TRANSLATION = slice(0, 3)  # the action's TCP translation (dx, dy, dz), what the offsets move
 
@@ -130,14 +130,4 @@ def collect_controllability(cfg: ControllabilityConfig):
     episodes = []
     for start_episodes in tqdm(run_jobs(jobs, cfg.workers, run_start), total=len(jobs), desc="starts"):
         episodes += start_episodes
-    return write_dataset(
-        episodes,
-        cfg.repo_id,
-        root,
-        fps=CONTROL_FREQ,
-        state_names=STATE_NAMES,
-        action_names=ACTION_NAMES,
-        robot_type="panda",
-        overwrite=cfg.overwrite,
-        total=len(episodes),
-    )
+    return write_task_dataset(episodes, cfg.repo_id, root, overwrite=cfg.overwrite, total=len(episodes))

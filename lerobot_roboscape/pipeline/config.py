@@ -96,7 +96,7 @@ SCALES = {
         # planner episodes, about 50 min of collection on 2 cores.
         episodes_per_scene=16,
         heldout_scenes=8,
-        report_episodes=16,
+        report_episodes=64,
         image_size=64,
         workers=2,
         tokenizer_preset="bench",
@@ -190,8 +190,11 @@ class PipelineConfig:
     families: task families to collect and evaluate.
     scenes: IND scenes per family (null: all).
     episodes_per_scene: planner episodes per (family, IND scene), a quarter of them deliberately failed.
-    heldout_scenes: OOD scenes of the held-out collection (successful and failed episodes) that the fidelity and
-        reward reports are measured on; 0: one recorded and converted IND episode instead.
+    heldout_scenes: OOD scenes of the held-out collection (4 episodes per family and scene, half of them failed)
+        that the fidelity, done and reward reports are measured on, and of the controllability set's starts; with
+        them, a validation collection (one episode per IND scene, half failed) on which the done threshold is
+        chosen. 0: one recorded and converted IND episode instead, and the done threshold chosen on the
+        demonstrations.
     report_episodes: held-out episodes (spread over the held-out dataset) behind the fidelity and reward reports.
     image_size: camera resolution.
     workers: ManiSkill worker processes (collection, and evaluations run side by side).

@@ -107,11 +107,7 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "table": table,
         "stage_seconds": times,
         "tokenizer": tokenizer["views"],
-        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "controllability") if k in fidelity},
-        "done": {k: done[k] for k in ("chosen", "sources")},
-        "reward": rewards["summary"],
-        "goals": rewards["goals"],
-        "similarity": rewards["similarity"],
+        **world_model_results(fidelity, done, rewards),
     }
     (folder / "results.json").write_text(json.dumps(results, indent=2))
 
@@ -161,6 +157,17 @@ def tokenizer_targets(report: dict) -> dict:
             ),
         }
     return targets
+
+
+def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
+    """What results.json keeps of the fidelity, done and reward reports."""
+    return {
+        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "controllability") if k in fidelity},
+        "done": {k: done[k] for k in ("chosen", "sources")},
+        "reward": rewards["summary"],
+        "goals": rewards["goals"],
+        "similarity": rewards["similarity"],
+    }
 
 
 def world_model_targets(fidelity: dict, done: dict, rewards: dict) -> dict:

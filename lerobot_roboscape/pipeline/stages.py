@@ -190,9 +190,34 @@ def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
     return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
 
 
+def _unseen_episodes(
+    cfg: PipelineConfig, root: Path, split: str, scenes: int | None, per_scene: int, seed: int
+) -> DatasetConfig:
+    """Episodes no model trains on, from initial states the demonstrations lack: half of them failed attempts,
+    with the object's masks (the held-out and the validation collections)."""
+    return _collect(
+        CollectConfig(
+            repo_id=f"local/{root.name}",
+            root=str(root),
+            families=cfg.families,
+            split=split,
+            max_scenes=scenes,
+            episodes_per_scene=per_scene,
+            failed_fraction=0.5,
+            seed=seed,
+            image_size=cfg.image_size,
+            workers=cfg.workers,
+            keep_failed=True,
+            segmentation=True,
+        ),
+        cfg.fresh,
+    )
+
+
 def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
-    """Planner demonstrations in the IND scenes, a held-out collection in OOD scenes, and a recorded ManiSkill
-    trajectory file converted to a LeRobotDataset."""
+    """Planner demonstrations in the IND scenes, a recorded ManiSkill trajectory file converted to a LeRobotDataset
+    and, at the scales with held-out scenes, a held-out collection in OOD scenes, a validation collection in IND
+    scenes and a controllability set from OOD starts."""
     train = _collect(
         CollectConfig(
             repo_id="local/roboscape_demos",
@@ -226,43 +251,10 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
         mark_done(converted, record)
     h5 = next(h5_dir.glob("*.h5"))
     heldout = DatasetConfig(repo_id="local/maniskill_converted", root=str(converted))
-    if cfg.heldout_scenes:
-        heldout = _collect(
-            CollectConfig(
-                repo_id="local/roboscape_heldout",
-                root=str(out / HELDOUT_DIR),
-                families=cfg.families,
-                split="ood",
-                max_scenes=cfg.heldout_scenes,
-                episodes_per_scene=2,
-                failed_fraction=0.5,
-                seed=HELDOUT_SEED,
-                image_size=cfg.image_size,
-                workers=cfg.workers,
-                keep_failed=True,
-                segmentation=True,
-            ),
-            cfg.fresh,
-        )
     validation, controllability = train, None
     if cfg.heldout_scenes:
-        validation = _collect(
-            CollectConfig(
-                repo_id="local/roboscape_validation",
-                root=str(out / VALIDATION_DIR),
-                families=cfg.families,
-                split="ind",
-                max_scenes=cfg.scenes,
-                episodes_per_scene=1,
-                failed_fraction=0.5,
-                seed=VALIDATION_SEED,
-                image_size=cfg.image_size,
-                workers=cfg.workers,
-                keep_failed=True,
-                segmentation=True,
-            ),
-            cfg.fresh,
-        )
+        heldout = _unseen_episodes(cfg, out / HELDOUT_DIR, "ood", cfg.heldout_scenes, 4, HELDOUT_SEED)
+        validation = _unseen_episodes(cfg, out / VALIDATION_DIR, "ind", cfg.scenes, 1, VALIDATION_SEED)
         control = ControllabilityConfig(
             repo_id="local/roboscape_controllability",
             root=str(out / CONTROL_DIR),
