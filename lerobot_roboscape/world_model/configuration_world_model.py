@@ -35,6 +35,11 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         maskgit_steps: parallel decoding steps per generated frame.
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
+        add_action: also add the action's embedding (the mean of its control tokens) to every token of the frame it
+            leads to, besides the cross-attention (action model): a direct path that the model cannot route around
+            by copying the previous frames.
+        changed_token_weight: extra weight of the token loss where a token differs from the previous frame's at its
+            position (0: none). Most of a frame repeats the one before; the changes are the dynamics.
         done_hidden: hidden width of the done head.
         done_weight: weight of the done loss.
         done_loss: "balanced_bce" (binary cross-entropy averaged over done frames and over the others separately,
@@ -63,6 +68,8 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     maskgit_steps: int = 2
     # Training.
     clean_frame_prob: float = 0.25
+    add_action: bool = False
+    changed_token_weight: float = 0.0
     done_hidden: int = 128
     done_weight: float = 1.0
     done_loss: str = "balanced_bce"

@@ -80,6 +80,8 @@ class STWorldModel(
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
         x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
+        if self.config.add_action and self.config.control == "action":
+            x_BTSC = x_BTSC + control.tokens.mean(dim=2, keepdim=True)  # (B, T, 1, C): each frame its action
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         kvs = []
         for block, layer_cache in zip(self.blocks, layer_caches, strict=True):
@@ -109,7 +111,13 @@ class STWorldModel(
         inputs = tokens.masked_fill(mask, self.config.mask_token_id)
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
-        token_loss = F.cross_entropy(logits[mask].float(), tokens[mask]) if mask.any() else logits.sum() * 0
+        token_loss = logits.sum() * 0
+        if mask.any():
+            per_token = F.cross_entropy(logits[mask].float(), tokens[mask], reduction="none")
+            changed = torch.zeros_like(mask)
+            changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
+            weight = 1 + self.config.changed_token_weight * changed[mask].float()
+            token_loss = (per_token * weight).sum() / weight.sum()
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + self.config.done_weight * done_loss
         accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)

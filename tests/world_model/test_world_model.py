@@ -67,9 +67,9 @@ def test_shapes_and_loss(control):
     assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_loss"}
 
 
-@pytest.mark.parametrize("control", ["action", "text"])
-def test_future_frames_never_influence_the_past(control):
-    model = make_model(control)
+@pytest.mark.parametrize("control,add_action", [("action", False), ("action", True), ("text", False)])
+def test_future_frames_never_influence_the_past(control, add_action):
+    model = make_model(control, add_action=add_action)
     batch = random_batch()
     control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
     logits, done, _ = model.compute_logits(batch["tokens"], control_tokens)
@@ -84,9 +84,9 @@ def test_future_frames_never_influence_the_past(control):
     assert not torch.allclose(logits2[:, 2:], logits[:, 2:])
 
 
-@pytest.mark.parametrize("control", ["action", "text"])
-def test_cached_generation_equals_recomputing_the_window(control):
-    model = make_model(control)
+@pytest.mark.parametrize("control,add_action", [("action", False), ("action", True), ("text", False)])
+def test_cached_generation_equals_recomputing_the_window(control, add_action):
+    model = make_model(control, add_action=add_action)
     batch = random_batch(T=4)
     prompt = batch["tokens"][:, :1]
     kw = control_kwargs(model, batch, 3)
@@ -94,6 +94,32 @@ def test_cached_generation_equals_recomputing_the_window(control):
     full, done_full = model.generate(prompt, 3, use_cache=False, **kw)
     assert torch.equal(cached, full)
     torch.testing.assert_close(done_cached, done_full)
+
+
+def test_added_action_reaches_every_token_of_its_frame():
+    plain, added = make_model(), make_model(add_action=True)
+    batch = random_batch()
+    for model in (plain, added):  # no cross-attention path: what remains is the added action
+        for block in model.blocks:
+            torch.nn.init.zeros_(block.cross.proj.weight)
+            torch.nn.init.zeros_(block.cross.proj.bias)
+    flipped = -batch["actions"]
+    for model, reacts in ((plain, False), (added, True)):
+        a = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]))[0]
+        b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]))[0]
+        assert (not torch.allclose(a, b)) == reacts
+
+
+def test_changed_tokens_weigh_more_only_where_frames_change():
+    batch = random_batch()
+    still = {**batch, "tokens": batch["tokens"][:, :1].expand(-1, 4, -1).clone()}  # every frame the same
+
+    def loss(weight, data):
+        torch.manual_seed(1)  # the same masks
+        return make_model(changed_token_weight=weight).train()(data)[0]
+
+    torch.testing.assert_close(loss(0.0, still), loss(5.0, still))  # nothing changes: nothing to weigh
+    assert not torch.isclose(loss(0.0, batch), loss(5.0, batch))
 
 
 @pytest.mark.gpu
