@@ -116,6 +116,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     selected = [
         s.episode_index for s in env.starts if cfg.dataset.episodes is None or s.episode_index in cfg.dataset.episodes
     ][: cfg.max_episodes]
+    env.goals_for([s for s in env.starts if s.episode_index in selected])  # in full batches, not one by one
     episodes, grid = [], []
     for index in selected:
         episode = read_episode(dataset, index)
