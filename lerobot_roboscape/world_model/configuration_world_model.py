@@ -38,6 +38,9 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         add_action: also add the action's embedding (the mean of its control tokens) to every token of the frame it
             leads to, besides the cross-attention (action model): a direct path that the model cannot route around
             by copying the previous frames.
+        context_drop_prob: share of training clips that start over at a random frame: the frames before it are
+            hidden from the model and from the loss, so that one real frame and the actions must explain the rest
+            (as in a rollout from a single prompt frame).
         changed_token_weight: extra weight of the token loss where a token differs from the previous frame's at its
             position (0: none). Most of a frame repeats the one before; the changes are the dynamics.
         done_hidden: hidden width of the done head.
@@ -70,6 +73,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     clean_frame_prob: float = 0.25
     add_action: bool = False
     changed_token_weight: float = 0.0
+    context_drop_prob: float = 0.0
     done_hidden: int = 128
     done_weight: float = 1.0
     done_loss: str = "balanced_bce"

@@ -107,8 +107,18 @@ class STWorldModel(
         ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
         ratio[:, 0] = 0.0
         ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
+        # Some clips start over at a random frame: the frames before it are hidden (mask tokens, no loss) and it is
+        # the only real frame the rest can read, as a rollout from one prompt frame; the motion must come from the
+        # actions.
+        first = torch.zeros(B, 1, device=tokens.device, dtype=torch.long)
+        cut = torch.rand(B, device=tokens.device) < self.config.context_drop_prob
+        first[cut, 0] = torch.randint(1, max(T - 1, 2), (int(cut.sum()),), device=tokens.device)
+        frame = torch.arange(T, device=tokens.device)[None]
+        hidden, prompt = frame < first, frame == first
+        ratio = ratio.masked_fill(prompt[..., None], 0.0)
         mask = torch.rand(B, T, S, device=tokens.device) < ratio
-        inputs = tokens.masked_fill(mask, self.config.mask_token_id)
+        inputs = tokens.masked_fill(mask | hidden[..., None], self.config.mask_token_id)
+        mask = mask & ~hidden[..., None]
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
         token_loss = logits.sum() * 0
@@ -118,7 +128,7 @@ class STWorldModel(
             changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
             weight = 1 + self.config.changed_token_weight * changed[mask].float()
             token_loss = (per_token * weight).sum() / weight.sum()
-        done_loss = self.done_loss(done_logits.float(), done)
+        done_loss = self.done_loss(done_logits.float()[~hidden], done[~hidden])
         loss = token_loss + self.config.done_weight * done_loss
         accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
         return loss, {

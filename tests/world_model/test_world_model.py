@@ -122,6 +122,17 @@ def test_changed_tokens_weigh_more_only_where_frames_change():
     assert not torch.isclose(loss(0.0, batch), loss(5.0, batch))
 
 
+def test_hidden_context_frames_neither_inform_nor_count():
+    model = make_model(context_drop_prob=1.0).train()
+    batch = random_batch(T=4)
+    torch.manual_seed(3)
+    loss, _ = model(batch)
+    other = {**batch, "tokens": batch["tokens"].clone()}
+    other["tokens"][:, 0] = (other["tokens"][:, 0] + 7) % 16  # frame 0 is always hidden when every clip starts over
+    torch.manual_seed(3)
+    torch.testing.assert_close(model(other)[0], loss)
+
+
 @pytest.mark.gpu
 def test_cached_generation_on_gpu_equals_recomputing_the_window():
     model = make_model("action", window=6).cuda()
