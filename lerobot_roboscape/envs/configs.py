@@ -57,7 +57,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             paper's) or "classifier" (a success classifier on the decoded frames, `success_classifier`).
         success_classifier: the success classifier (`roboscape-train-reward --reward.kind=success`), local
             directory or Hub repo id.
-        theta: done threshold of the goal and of success (choose it on validation episodes: roboscape-eval-wm
+        theta: done threshold of the goal and of success (choose it on validation episodes: roboscape-eval-done
             reports the threshold that separates their success from failure best).
         theta_sps: done threshold of the sparse reward.
         alpha: weight of the sparse reward.

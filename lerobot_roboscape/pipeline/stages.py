@@ -406,8 +406,6 @@ def world_model_env(
     if done is not None:
         source, theta = done["chosen"]["source"], done["chosen"]["theta"]
         classifier = (trained or {}).get(SUCCESS_CLASSIFIER) if source == "classifier" else None
-        # A threshold above 1 (no validation episode separated) can never fire; keep the env's range.
-        theta = float(min(max(theta, 1e-3), 1.0))
         chosen = dict(done_source=source, success_classifier=_str(classifier), theta=theta, theta_sps=theta)
     return RoboscapeWorldModelEnvConfig(
         dataset_repo_id=data.train.repo_id,

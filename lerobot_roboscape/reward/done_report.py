@@ -52,7 +52,6 @@ class DoneReportConfig:
     success_classifier: a success classifier (`roboscape-train-reward --reward.kind=success`); None: the done head
         only.
     output_dir: where done_report.json, done_report.md and done_curves.png go.
-    max_episodes: episodes of each dataset used, at most (spread over it).
     open_loop: also generate every reported episode open loop (the costly part).
     batch_size: episodes generated at once.
     device: "auto", "cpu" or "cuda".
@@ -64,7 +63,6 @@ class DoneReportConfig:
     world_model: str = "outputs/world_model_action/pretrained_model"
     success_classifier: str | None = None
     output_dir: Path = Path("outputs/done_report")
-    max_episodes: int | None = None
     open_loop: bool = True
     batch_size: int = 16
     device: str = "auto"
@@ -216,10 +214,6 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
 
     def episodes_of(data: DatasetConfig, open_loop: bool) -> list[EpisodeScores]:
         dataset = open_dataset(data.repo_id, data.root, data.episodes)
-        if cfg.max_episodes is not None:
-            indices = episode_indices(dataset)
-            keep = sorted({indices[int(i)] for i in np.linspace(0, len(indices) - 1, cfg.max_episodes).round()})
-            dataset = open_dataset(data.repo_id, data.root, keep)
         return score_episodes(dataset, sources, open_loop, cfg.batch_size, device)
 
     validation = episodes_of(cfg.validation, open_loop=False)
@@ -238,7 +232,8 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
                 DEFAULT_THETA,
             )
         chosen[source] = {
-            "theta": choose_threshold(best, success) if both else DEFAULT_THETA,
+            # A probability threshold the env accepts, (0, 1]: "above every score" can land past 1.
+            "theta": float(np.clip(choose_threshold(best, success), 1e-3, 1.0)) if both else DEFAULT_THETA,
             "theta_from": "validation" if both else "default (validation episodes of one kind)",
             "validation": summarize(validation, source, "teacher_forced", None),
         }

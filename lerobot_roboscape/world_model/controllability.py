@@ -148,20 +148,20 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
         logger.info("start %d: retrieval %s", start, {r: v["retrieval"] for r, v in row["world_model"].items()})
     if not per_start:
         raise InvalidInputError(f"{dataset.root} has no start to measure")
-    summary = {
-        name: {
-            region: {
-                "retrieval": float(np.mean(values)),
-                "starts": len(values),
+    summary = {}
+    for name in ("world_model", "ignoring_actions"):
+        summary[name] = {}
+        for region in REGIONS:
+            measured = [r[name][region] for r in per_start if region in r[name]]
+            if not measured:  # no start showed the object
+                continue
+            own, other = _own_and_other([m["psnr"] for m in measured])
+            summary[name][region] = {
+                "retrieval": float(np.mean([m["retrieval"] for m in measured])),
+                "starts": len(measured),
                 "own_future_psnr": float(np.mean(own)),
                 "other_futures_psnr": float(np.mean(other)),
             }
-            for region in REGIONS
-            if (values := [r[name][region]["retrieval"] for r in per_start if region in r[name]])
-            for own, other in [_own_and_other([r[name][region]["psnr"] for r in per_start if region in r[name]])]
-        }
-        for name in ("world_model", "ignoring_actions")
-    }
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "sequences_per_start": len(per_start[0]["episodes"]),

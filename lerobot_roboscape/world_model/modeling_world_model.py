@@ -111,8 +111,9 @@ class STWorldModel(
         # the only real frame the rest can read, as a rollout from one prompt frame; the motion must come from the
         # actions.
         first = torch.zeros(B, 1, device=tokens.device, dtype=torch.long)
-        cut = torch.rand(B, device=tokens.device) < self.config.context_drop_prob
-        first[cut, 0] = torch.randint(1, max(T - 1, 2), (int(cut.sum()),), device=tokens.device)
+        if self.config.context_drop_prob > 0:
+            cut = torch.rand(B, device=tokens.device) < self.config.context_drop_prob
+            first[cut, 0] = torch.randint(1, max(T - 1, 2), (int(cut.sum()),), device=tokens.device)
         frame = torch.arange(T, device=tokens.device)[None]
         hidden, prompt = frame < first, frame == first
         ratio = ratio.masked_fill(prompt[..., None], 0.0)
