@@ -21,7 +21,9 @@ def scale_gradient(x: Tensor, scale: float) -> Tensor:
 
 
 class PolicySample(NamedTuple):
-    action: Tensor  # (B, action_dim) normalised action, for the postprocessor
+    # (B, action_dim) normalised action, for the postprocessor; or (B, k, action_dim), k actions the env executes in
+    # order before the policy looks again (an action chunk: PPO scores the k together as one choice)
+    action: Tensor
     raw_action: Tensor  # (B, ...) passed back to evaluate_actions
     log_prob: Tensor  # (B,)
     value: Tensor  # (B,)

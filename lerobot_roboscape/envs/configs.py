@@ -72,6 +72,11 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             can earn (the default runs the fixed horizon, as Algorithm 1).
         clip_actions: clip actions to the per-dimension range seen in the dataset (`env.action_range`).
         max_goal_steps: frames the text model may generate while looking for the goal.
+        goal_file: a file of generated goals (safetensors): the env reads it when made, generates every start's
+            missing goal then (once, before any episode) and writes them back. A file made with other models or
+            settings is an error. Null: each goal is generated when its start first comes up.
+        starts_per_scene: the episodes whose first frames are the starts, per task family and scene (the first
+            ones in the dataset; null: all).
         temperature: sampling temperature of the world model (0: greedy, deterministic).
         image_size: camera image side (must match the tokenizer).
         lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
@@ -107,6 +112,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     terminate_on_success: bool = False
     clip_actions: bool = False
     max_goal_steps: int = 100
+    goal_file: str | None = None
+    starts_per_scene: int | None = None
     temperature: float = 0.0
     image_size: int = 64
     lpips_weights: str | None = None

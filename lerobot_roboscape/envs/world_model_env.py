@@ -12,14 +12,21 @@ B episodes run side by side on one device, stepped by one batched call of the ac
   A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
 """
 
+import json
 import logging
+import os
+import time
+from collections import Counter
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from lerobot_roboscape.dataset.reader import (
     action_range,
@@ -171,6 +178,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 )
         self.starts, self.cameras, self.action_range = self._load_starts()
         self._goal_cache: dict[int, Goal] = {}
+        if config.goal_file and config.goal_source == "text_model":
+            self._use_goal_file(Path(config.goal_file))
 
         size, n = self.tokenizer.config.image_size, len(self.cameras)
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
@@ -199,7 +208,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{self.action_model.config.n_cameras} views"
             )
         horizons = family_horizons(dataset) if cfg.episode_length is None else {}
-        starts = []
+        starts, per_scene = [], Counter()
         for index in episode_indices(dataset):
             facts = episode_facts(dataset, index)
             if cfg.families and facts.get("task_family") not in cfg.families:
@@ -208,6 +217,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 continue
             if cfg.scenes and facts.get("scene") not in cfg.scenes:
                 continue
+            scene = (facts.get("task_family"), facts.get("scene"))
+            if cfg.starts_per_scene is not None and per_scene[scene] >= cfg.starts_per_scene:
+                continue
+            per_scene[scene] += 1
             frames = read_frames(dataset, index, [0, -1])
             tokens = self._encode(frames)  # (2, S)
             task = dataset.meta.episodes[index]["tasks"][0]
@@ -261,6 +274,53 @@ class RoboscapeWorldModelEnv(BatchedEnv):
     def goal_of(self, start: EpisodeStart) -> Goal:
         self.goals_for([start])
         return self._goal_cache[start.episode_index]
+
+    def _goal_settings(self) -> dict:
+        """What a start's generated goal depends on, besides the start."""
+        cfg = self.config
+        return {
+            "text_world_model": str(cfg.text_world_model),
+            "tokenizer": str(cfg.tokenizer),
+            "dataset": f"{self.dataset_repo_id} at {cfg.dataset_root}",
+            "done_source": cfg.done_source,
+            "success_classifier": str(cfg.success_classifier),
+            "theta": cfg.theta,
+            "max_goal_steps": cfg.max_goal_steps,
+        }
+
+    def _use_goal_file(self, path: Path) -> None:
+        """Read the goals of `path`, generate every start's missing one and write them all back (atomically)."""
+        settings = self._goal_settings()
+        if path.is_file():
+            with safe_open(str(path), "pt", device=str(self.device)) as f:
+                made_with = json.loads(f.metadata()["settings"])
+                if made_with != settings:
+                    differ = {k: made_with.get(k) for k in settings if made_with.get(k) != settings[k]}
+                    raise InvalidInputError(
+                        f"goal file {path} was made with other settings {differ}; delete it or choose another "
+                        "--env.goal_file"
+                    )
+                indices, tokens = f.get_tensor("episode_index").tolist(), f.get_tensor("tokens")
+                reached, steps = f.get_tensor("reached").tolist(), f.get_tensor("steps").tolist()
+            for i, index in enumerate(indices):
+                self._goal_cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
+        missing = [s for s in self.starts if s.episode_index not in self._goal_cache]
+        if not missing:
+            return
+        started = time.perf_counter()
+        self._generate_goals(missing)
+        logger.info("generated %d goals in %.0f s into %s", len(missing), time.perf_counter() - started, path)
+        goals = sorted(self._goal_cache.items())
+        tensors = {
+            "episode_index": torch.tensor([index for index, _ in goals]),
+            "tokens": torch.stack([g.tokens for _, g in goals]).cpu(),
+            "reached": torch.tensor([g.reached for _, g in goals]),
+            "steps": torch.tensor([g.steps for _, g in goals]),
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings)})
+        os.replace(tmp, path)
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
         for chunk in range(0, len(starts), GOAL_BATCH):

@@ -49,6 +49,8 @@ SCALES = {
         ppo_envs=2,
         ppo_episode_length=4,
         ppo_one_scene=False,
+        reward_ablation=False,
+        wm_starts_per_scene=None,
         table_episodes=1,
         table_episode_length=4,
         max_goal_steps=4,
@@ -83,6 +85,8 @@ SCALES = {
         ppo_envs=6,
         ppo_episode_length=30,
         ppo_one_scene=False,
+        reward_ablation=False,
+        wm_starts_per_scene=None,
         table_episodes=1,
         table_episode_length=60,
         max_goal_steps=40,
@@ -114,11 +118,14 @@ SCALES = {
         eval_episodes=4,
         eval_episode_length=60,
         ppo_iterations=1000,
-        ppo_minutes=4.0,
+        ppo_minutes=8.0,  # each of the five runs: 40 min of PPO on 2 cores
         ppo_critic_warmup=1,
-        ppo_envs=4,
+        ppo_envs=8,
         ppo_episode_length=100,
         ppo_one_scene=True,
+        reward_ablation=True,
+        # one start per (family, scene): 128 goals, 11 min of the text model on 2 cores, before PPO's clock
+        wm_starts_per_scene=1,
         table_episodes=50,
         table_episode_length=100,
         max_goal_steps=200,  # beyond every family's horizon: a goal not found within it counts as missed
@@ -153,6 +160,8 @@ SCALES = {
         ppo_envs=64,
         ppo_episode_length=None,
         ppo_one_scene=True,
+        reward_ablation=True,
+        wm_starts_per_scene=None,
         table_episodes=50,
         table_episode_length=None,
         max_goal_steps=100,
@@ -220,6 +229,10 @@ class PipelineConfig:
     ppo_envs: parallel episodes of PPO.
     ppo_episode_length: steps per PPO episode; null: per task family, its longest successful demonstration.
     ppo_one_scene: also run PPO in the simulator in one scene per family, as the paper's baseline did.
+    reward_ablation: also run PPO in the world model on its sparse reward only and on its dense reward only (each
+        evaluated out of domain).
+    wm_starts_per_scene: demonstrations per (family, scene) whose first frames start PPO's world-model episodes
+        (null: all); each start's goal is generated once, before PPO.
     table_episodes: simulator episodes per (split, family) behind each cell of Table 1.
     table_episode_length: steps of those episodes; null: as ppo_episode_length.
     max_goal_steps: frames the text world model may generate while looking for a goal.
@@ -261,6 +274,8 @@ class PipelineConfig:
     ppo_envs: int | None = None
     ppo_episode_length: int | None = None
     ppo_one_scene: bool | None = None
+    reward_ablation: bool | None = None
+    wm_starts_per_scene: int | None = None
     table_episodes: int | None = None
     table_episode_length: int | None = None
     max_goal_steps: int | None = None

@@ -59,6 +59,12 @@ SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
     "RL w. ManiSkill",
     "RL w. World Model",
 )
+# The reward ablation (issue 29): PPO in the world model paid one of its two reward terms; evaluated OOD only.
+RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE = (
+    "RL w. World Model, sparse reward only",
+    "RL w. World Model, dense reward only",
+)
+REWARD_ABLATION = (RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE)
 POLICIES = ("roboscape_mlp", "openvla")
 REWARD_BASELINES = ("embedding", "proxy")
 SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classifier (a done source)
@@ -79,6 +85,7 @@ TOKEN_CACHE_DIR = "token_cache"
 FIDELITY_DIR = "fidelity"
 REWARD_REPORT_DIR = "reward_report"
 TABLES_DIR = "tables"
+GOAL_FILE = "rl/text_model_goals.safetensors"
 RL_DIR = "rl"
 EVAL_DIR = "eval"
 
@@ -649,10 +656,11 @@ def lerobot_eval_in_world_model(
     return results
 
 
-def rl_envs(cfg: PipelineConfig, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig) -> dict:
+def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig) -> dict:
     """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
     training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
-    environment"), the simulator in one scene."""
+    environment"), the simulator in one scene; with `reward_ablation`, the world model paid only its sparse and
+    only its dense reward."""
     sim = RoboscapeManiSkillEnvConfig(
         families=cfg.families,
         split="ind",
@@ -661,9 +669,19 @@ def rl_envs(cfg: PipelineConfig, data: Datasets, wm_env: RoboscapeWorldModelEnvC
         dataset_repo_id=data.train.repo_id,
         dataset_root=data.train.root,
     )
-    envs = {RL_WORLD_MODEL: replace(wm_env, split="ind", episode_length=cfg.ppo_episode_length), RL_MANISKILL: sim}
+    # The goals are generated once, before PPO's clock starts, and shared by the world-model runs.
+    wm = replace(
+        wm_env,
+        split="ind",
+        episode_length=cfg.ppo_episode_length,
+        starts_per_scene=cfg.wm_starts_per_scene,
+        goal_file=str(out / GOAL_FILE),
+    )
+    envs = {RL_WORLD_MODEL: wm, RL_MANISKILL: sim}
     if cfg.ppo_one_scene:
         envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[select_scenes("ind")[0].id])
+    if cfg.reward_ablation:
+        envs |= {RL_WORLD_MODEL_SPARSE: replace(wm, beta=0.0), RL_WORLD_MODEL_DENSE: replace(wm, alpha=0.0)}
     return envs
 
 
@@ -674,6 +692,8 @@ def method_tag(method: str) -> str:
         RL_WORLD_MODEL: "ppo_world_model",
         RL_MANISKILL: "ppo_maniskill",
         RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene",
+        RL_WORLD_MODEL_SPARSE: "ppo_world_model_sparse",
+        RL_WORLD_MODEL_DENSE: "ppo_world_model_dense",
     }[method]
 
 
@@ -696,7 +716,7 @@ def rl(
     runs = {}
     for name, sft_checkpoint in checkpoints.items():
         runs[name] = {}
-        for method, env in rl_envs(cfg, data, wm_env).items():
+        for method, env in rl_envs(cfg, out, data, wm_env).items():
             runs[name][method] = ppo(
                 PPOConfig(
                     policy_path=str(sft_checkpoint),
@@ -720,13 +740,13 @@ EVAL_BATCH_SIZE = 8  # parallel episodes of each simulator evaluation
 
 
 def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
-    """Success of every checkpoint in the simulator, IND and OOD (95% Wilson intervals), one evaluation per
-    (checkpoint, split), one after another on the same simulator envs (built once, spread over `workers`
-    processes). Returns {policy: {method: {split: {family: cell}}}}."""
+    """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's OOD only; 95% Wilson
+    intervals), one evaluation per (checkpoint, split), one after another on the same simulator envs (built once,
+    spread over `workers` processes). Returns {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            for split in ("ind", "ood"):
+            for split in ("ood",) if method in REWARD_ABLATION else ("ind", "ood"):
                 jobs[name, method, split] = EvalConfig(
                     policy_path=str(checkpoint),
                     families=cfg.families,
@@ -759,7 +779,7 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: 
         results.setdefault(name, {}).setdefault(method, {})[split] = cells
     for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
         for method, splits in methods.items():
-            length = jobs[name, method, "ind"].episode_length or "per family"
+            length = jobs[name, method, next(iter(splits))].episode_length or "per family"
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
             folder = out / eval_dir(name, method)
             write_text_atomically(folder / "eval.json", json.dumps(merged, indent=2))

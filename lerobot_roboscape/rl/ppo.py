@@ -3,9 +3,10 @@ config -> GAE, reward scaling and the losses -> rollout -> update -> the trainin
 
 One iteration runs one episode of fixed horizon in each of the batched envs (all start together: N scenes at
 once), scales its rewards by the running spread of the discounted return, scores it with GAE, and updates the
-policy for a few epochs of minibatches. The first `critic_warmup_iterations` train the value head only, so the
-critic of a freshly SFT'd policy catches up before its advantages steer the policy. A process of
-`accelerate launch` steps its own share of the envs; Accelerate averages the gradients.
+policy for a few epochs of minibatches. A policy that acts in chunks (k actions per look, as it is evaluated)
+makes one decision per k env steps and is paid their summed reward. The first `critic_warmup_iterations` train
+the value head only, so the critic of a freshly SFT'd policy catches up before its advantages steer the policy.
+A process of `accelerate launch` steps its own share of the envs; Accelerate averages the gradients.
 """
 
 import json
@@ -285,7 +286,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
     tasks = list(env.call("task"))
     steps, n = env.call("_max_episode_steps")[0], env.num_envs
     device = next(policy.parameters()).device
-    # Storage for the whole horizon, (steps, num_envs, ...) as in CleanRL, cut to the steps run at the end.
+    # Storage for the whole horizon, (steps, num_envs, ...) as in CleanRL, cut to the decisions made at the end.
     pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in observation["pixels"].items()}
     log_probs, values, rewards = (torch.zeros((steps, n), device=device) for _ in range(3))
     terminated, truncated, alive_at = (torch.zeros((steps, n), dtype=torch.bool, device=device) for _ in range(3))
@@ -298,16 +299,26 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
         sample = policy.sample_action(io.batch(observation["pixels"], tasks))
         if raw_actions is None:
             raw_actions = torch.zeros((steps, *sample.raw_action.shape), dtype=sample.raw_action.dtype, device=device)
-        observation, reward, ended_by_task, ended_by_time, info = env.step(io.env_action(sample.action))
-        if record:
-            frames.append(np.concatenate(env.render(), axis=1))
-        returns += reward * alive
-        successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & alive
+        chunk = io.env_action(sample.action)
+        chunk = chunk[:, None] if chunk.ndim == 2 else chunk  # (B, k, action_dim): k env steps per decision
+        reward, ended_by_task, ended_by_time = np.zeros(n), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        for k in range(chunk.shape[1]):
+            running = alive & ~(ended_by_task | ended_by_time)
+            if not running.any():
+                break
+            observation, step_reward, task_ended, time_ended, info = env.step(chunk[:, k])
+            if record:
+                frames.append(np.concatenate(env.render(), axis=1))
+            reward += step_reward * running
+            successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & running
+            ended_by_task |= task_ended & running
+            ended_by_time |= time_ended & running
+        returns += reward
         raw_actions[t], log_probs[t], values[t] = sample.raw_action, sample.log_prob, sample.value
         rewards[t] = torch.as_tensor(reward, device=device)
         alive_at[t] = torch.as_tensor(alive, device=device)
-        terminated[t] = torch.as_tensor(ended_by_task & alive, device=device)
-        truncated[t] = torch.as_tensor(ended_by_time & alive, device=device)
+        terminated[t] = torch.as_tensor(ended_by_task, device=device)
+        truncated[t] = torch.as_tensor(ended_by_time, device=device)
         alive &= ~(ended_by_task | ended_by_time)
         if not alive.any():
             break

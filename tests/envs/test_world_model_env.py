@@ -8,6 +8,7 @@ from gymnasium.utils.env_checker import check_env
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from tests.conftest import IMAGE_SIZE
@@ -83,6 +84,31 @@ def test_goal_never_reached_is_explicit(env_config, caplog):
     assert "done stayed below theta=1.00 for 2 frames" in caplog.text
 
 
+def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monkeypatch):
+    path = tmp_path / "goals.safetensors"
+    env = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
+    assert path.is_file() and set(env._goal_cache) == {s.episode_index for s in env.starts}  # made at creation
+    _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
+
+    def no_generation(*args):
+        raise AssertionError("goals were generated again")
+
+    monkeypatch.setattr(RoboscapeWorldModelEnv, "_generate_goals", no_generation)
+    again = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
+    _, info_again = again.reset(seed=0, options={"episode_index": [0, 2]})
+    np.testing.assert_array_equal(info_again["goal"]["wrist"], info["goal"]["wrist"])
+    with pytest.raises(InvalidInputError, match=r"goals.safetensors was made with other settings \{'theta'"):
+        RoboscapeWorldModelEnv(env_config(goal_file=str(path), theta=0.5), num_envs=2)
+
+
+def test_starts_per_scene_keeps_the_first_episodes_of_each_scene(env_config, demo_dataset):
+    env = RoboscapeWorldModelEnv(env_config(starts_per_scene=1), num_envs=1)
+    every = RoboscapeWorldModelEnv(env_config(), num_envs=1)
+    scenes = [(s.facts["task_family"], s.facts["scene"]) for s in env.starts]
+    assert len(scenes) == len(set(scenes)) == len({(s.facts["task_family"], s.facts["scene"]) for s in every.starts})
+    assert len(every.starts) > len(env.starts)
+
+
 def test_goal_from_the_dataset_episode(env_config, token_cache):
     env = RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame", text_world_model=None), num_envs=1)
     _, info = env.reset(seed=0, options={"episode_index": 1})
@@ -153,7 +179,7 @@ def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):
     io = PolicyIO(pre, post)
     obs, _ = env.reset(seed=0)
     for _ in range(3):
-        action = io.env_action(policy.sample_action(io.batch(obs["pixels"], env.tasks())).action)
+        action = io.env_action(policy.sample_action(io.batch(obs["pixels"], env.tasks())).action)[:, 0]  # 1st of chunk
         assert ((action >= low - 1e-5) & (action <= high + 1e-5)).all()
         obs, *_ = env.step(action)
 

@@ -58,19 +58,23 @@ def test_sft_fits_demonstrations_that_depend_on_image_and_instruction():
     assert torch.allclose(policy.select_action(batch), batch["action"], atol=0.1)
 
 
-def test_sampled_log_probs_match_evaluation_and_the_gaussian():
-    policy = make_policy(init_log_std=-1.0)
+@pytest.mark.parametrize(("chunk_size", "n_action_steps"), [(1, 1), (4, 3)])
+def test_sampled_log_probs_match_evaluation_and_the_gaussian(chunk_size, n_action_steps):
+    # PPO samples the actions evaluation executes per look: the chunk's first n_action_steps, scored together.
+    policy = make_policy(init_log_std=-1.0, chunk_size=chunk_size, n_action_steps=n_action_steps)
     batch = make_batch()
     sample = policy.sample_action(batch)
-    assert sample.action.shape == (4, 7) and sample.log_prob.shape == (4,) and sample.value.shape == (4,)
+    assert sample.action.shape == (4, n_action_steps, 7)
+    assert sample.log_prob.shape == (4,) and sample.value.shape == (4,)
     evaluation = policy.evaluate_actions(batch, sample.raw_action)
     torch.testing.assert_close(evaluation.log_prob, sample.log_prob)
     torch.testing.assert_close(evaluation.value, sample.value)
-    mean = policy.select_action(batch)
-    expected = torch.distributions.Normal(mean, torch.full_like(mean, torch.e**-1.0)).log_prob(sample.action)
-    torch.testing.assert_close(sample.log_prob, expected.sum(-1))
+    with torch.no_grad():
+        mean = policy.chunk(policy.features(batch))[:, :n_action_steps]
+    expected = torch.distributions.Normal(mean, torch.full_like(mean, torch.e**-1.0)).log_prob(sample.raw_action)
+    torch.testing.assert_close(sample.log_prob, expected.sum((-2, -1)))
     std_entropy = 0.5 * (1 + torch.log(torch.tensor(2 * torch.pi))) - 1.0  # of N(., e^-1) per dimension
-    torch.testing.assert_close(evaluation.entropy, torch.full((4,), 7 * std_entropy.item()))
+    torch.testing.assert_close(evaluation.entropy, torch.full((4,), n_action_steps * 7 * std_entropy.item()))
 
 
 def test_save_and_load_round_trip(tmp_path):
@@ -157,11 +161,12 @@ def test_binary_gripper_is_fully_open_or_closed_and_ppo_scores_the_raw_sample():
     batch = make_batch(64)
     assert set(policy.select_action(batch)[:, -1].tolist()) <= {-1.0, 1.0}
     sample = policy.sample_action(batch)
-    assert set(sample.action[:, -1].tolist()) == {-1.0, 1.0}
-    assert not set(sample.raw_action[:, -1].tolist()) <= {-1.0, 1.0}
-    # PPO's Gaussian is over the chunk's first action, and evaluation scores the same sample alike.
+    assert set(sample.action[..., -1].flatten().tolist()) == {-1.0, 1.0}
+    assert not set(sample.raw_action[..., -1].flatten().tolist()) <= {-1.0, 1.0}
+    # PPO's Gaussian is over the chunk's executed action (n_action_steps=1 here), and evaluation scores the same
+    # sample alike.
     torch.testing.assert_close(
-        policy.distribution(policy.features(batch)).mean, policy.chunk(policy.features(batch))[:, 0]
+        policy.distribution(policy.features(batch)).mean, policy.chunk(policy.features(batch))[:, :1]
     )
     torch.testing.assert_close(policy.evaluate_actions(batch, sample.raw_action).log_prob, sample.log_prob)
 

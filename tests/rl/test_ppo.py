@@ -8,7 +8,8 @@ from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 from safetensors.torch import load_file
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-from lerobot_roboscape.rl.ppo import PPOConfig, compute_gae, ppo_losses, read_history, train_ppo
+from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+from lerobot_roboscape.rl.ppo import PPOConfig, collect_rollout, compute_gae, ppo_losses, read_history, train_ppo
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -74,8 +75,7 @@ def test_ppo_loss_terms_on_known_inputs():
     torch.testing.assert_close(huber.value, torch.tensor(3.0 - 0.5))  # linear beyond delta: delta*(|e| - delta/2)
 
 
-@pytest.fixture
-def fresh_mlp(tmp_path):
+def mlp_checkpoint(path, chunk_size: int = 1, n_action_steps: int = 1):
     """A randomly initialised roboscape_mlp checkpoint (with processors) for 32 px third-view images."""
     config = RoboscapeMLPConfig(
         device="cpu",
@@ -83,8 +83,8 @@ def fresh_mlp(tmp_path):
         image_feature_dim=16,
         init_log_std=-1.0,
         # The plain head: these tests check PPO, whose envs want 0.5 on every dimension, the gripper's included.
-        chunk_size=1,
-        n_action_steps=1,
+        chunk_size=chunk_size,
+        n_action_steps=n_action_steps,
         binary_gripper=False,
         input_features={"observation.images.third_view": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
@@ -92,11 +92,21 @@ def fresh_mlp(tmp_path):
     torch.manual_seed(0)
     policy = RoboscapeMLPPolicy(config)
     stats = {"action": {"min": -torch.ones(7), "max": torch.ones(7)}}
-    path = tmp_path / "sft" / "pretrained_model"
     policy.save_pretrained(path)
     for processor in make_pre_post_processors(config, dataset_stats=stats):
         processor.save_pretrained(path)
     return path
+
+
+@pytest.fixture
+def fresh_mlp(tmp_path):
+    return mlp_checkpoint(tmp_path / "sft" / "pretrained_model")
+
+
+@pytest.fixture
+def chunked_mlp(tmp_path):
+    """Predicts 4 actions per look and executes 2 of them, as `n_action_steps` makes evaluation do."""
+    return mlp_checkpoint(tmp_path / "chunked" / "pretrained_model", chunk_size=4, n_action_steps=2)
 
 
 def ppo_config(policy_path, output_dir, **overrides) -> PPOConfig:
@@ -131,6 +141,32 @@ def test_ppo_improves_the_return_on_a_certain_task(fresh_mlp, tmp_path):
     assert sum(returns[-3:]) / 3 > sum(returns[:3]) / 3 + 0.5  # out of a maximum of 4
     assert (final / "policy_postprocessor.json").exists() and (final / "model.safetensors").exists()
     assert list((tmp_path / "ppo" / "videos").glob("*.mp4"))
+
+
+def test_a_chunked_policy_decides_every_k_steps_and_is_paid_their_summed_reward(chunked_mlp):
+    policy, preprocessor, postprocessor = load_policy(chunked_mlp, "cpu")
+    env = ReachEnvConfig(episode_length=5).create_envs(3)["ppo_test_reach"][0]
+    torch.manual_seed(0)
+    rollout = collect_rollout(env, policy, PolicyIO(preprocessor, postprocessor), seed=0)
+    assert env.t == 5  # 2 + 2 + 1 env steps: the last chunk is cut where the horizon ends the episode
+    assert rollout.raw_actions.shape == (3, 3, 2, 7)  # (decisions, envs, executed actions, action_dim)
+    executed = rollout.raw_actions.clamp(-1, 1)  # the env's actions (the processors' range is [-1, 1])
+    paid = 1 - (executed - 0.5).abs().mean(-1)  # (decisions, envs, k) each step's reach reward
+    torch.testing.assert_close(rollout.rewards[:2], paid[:2].sum(-1))
+    torch.testing.assert_close(rollout.rewards[2], paid[2, :, 0])
+    assert rollout.truncated[2].all() and not rollout.truncated[:2].any()
+    evaluation = policy.evaluate_actions(
+        PolicyIO(preprocessor, postprocessor).batch({"third_view": rollout.pixels["third_view"][0]}, rollout.tasks),
+        rollout.raw_actions[0],
+    )
+    torch.testing.assert_close(evaluation.log_prob, rollout.log_probs[0])  # the k actions scored as one choice
+
+
+def test_ppo_on_chunks_improves_the_return(chunked_mlp, tmp_path):
+    # Half the decisions of a one-action policy per episode: as many samples per iteration with twice the envs.
+    train_ppo(ppo_config(chunked_mlp, tmp_path / "ppo", num_envs=16, iterations=25))
+    returns = logged(tmp_path / "ppo")
+    assert sum(returns[-3:]) / 3 > sum(returns[:3]) / 3 + 0.5  # out of a maximum of 4
 
 
 @pytest.mark.parametrize("terminate_on_success", [False, True])

@@ -28,8 +28,8 @@ class RoboscapeMLPConfig(PreTrainedConfig):
         random_shift_pad: SFT augmentation: each training image is padded by this many pixels (edge replicated)
             and cropped back at a random offset, as DrQ does (0: off).
         chunk_size: Actions predicted per observation: SFT fits the next `chunk_size` demonstrated actions.
-        n_action_steps: Actions of each predicted chunk executed before the policy looks again (deterministic
-            evaluation only; PPO samples every step from the chunk's first action).
+        n_action_steps: Actions of each predicted chunk executed before the policy looks again, in evaluation and
+            in PPO (which samples them together, one Gaussian over the chunk's first n_action_steps actions).
         binary_gripper: Send the gripper (the last action dimension) fully open or fully closed, never between.
         tokenizer_path: Image trunk: the encoder of this visual tokenizer (`roboscape-train-tokenizer`'s
             pretrained_model, frozen) under a small conv head, instead of the conv stack (None).

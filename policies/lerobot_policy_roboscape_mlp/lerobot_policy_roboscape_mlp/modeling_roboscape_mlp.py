@@ -1,8 +1,9 @@
 """The MLP baseline: images + instruction -> Gaussian over the normalised 7-D action, plus a state value.
 
 SFT (`lerobot-train`) fits the Gaussian's mean to the demonstrations, optionally a chunk of the next actions on
-randomly shifted images; PPO samples from the Gaussian over the chunk's first action and trains the whole
-network, value head included (`lerobot_roboscape.rl.ActorCritic`). The value head reads the trunk's features
+randomly shifted images; PPO samples from the Gaussian over the chunk's first `n_action_steps` actions (the
+ones evaluation executes before looking again), executes them in order, and trains the whole network, value head
+included (`lerobot_roboscape.rl.ActorCritic`). The value head reads the trunk's features
 through `scale_gradient` (by default it does not train them).
 """
 
@@ -176,7 +177,7 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         features = self.features(batch)
         distribution = self.distribution(features)
         action = distribution.sample()
-        log_prob = distribution.log_prob(action).sum(-1)
+        log_prob = distribution.log_prob(action).sum((-2, -1))
         # [-1, 1] is the demonstrations' action range under MIN_MAX normalisation: the env gets the sample clipped
         # to it, PPO scores the unclipped one (as CleanRL).
         env_action = action.clamp(-1, 1)
@@ -188,8 +189,8 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         features = self.features(batch)
         distribution = self.distribution(features)
         return ActionEvaluation(
-            log_prob=distribution.log_prob(raw_action).sum(-1),
-            entropy=distribution.entropy().sum(-1),
+            log_prob=distribution.log_prob(raw_action).sum((-2, -1)),
+            entropy=distribution.entropy().sum((-2, -1)),
             value=self.value(features),
         )
 
@@ -205,8 +206,9 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
         return self.action_mean(features).view(len(features), self.config.chunk_size, self.action_dim)
 
     def distribution(self, features: Tensor) -> Normal:
-        """PPO's Gaussian over the next action: the chunk's first one (the rest only shaped the features in SFT)."""
-        mean = self.chunk(features)[:, 0]
+        """PPO's Gaussian over the actions executed before the policy looks again (B, n_action_steps, action_dim):
+        the chunk's first `n_action_steps`, as evaluation executes them (the rest only shaped the features in SFT)."""
+        mean = self.chunk(features)[:, : self.config.n_action_steps]
         return Normal(mean, self.action_log_std.exp().expand_as(mean))
 
     def features(self, batch: dict) -> Tensor:
