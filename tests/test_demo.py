@@ -12,6 +12,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig, run_experiment
+from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.run import run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
 
@@ -80,3 +82,28 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
     run_pipeline(draccus.parse(PipelineConfig, args=args))
     assert (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns == tokenizer_weights
     assert "done in 0s" in capsys.readouterr().out
+
+    # The claim experiment on the same run: its PPO runs and Table 1 are the pipeline's (skipped), the rest new.
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nrest\n")
+    experiment = draccus.parse(
+        ExperimentConfig,
+        args=[
+            "--pipeline.scale=smoke",
+            f"--pipeline.output_dir={out}",
+            "--curve_episodes=1",
+            "--replay_episodes=1",
+            f"--report_dir={tmp_path / 'claim'}",
+            f"--readme={readme}",
+        ],
+    )
+    report = run_experiment(experiment)
+    claim = json.loads((tmp_path / "claim" / "results.json").read_text())
+    assert claim["table"]["roboscape_mlp"] == tables  # the pipeline's evaluations, not new ones
+    assert [point["iteration"] for point in claim["curve"]] == [0, 1]  # SFT, then PPO's one checkpoint
+    assert "roboscape_mlp, OOD Push: PPO in WM minus SFT" in claim["targets"]
+    replay = claim["replays"][0]
+    assert (tmp_path / "claim" / "videos" / replay["video"]).is_file() and replay["family"] == "push"
+    assert "| Supervised finetune |" in report.read_text() and (tmp_path / "claim" / "curve.png").is_file()
+    text = readme.read_text()
+    assert "old" not in text and "PPO in WM minus SFT" in text and text.endswith(f"{README_END}\nrest\n")

@@ -81,6 +81,15 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def difference_interval(a: dict, b: dict) -> tuple[float, float, float]:
+    """Success rate of cell `a` minus that of cell `b` (independent episodes), with its 95% interval by Newcombe's
+    hybrid score method (from the two Wilson intervals): (difference, low, high)."""
+    pa, pb = a["successes"] / a["episodes"], b["successes"] / b["episodes"]
+    (la, ua), (lb, ub) = wilson_interval(a["successes"], a["episodes"]), wilson_interval(b["successes"], b["episodes"])
+    d = pa - pb
+    return d, d - math.sqrt((pa - la) ** 2 + (ub - pb) ** 2), d + math.sqrt((ua - pa) ** 2 + (pb - lb) ** 2)
+
+
 @torch.no_grad()
 def run_episodes(env, policy, io: PolicyIO, seed: int, record: bool = False) -> tuple[np.ndarray, list]:
     """One batch of episodes with the deterministic policy: (success per env, rendered frames if recorded)."""

@@ -1,6 +1,6 @@
 """The paper's tables: success rates of each policy after SFT, after PPO in ManiSkill and after PPO in the world
 model, IND and OOD, per task family (Table 1), as markdown with 95% Wilson intervals and as a bar chart. The
-pipeline (`roboscape-demo`, `scripts/reproduce_tables.py`) fills them."""
+pipeline (`roboscape-demo`, `roboscape-experiment`) fills them."""
 
 import json
 from pathlib import Path
@@ -12,6 +12,38 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 SHORT = {"pick_place": "P.&P.", "push": "Push", "pull": "Pull", "move_to_aim": "M.A."}
+# The paper's Table 1 (success %, ManiSkill): {policy: {method: {split: {family: rate}}}}.
+PAPER_TABLE_1 = {
+    "MLP": {
+        "Supervised finetune": {
+            "ind": {"pick_place": 12.0, "push": 84.5, "pull": 57.7, "move_to_aim": 35.8},
+            "ood": {"pick_place": 3.5, "push": 13.3, "pull": 10.2, "move_to_aim": 10.6},
+        },
+        "RL w. ManiSkill": {
+            "ind": {"pick_place": 85.0, "push": 98.5, "pull": 64.2, "move_to_aim": 87.6},
+            "ood": {"pick_place": 32.1, "push": 15.6, "pull": 15.5, "move_to_aim": 42.9},
+        },
+        "RL w. World Model": {
+            "ind": {"pick_place": 86.7, "push": 98.7, "pull": 65.2, "move_to_aim": 88.1},
+            "ood": {"pick_place": 74.2, "push": 87.3, "pull": 51.3, "move_to_aim": 72.0},
+        },
+    },
+    "OpenVLA": {
+        "Supervised finetune": {
+            "ind": {"pick_place": 22.5, "push": 94.4, "pull": 73.5, "move_to_aim": 67.5},
+            "ood": {"pick_place": 47.5, "push": 84.0, "pull": 12.5, "move_to_aim": 24.5},
+        },
+        "RL w. ManiSkill": {
+            "ind": {"pick_place": 92.5, "push": 97.7, "pull": 89.1, "move_to_aim": 92.5},
+            "ood": {"pick_place": 54.5, "push": 93.0, "pull": 39.6, "move_to_aim": 41.5},
+        },
+        "RL w. World Model": {
+            "ind": {"pick_place": 95.5, "push": 98.4, "pull": 91.4, "move_to_aim": 94.6},
+            "ood": {"pick_place": 84.1, "push": 97.5, "pull": 85.8, "move_to_aim": 82.1},
+        },
+    },
+}
+PAPER_POLICY = {"roboscape_mlp": "MLP", "openvla": "OpenVLA"}
 
 
 def write_table(results: dict, families: list[str], output_dir: Path, title: str = "Table 1") -> None:
@@ -24,8 +56,9 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
     bar_chart(results, families, output_dir / "tables.png", title)
 
 
-def format_table(results: dict, families: list[str], title: str) -> str:
-    """The paper's layout: rows policy x method, columns IND families then OOD families: success % [95% CI]."""
+def format_table(results: dict, families: list[str], title: str, with_paper: bool = False) -> str:
+    """The paper's layout: rows policy x method, columns IND families then OOD families: success % [95% CI];
+    `with_paper`: under each of our rows, the paper's number for the same policy kind and method (Table 1)."""
     names = [SHORT.get(f, f) for f in families]
     header = (
         "| Policy | Training method | "
@@ -45,6 +78,10 @@ def format_table(results: dict, families: list[str], title: str) -> str:
         for method, splits in methods.items():
             cells = [_cell(splits[split][f]) for split in ("ind", "ood") for f in families]
             lines.append(f"| {policy} | {method} | " + " | ".join(cells) + " |")
+            paper = PAPER_TABLE_1.get(PAPER_POLICY.get(policy), {}).get(method)
+            if with_paper and paper:
+                cells = [f"*{paper[split][f]:.1f}*" for split in ("ind", "ood") for f in families]
+                lines.append(f"| *paper: {PAPER_POLICY[policy]}* | *{method}* | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -13,21 +13,37 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
+import torch
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.checkpoints import FINAL
+from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL
+from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import MissingInputError
 from lerobot_roboscape.pipeline import stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
+from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+from lerobot_roboscape.rl.ppo import write_video
+from lerobot_roboscape.tasks.base import CONTROL_FREQ
+from lerobot_roboscape.training import resolve_device
 
 logger = logging.getLogger(__name__)
+CURVE_DIR, REPLAY_DIR = "curve", "replay"
+CURVE_SEED = 200_000  # the curve's initial states, apart from Table 1's (EvalConfig's default seed)
+REPLAY_STRIPS = 4  # replays drawn in replay.png
 
 
 @dataclass
 class ExperimentConfig:
     """Args:
-    pipeline: the run (`--pipeline.scale`, `--pipeline.output_dir` holding the trained stages, PPO's and the
-        table's sizes: `--pipeline.ppo_minutes`, `--pipeline.table_episodes`, ...).
+    pipeline: the `roboscape-demo` run whose trained stages the experiment reads, as it was given
+        (`--pipeline.scale`, `--pipeline.output_dir`), and the sizes of PPO and of the table
+        (`--pipeline.ppo_minutes`, `--pipeline.table_episodes`, ...).
     sft_checkpoint: the SFT'd policy PPO starts from (a pretrained_model directory); null: SFT with lerobot-train
         on `sft_dataset_root` (or the run's demonstrations).
     sft_dataset_repo_id: demonstrations SFT imitates, when it runs.
@@ -35,15 +51,17 @@ class ExperimentConfig:
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
     report_dir: where the report (report.md, results.json, figures, videos) goes.
+    readme: the README whose results block (between its bench-results markers) is rewritten; null: none.
     """
 
-    pipeline: PipelineConfig = field(default_factory=lambda: PipelineConfig(scale="bench", output_dir="outputs/bench"))
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     sft_checkpoint: str | None = None
     sft_dataset_repo_id: str = "local/roboscape_sft_demos"
     sft_dataset_root: str | None = None
     curve_episodes: int = 10
     replay_episodes: int = 8
     report_dir: str = "docs/results/bench"
+    readme: str | None = "README.md"
 
 
 @dataclass
@@ -88,11 +106,118 @@ def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[
     return stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()))
 
 
+def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, policy: str, sft: Path) -> list[dict]:
+    """OOD simulator success of the SFT checkpoint (iteration 0) and of every checkpoint PPO in the world model
+    saved, `curve_episodes` per family, on initial states apart from Table 1's: [{iteration, seconds, cell}]."""
+    run = out / stages.rl_dir(policy, stages.RL_WORLD_MODEL) / CHECKPOINTS
+    points = [(0, 0.0, sft)]
+    for folder in sorted(f for f in run.iterdir() if f.name.isdigit()):
+        seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
+        points.append((int(folder.name), seconds, folder / FINAL))
+    jobs = [
+        stages.eval_job(
+            cfg.pipeline,
+            data,
+            path,
+            ("ood",),
+            out / CURVE_DIR / policy / f"{iteration:08d}",
+            episodes=cfg.curve_episodes,
+            seed=CURVE_SEED,
+            videos=0,
+        )
+        for iteration, _, path in points
+    ]
+    stages.run_evaluations(cfg.pipeline, jobs)
+    return [
+        {
+            "iteration": iteration,
+            "seconds": seconds,
+            **json.loads((job.output_dir / "eval.json").read_text())["splits"]["ood"]["all"],
+        }
+        for (iteration, seconds, _), job in zip(points, jobs, strict=True)
+    ]
+
+
+@torch.no_grad()
+def replay_in_simulator(
+    cfg: ExperimentConfig, out: Path, env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path
+) -> list[dict]:
+    """The policy after PPO in the world model, rolled out in `roboscape_wm` from `replay_episodes` starts (spread
+    over the starts, so over families and scenes), and its actions replayed open loop in the simulator from the
+    same scene and initial state. Writes side-by-side videos (world model | its goal | simulator) and returns, per
+    start, what each world said: the world model's return and success, the simulator's success."""
+    p, folder = cfg.pipeline, out / REPLAY_DIR
+    settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": cfg.replay_episodes}
+    if stages.is_done(folder, settings, p.fresh):
+        return json.loads((folder / "replay.json").read_text())
+    stages.start(folder).mkdir(parents=True)
+    env = RoboscapeWorldModelEnv(env_cfg, num_envs=cfg.replay_episodes)
+    chosen = [env.starts[int(i)] for i in np.linspace(0, len(env.starts) - 1, cfg.replay_episodes).round()]
+    policy, preprocessor, postprocessor = load_policy(checkpoint, resolve_device(p.device))
+    policy.eval()
+    policy.reset()
+    io = PolicyIO(preprocessor, postprocessor)
+    observation, _ = env.reset(seed=0, options={"episode_index": [s.episode_index for s in chosen]})
+    frames, actions = [env.render()], []
+    returns, succeeded = np.zeros(env.num_envs), np.zeros(env.num_envs, dtype=bool)
+    for _ in range(env.call("_max_episode_steps")[0]):
+        action = io.env_action(policy.select_action(io.batch(observation["pixels"], env.tasks())))
+        observation, reward, terminated, truncated, info = env.step(action)
+        frames.append(env.render())
+        actions.append(action)
+        returns += reward
+        succeeded |= info["is_success"]
+        if (terminated | truncated).all():
+            break
+    actions = np.stack(actions)  # (T, B, A)
+    rows = []
+    for i, start in enumerate(chosen):
+        family, scene, seed = start.facts["task_family"], start.facts["scene"], int(start.facts["seed"])
+        job = EpisodeJob(family, scene, seed, "optimal", p.image_size)
+        replayed = replay_actions(worker_env(job), job, actions[:, i], {})
+        simulator = np.concatenate([replayed.images[camera] for camera in env.cameras], axis=1)  # (T, 2H, W, 3)
+        clip = [np.concatenate([frames[t][i], simulator[t]], axis=1) for t in range(len(simulator))]
+        row = {
+            "episode_index": start.episode_index,
+            "family": family,
+            "scene": scene,
+            "world_model_return": round(float(returns[i]), 3),
+            "world_model_success": bool(succeeded[i]),
+            "simulator_success": bool(replayed.success.any()),
+        }
+        outcome = f"wm-{'success' if row['world_model_success'] else 'failure'}_sim-" + (
+            "success" if row["simulator_success"] else "failure"
+        )
+        row["video"] = f"{i:02d}_{family}_{outcome}.mp4"
+        write_video(folder / row["video"], clip, CONTROL_FREQ)
+        rows.append(row | {"strip": _strip(clip)})
+    strips = [row.pop("strip") for row in rows]
+    iio.imwrite(folder / "replay.png", np.concatenate(strips[:REPLAY_STRIPS], axis=0))
+    env.close()
+    write_text_atomically(folder / "replay.json", json.dumps(rows, indent=2))
+    stages.mark_done(folder, settings)
+    return rows
+
+
+def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:
+    """`columns` frames of a clip, evenly spaced, side by side."""
+    picks = np.linspace(0, len(clip) - 1, columns).round().astype(int)
+    return np.concatenate([clip[t] for t in picks], axis=1)
+
+
 def run_experiment(cfg: ExperimentConfig) -> Path:
     """Run every step (skipping those complete); returns the report."""
     p, out = cfg.pipeline, Path(cfg.pipeline.output_dir).resolve()
     trained = trained_stages(p, out)
-    wm_env = stages.world_model_env(p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models)
+    wm_env = stages.world_model_env(
+        p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models
+    )
     sft = sft_policy(cfg, out, trained.data)
     rl = stages.rl(p, out, trained.data, wm_env, sft)
-    return rl
+    checkpoints = {name: {stages.SFT: sft[name]} | runs for name, runs in rl.items()}
+    results = stages.simulator_eval(p, out, trained.data, checkpoints)
+    policy = next(iter(sft))
+    curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
+    ppo_env = stages.rl_envs(p, out, trained.data, wm_env)[stages.RL_WORLD_MODEL]
+    replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][stages.RL_WORLD_MODEL])
+    return write_experiment_report(cfg, out, results, curve, replays)

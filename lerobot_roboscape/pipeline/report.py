@@ -24,6 +24,7 @@ from lerobot_roboscape.pipeline.stages import (
     FIDELITY_DIR,
     HELDOUT_DIR,
     POLICIES,
+    REWARD_ABLATION,
     REWARD_BASELINES,
     REWARD_REPORT_DIR,
     RL_MANISKILL,
@@ -357,7 +358,7 @@ def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
     for stage, folders in STAGE_FOLDERS.items():
         times[stage] = sum(stage_seconds(out / f) or 0.0 for f in folders)
     for policy in POLICIES:
-        for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
+        for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE, *REWARD_ABLATION):
             seconds = stage_seconds(out / rl_dir(policy, method))
             if seconds is not None:
                 times[f"PPO {policy}: {method}"] = seconds
@@ -386,11 +387,13 @@ def world_model_figure(video: Path, prompt: int, path: Path, steps: int = WM_STE
     iio.imwrite(path, np.kron(np.concatenate(list(frames), 1), np.ones((2, 2, 1), np.uint8)))
 
 
-def ppo_curves(out: Path, table: dict, path: Path) -> None:
+def ppo_curves(
+    out: Path, policies, path: Path, methods: tuple[str, ...] = (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE)
+) -> None:
     """Training success and return of each PPO run against its wall-clock time."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
-    for policy in table:
-        for method in (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
+    for policy in policies:
+        for method in methods:
             history = read_history(out / rl_dir(policy, method))
             if not history:
                 continue

@@ -739,40 +739,62 @@ def rl(
 EVAL_BATCH_SIZE = 8  # parallel episodes of each simulator evaluation
 
 
+def eval_job(
+    cfg: PipelineConfig,
+    data: Datasets,
+    checkpoint: Path,
+    splits: tuple[str, ...],
+    output_dir: Path,
+    episodes: int | None = None,
+    seed: int | None = None,
+    videos: int = 2,
+) -> EvalConfig:
+    """The simulator evaluation of one checkpoint: `episodes` (default: Table 1's) per (split, family)."""
+    return EvalConfig(
+        policy_path=str(checkpoint),
+        families=cfg.families,
+        splits=list(splits),
+        episodes=episodes or cfg.table_episodes,
+        batch_size=EVAL_BATCH_SIZE,
+        episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
+        dataset_repo_id=data.train.repo_id,
+        dataset_root=data.train.root,
+        image_size=cfg.image_size,
+        videos=videos,
+        workers=cfg.workers,
+        output_dir=output_dir,
+        device=cfg.device,
+        **({} if seed is None else {"seed": seed}),
+    )
+
+
+def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
+    """Run the evaluations not yet complete, one after another on the same simulator envs (built once, spread over
+    `workers` processes)."""
+    pending = [job for job in jobs if not is_done(job.output_dir, job, cfg.fresh)]
+    if not pending:
+        return
+    slots = build_slots(eval_env_config(pending[0], "ind", cfg.image_size), eval_batch_size(pending[0]))
+    try:
+        for job in pending:
+            start(job.output_dir)
+            evaluate_success(job, slots)
+            mark_done(job.output_dir, job)
+    finally:
+        slots.close()
+
+
 def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
     """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's OOD only; 95% Wilson
-    intervals), one evaluation per (checkpoint, split), one after another on the same simulator envs (built once,
-    spread over `workers` processes). Returns {policy: {method: {split: {family: cell}}}}."""
+    intervals), one evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
             for split in ("ood",) if method in REWARD_ABLATION else ("ind", "ood"):
-                jobs[name, method, split] = EvalConfig(
-                    policy_path=str(checkpoint),
-                    families=cfg.families,
-                    splits=[split],
-                    episodes=cfg.table_episodes,
-                    batch_size=EVAL_BATCH_SIZE,
-                    episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
-                    dataset_repo_id=data.train.repo_id,
-                    dataset_root=data.train.root,
-                    image_size=cfg.image_size,
-                    videos=2,
-                    workers=cfg.workers,
-                    output_dir=out / eval_dir(name, method) / split,
-                    device=cfg.device,
+                jobs[name, method, split] = eval_job(
+                    cfg, data, checkpoint, (split,), out / eval_dir(name, method) / split
                 )
-    pending = {key: job for key, job in jobs.items() if not is_done(job.output_dir, job, cfg.fresh)}
-    if pending:
-        first = next(iter(pending.values()))
-        slots = build_slots(eval_env_config(first, "ind", cfg.image_size), eval_batch_size(first))
-        try:
-            for job in pending.values():
-                start(job.output_dir)
-                evaluate_success(job, slots)
-                mark_done(job.output_dir, job)
-        finally:
-            slots.close()
+    run_evaluations(cfg, list(jobs.values()))
     results = {}
     for (name, method, split), job in jobs.items():
         cells = json.loads((job.output_dir / "eval.json").read_text())["splits"][split]

@@ -36,7 +36,7 @@ from lerobot_roboscape.training import resolve_mixed_precision
 logger = logging.getLogger(__name__)
 HISTORY = "history.jsonl"
 
-# Per policy type: RL4VLA's settings for OpenVLA; ours (tuned on the tiny tasks) for the MLP.
+# Per policy type: RL4VLA's settings for OpenVLA; ours for the MLP (its learning rate measured at the bench scale).
 PPO_DEFAULTS = {
     "openvla": dict(
         policy_lr=1e-4,
@@ -50,7 +50,10 @@ PPO_DEFAULTS = {
         critic_warmup_iterations=5,
     ),
     "roboscape_mlp": dict(
-        policy_lr=3e-4,
+        # Its Gaussian over a chunk of 4 actions is narrow (std 0.22): at 3e-4 or 1e-4 one update moved the
+        # policy 0.2-20 nats (approximate KL) and PPO in the simulator lost SFT's success; 3e-5 moves it ~0.03
+        # (docs/results/bench/ppo_learning_rate.md).
+        policy_lr=3e-5,
         value_lr=1e-3,
         update_epochs=4,
         minibatch_size=64,
@@ -80,6 +83,9 @@ class PPOConfig:
         far from its targets (a fresh value head after SFT) would move only this far per iteration: clipping keeps
         it frozen, and it did not help PPO in Andrychowicz et al. 2021 ("What matters in on-policy RL").
     ent_coef: entropy bonus.
+    target_kl: stop the iteration's update at the first minibatch whose approximate KL divergence from the rollout's
+        policy exceeds this (null: never; as Stable-Baselines3). A narrow Gaussian over a chunk of actions moves
+        far in KL for a small step of its mean.
     norm_adv: normalise advantages over the iteration's samples.
     normalize_reward: divide rewards by the running standard deviation of the discounted return (as gymnasium's
         NormalizeReward in CleanRL), so the critic's targets stay near unit scale whatever the reward's weights.
@@ -113,6 +119,7 @@ class PPOConfig:
     clip_coef: float = 0.2
     value_clip_coef: float | None = None
     ent_coef: float = 0.0
+    target_kl: float | None = None
     norm_adv: bool = True
     normalize_reward: bool = True
     critic_warmup_iterations: int | None = None
@@ -376,9 +383,11 @@ def update(
     b_advantages = advantages[t_index, b_index]
     if cfg.norm_adv and len(b_advantages) > 1:
         b_advantages = (b_advantages - b_advantages.mean()) / (b_advantages.std() + 1e-8)
-    stats, n_samples = [], len(t_index)
+    stats, n_samples, stopped = [], len(t_index), False
     policy_group, value_group = optimizer.param_groups  # see make_optimizer
     for _ in range(cfg.update_epochs):
+        if stopped:
+            break
         order = torch.randperm(n_samples, generator=generator).to(t_index.device)
         minibatches = order.split(cfg.minibatch_size)
         for k, minibatch in enumerate(minibatches):
@@ -402,6 +411,11 @@ def update(
                 loss = cfg.vf_coef * losses.value
                 if not critic_only:
                     loss = loss + losses.policy - cfg.ent_coef * losses.entropy
+            stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
+            if not critic_only and cfg.target_kl is not None and losses.approx_kl > cfg.target_kl:
+                optimizer.zero_grad(set_to_none=True)  # the policy moved far enough: drop what is accumulated
+                stopped = True
+                break
             accelerator.backward(loss / cfg.grad_accum_steps)
             if (k + 1) % cfg.grad_accum_steps == 0 or k + 1 == len(minibatches):
                 if critic_only:  # a shared trunk (OpenVLA's LLM) also got value gradients: drop them
@@ -416,7 +430,6 @@ def update(
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
                 stats.append({f"grad_norm/{name}": norm for name, norm in grad_norms.items()})
-            stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
     summary = {key: float(np.mean([s[key] for s in stats if key in s])) for key in {k for s in stats for k in s}}
     explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
     return {
@@ -424,6 +437,7 @@ def update(
         "losses/explained_variance": float(explained),
         "charts/samples": n_samples,
         "charts/critic_only": float(critic_only),
+        "charts/update_stopped_by_kl": float(stopped),
         "charts/return_std": math.sqrt(return_stats.var),
     }
 

@@ -162,6 +162,16 @@ def test_a_chunked_policy_decides_every_k_steps_and_is_paid_their_summed_reward(
     torch.testing.assert_close(evaluation.log_prob, rollout.log_probs[0])  # the k actions scored as one choice
 
 
+def test_target_kl_stops_the_update_once_the_policy_moved_that_far(fresh_mlp, tmp_path):
+    kwargs = dict(iterations=3, critic_warmup_iterations=0)
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "free", **kwargs))
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "held", target_kl=1e-9, **kwargs))
+    assert logged(tmp_path / "free", "charts/update_stopped_by_kl") == [0.0] * 3
+    # The first minibatch scores the rollout's own policy (KL 0) and steps; the next one finds it moved.
+    assert logged(tmp_path / "held", "charts/update_stopped_by_kl") == [1.0] * 3
+    assert max(logged(tmp_path / "held", "losses/approx_kl")) < max(logged(tmp_path / "free", "losses/approx_kl"))
+
+
 def test_ppo_on_chunks_improves_the_return(chunked_mlp, tmp_path):
     # Half the decisions of a one-action policy per episode: as many samples per iteration with twice the envs.
     train_ppo(ppo_config(chunked_mlp, tmp_path / "ppo", num_envs=16, iterations=25))

@@ -1,0 +1,26 @@
+"""`roboscape-experiment`: the paper's claim (Table 1) on the models a `roboscape-demo` run trained: PPO from the
+SFT checkpoint in `roboscape_wm`, in `roboscape_maniskill` in one scene and in every training scene at equal
+wall-clock (and the reward ablation), success in the simulator IND and OOD with 95% intervals of the differences,
+the simulator success of PPO's checkpoints along its run, world-model rollouts replayed in the simulator, and the
+report (lerobot_roboscape/pipeline/experiment.py). A rerun skips the steps already complete.
+
+    roboscape-experiment --pipeline.scale=bench --pipeline.output_dir=outputs/bench --report_dir=docs/results/bench
+    roboscape-experiment ... --sft_checkpoint=path/to/pretrained_model   # start PPO from a policy you have
+"""
+
+import logging
+
+import draccus
+
+from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig, run_experiment
+
+
+@one_line_errors("roboscape-experiment")
+def main(argv: list[str] | None = None):
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    print(f"report: {run_experiment(draccus.parse(ExperimentConfig, args=argv))}")
+
+
+if __name__ == "__main__":
+    main()

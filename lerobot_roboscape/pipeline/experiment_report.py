@@ -1,0 +1,388 @@
+"""The claim experiment's report (`roboscape-experiment`): the targets with the 95% intervals of the differences,
+Table 1 with the paper's numbers beside, PPO's curves, the simulator success of PPO's checkpoints along its run,
+world-model rollouts replayed in the simulator, the reward ablation and the time of each step (report.md,
+results.json, figures, videos), and the README's results block."""
+
+import json
+import re
+import shutil
+from datetime import date
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+from lerobot_roboscape.evaluation.success_rate import difference_interval
+from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
+from lerobot_roboscape.pipeline.report import _measured, _target, machine, ppo_curves
+from lerobot_roboscape.pipeline.stages import (
+    EVAL_DIR,
+    REWARD_ABLATION,
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    SFT,
+    rl_dir,
+    stage_seconds,
+)
+from lerobot_roboscape.rl.ppo import read_history
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+README_BEGIN, README_END = "<!-- bench-results:begin -->", "<!-- bench-results:end -->"
+UPSTREAM_REPORTS = {
+    "tokenizer": "docs/results/tokenizer/report.md",
+    "world models, done and reward": "docs/results/world_model/report.md",
+    "SFT": "docs/results/sft/report.md",
+    "simulator speed": "docs/results/simulator/report.md",
+}
+
+
+def claim_targets(table: dict, families: list[str]) -> dict:
+    """Issue 29's targets, per policy and family: PPO in the world model against SFT out of domain (the 95%
+    interval of the difference above 0), against PPO in ManiSkill in one scene out of domain (at least as well),
+    and in domain within SFT's interval or above."""
+    targets = {}
+    for policy, methods in table.items():
+        wm, sft, one_scene = methods[RL_WORLD_MODEL], methods[SFT], methods.get(RL_MANISKILL_ONE_SCENE)
+        for family in [*families, "all"]:
+            name = SHORT.get(family, family)
+            d, low, high = difference_interval(wm["ood"][family], sft["ood"][family])
+            targets[f"{policy}, OOD {name}: PPO in WM minus SFT"] = _target(
+                d, "95% interval above 0", low > 0, f"interval [{low:+.2f}, {high:+.2f}]"
+            )
+            if one_scene is not None:
+                d, low, high = difference_interval(wm["ood"][family], one_scene["ood"][family])
+                targets[f"{policy}, OOD {name}: PPO in WM minus PPO in ManiSkill (one scene)"] = _target(
+                    d, ">= 0", d >= 0, f"interval [{low:+.2f}, {high:+.2f}]"
+                )
+            rate, floor = wm["ind"][family]["success_rate"], sft["ind"][family]["ci95"][0]
+            targets[f"{policy}, IND {name}: PPO in WM, within SFT's interval or above"] = _target(
+                rate, f">= {floor:.2f} (SFT's 95% lower bound)", rate >= floor
+            )
+    return targets
+
+
+def differences(table: dict, families: list[str]) -> list[dict]:
+    """PPO in the world model minus every other method, per policy, split and family, with 95% intervals."""
+    rows = []
+    for policy, methods in table.items():
+        wm = methods[RL_WORLD_MODEL]
+        for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
+            if other not in methods:
+                continue
+            for split in ("ind", "ood"):
+                for family in [*families, "all"]:
+                    d, low, high = difference_interval(wm[split][family], methods[other][split][family])
+                    rows.append(
+                        {"policy": policy, "against": other, "split": split, "family": family}
+                        | {"difference": round(d, 4), "ci95": [round(low, 4), round(high, 4)]}
+                    )
+    return rows
+
+
+def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
+    """What each PPO run did in its budget: iterations, PPO's clock, env steps, the last iterations' training
+    success and return in its own env, and the run's wall-clock with its setup (env, goals)."""
+    rows = []
+    for policy in policies:
+        for method in methods:
+            history = read_history(out / rl_dir(policy, method))
+            if not history:
+                continue
+            last = history[-3:]
+            rows.append(
+                {
+                    "policy": policy,
+                    "method": method,
+                    "iterations": history[-1]["iteration"],
+                    "ppo_seconds": round(history[-1]["seconds"], 1),
+                    "decisions": int(sum(row["charts/samples"] for row in history)),
+                    "first_return": round(history[0]["charts/episode_return"], 3),
+                    "last_return": round(float(np.mean([row["charts/episode_return"] for row in last])), 3),
+                    "first_success": round(history[0]["charts/success"], 3),
+                    "last_success": round(float(np.mean([row["charts/success"] for row in last])), 3),
+                    "wall_seconds": stage_seconds(out / rl_dir(policy, method)),
+                }
+            )
+    return rows
+
+
+def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
+    """PPO in the world model over its iterations: its return in the world model (left axis), and the simulator
+    success of its checkpoints out of domain with 95% intervals (right axis)."""
+    history = read_history(out / rl_dir(policy, RL_WORLD_MODEL))
+    fig, left = plt.subplots(figsize=(7, 3.4))
+    left.plot(
+        [row["iteration"] for row in history],
+        [row["charts/episode_return"] for row in history],
+        color="tab:blue",
+        label="return in the world model (training episodes)",
+    )
+    left.set_xlabel("PPO iteration (0: the SFT checkpoint)")
+    left.set_ylabel("world-model return", color="tab:blue")
+    right = left.twinx()
+    x = [point["iteration"] for point in curve]
+    rate = np.array([100 * point["success_rate"] for point in curve])
+    ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
+    right.errorbar(x, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color="tab:red", capsize=3)
+    right.set_ylabel(f"simulator success, OOD (%, {curve[0]['episodes']} episodes)", color="tab:red")
+    right.set_ylim(0, 100)
+    left.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], replays: list[dict]) -> Path:
+    """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
+    results block; returns report.md."""
+    p, folder = cfg.pipeline, Path(cfg.report_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    table = {
+        policy: {m: s for m, s in methods.items() if m not in REWARD_ABLATION} for policy, methods in results.items()
+    }
+    ablation = {
+        policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
+    }
+    targets = claim_targets(table, p.families)
+    policies = list(table)
+    methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION]
+    runs = ppo_runs(out, policies, methods)
+    times = step_times(out, runs)
+    summary = {
+        "scale": p.scale,
+        "families": p.families,
+        "date": date.today().isoformat(),
+        "machine": machine(),
+        "sft_checkpoint": cfg.sft_checkpoint,
+        "targets": targets,
+        "table": table,
+        "differences": differences(table, p.families),
+        "reward_ablation": ablation,
+        "ppo_runs": runs,
+        "curve": curve,
+        "replays": replays,
+        "seconds": times,
+    }
+    (folder / "results.json").write_text(json.dumps(summary, indent=2))
+    write_table(table, p.families, folder, f"{p.scale} scale")
+    (folder / "tables.json").unlink()  # results.json holds it
+    ppo_curves(out, policies, folder / "ppo_curves.png", methods)
+    curve_figure(out, policies[0], curve, folder / "curve.png")
+    videos = folder / "videos"
+    shutil.rmtree(videos, ignore_errors=True)
+    videos.mkdir()
+    for row in replays:
+        shutil.copy2(out / "replay" / row["video"], videos / row["video"])
+    shutil.copy2(out / "replay" / "replay.png", folder / "replay.png")
+    text = markdown(cfg, summary)
+    (folder / "report.md").write_text(text)
+    if cfg.readme:
+        update_readme(Path(cfg.readme), readme_block(cfg, summary))
+    return folder / "report.md"
+
+
+def step_times(out: Path, runs: list[dict]) -> dict[str, float]:
+    """Seconds of each step of the experiment, from the stage records in `out`. A PPO run's wall-clock holds its
+    setup too: the first world-model run's holds the generation of every start's goal."""
+    times = {}
+    for run in runs:
+        times[f"PPO {run['method']}: PPO's clock (the budget)"] = run["ppo_seconds"]
+        if run["wall_seconds"]:
+            times[f"PPO {run['method']}: wall-clock with its setup"] = run["wall_seconds"]
+    evaluations = [stage_seconds(f.parent) or 0.0 for f in (out / EVAL_DIR).glob("*/*/*/stage.json")]
+    times[f"simulator evaluation, Table 1 and the ablation ({len(evaluations)} jobs)"] = sum(evaluations)
+    points = [stage_seconds(f.parent) or 0.0 for f in (out / "curve").glob("*/*/stage.json")]
+    times[f"simulator evaluation of PPO's checkpoints ({len(points)} points)"] = sum(points)
+    times["world-model rollouts replayed in the simulator"] = stage_seconds(out / "replay") or 0.0
+    return {k: round(v, 1) for k, v in times.items()}
+
+
+def _cell(cell: dict) -> str:
+    low, high = (100 * v for v in cell["ci95"])
+    return f"{cell['successes']}/{cell['episodes']} ({100 * cell['success_rate']:.0f}% [{low:.0f}, {high:.0f}])"
+
+
+def _difference(d: dict) -> str:
+    low, high = d["ci95"]
+    return f"{100 * d['difference']:+.0f} [{100 * low:+.0f}, {100 * high:+.0f}]"
+
+
+def protocol(cfg, summary: dict) -> str:
+    p = cfg.pipeline
+    sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`" if cfg.sft_checkpoint else "SFT with lerobot-train"
+    return (
+        f"Task families {', '.join(p.families)}. PPO starts from {sft} and runs in three envs, one multi-task run "
+        f"each, {p.ppo_envs} parallel episodes of {p.ppo_episode_length} steps per iteration, for the same "
+        f"{p.ppo_minutes:g} min of PPO's clock (rollouts and updates) on the same machine, one run at a time: "
+        "`roboscape_wm` starting from the first frame of a demonstration in every training scene ("
+        f"{p.wm_starts_per_scene or 'all'} per family and scene), `roboscape_maniskill` in one scene per family (the "
+        'paper\'s baseline, which "only initializes a single type of environment"), and `roboscape_maniskill` in '
+        "every training scene. The world model's reward is the paper's: alpha x the sparse done reward + beta x "
+        "the similarity to the goal frame the text model generated; the reward ablation pays one term only. Success "
+        f"is measured in the simulator, {p.table_episodes} episodes per (split, family) on the same initial states "
+        f"for every method, episodes end at success or after {p.table_episode_length} steps. IND: the training "
+        "scenes with new initial states; OOD: the held-out scenes (unseen objects and object-container pairs). "
+        "Differences are our success minus theirs with Newcombe's 95% interval for independent proportions."
+    )
+
+
+def markdown(cfg, summary: dict) -> str:
+    p, table, targets = cfg.pipeline, summary["table"], summary["targets"]
+    lines = [
+        f"# The paper's claim at the {p.scale} scale: PPO in the world model against SFT and PPO in the simulator",
+        "",
+        f"{summary['machine']}; {summary['date']}. Regenerate with `{command(cfg)}` (a rerun skips the steps "
+        "already complete). The stages before PPO (tokenizer, world models, done, reward, SFT) have their own "
+        "reports: " + ", ".join(f"[{k}]({_relative(v, cfg.report_dir)})" for k, v in UPSTREAM_REPORTS.items()) + ".",
+        "",
+        "## Protocol",
+        "",
+        protocol(cfg, summary),
+        "",
+        "## Targets",
+        "",
+        "| target | measured | goal | met |",
+        "|---|---:|---|:---:|",
+        *(
+            f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |"
+            for name, t in targets.items()
+        ),
+        "",
+        "## Table 1",
+        "",
+        format_table(table, p.families, f"{p.scale} scale", with_paper=True),
+        "Paper rows in italics: the paper's Table 1 (MLP, 80 scenes, its own world models).",
+        "",
+        "![Table 1](tables.png)",
+        "",
+        "PPO in the world model minus each other method, percentage points [95% interval]:",
+        "",
+        "| against | split | " + " | ".join(SHORT.get(f, f) for f in p.families) + " | all |",
+        "|---|---|" + "---:|" * (len(p.families) + 1),
+    ]
+    by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
+    for policy in table:
+        for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
+            for split in ("ind", "ood"):
+                if (policy, other, split, "all") in by:
+                    cells = [_difference(by[policy, other, split, f]) for f in [*p.families, "all"]]
+                    lines.append(f"| {other} | {split.upper()} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "## PPO runs",
+        "",
+        "| method | iterations | PPO clock (min) | decisions | return, first / last 3 iterations | success in its "
+        "own env, first / last 3 |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for run in summary["ppo_runs"]:
+        lines.append(
+            f"| {run['method']} | {run['iterations']} | {run['ppo_seconds'] / 60:.1f} | {run['decisions']} | "
+            f"{run['first_return']:.2f} / {run['last_return']:.2f} | {run['first_success']:.2f} / "
+            f"{run['last_success']:.2f} |"
+        )
+    lines += [
+        "",
+        "A decision is one look of the policy: it executes 4 actions of its chunk, as in evaluation. Each run's "
+        "success and return are measured in its own env (in the world model, by its done signal):",
+        "",
+        "![PPO curves](ppo_curves.png)",
+        "",
+        "Along the world-model run: its return in the world model, and the simulator success (OOD, "
+        f"{summary['curve'][0]['episodes']} episodes, initial states apart from Table 1's) of the checkpoint it "
+        "saved every few iterations:",
+        "",
+        "![curve](curve.png)",
+        "",
+        "| iteration | PPO clock (min) | OOD success in the simulator |",
+        "|---:|---:|---:|",
+        *(f"| {c['iteration']} | {c['seconds'] / 60:.1f} | {_cell(c)} |" for c in summary["curve"]),
+        "",
+        "## Reward ablation",
+        "",
+        "PPO in the world model paid one reward term, at the same budget, OOD (the full reward's row from Table 1):",
+        "",
+        "| reward | " + " | ".join(f"OOD {SHORT.get(f, f)}" for f in p.families) + " | OOD all |",
+        "|---|" + "---:|" * (len(p.families) + 1),
+    ]
+    for policy, methods in summary["reward_ablation"].items():
+        rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
+            m.split(", ")[1]: s["ood"] for m, s in methods.items()
+        }
+        for name, cells in rows.items():
+            lines.append(f"| {name} | " + " | ".join(_cell(cells[f]) for f in [*p.families, "all"]) + " |")
+    replays = summary["replays"]
+    agree = sum(r["world_model_success"] == r["simulator_success"] for r in replays)
+    lines += [
+        "",
+        "## The world model's rollouts replayed in the simulator",
+        "",
+        f"The policy after PPO in the world model, rolled out in `roboscape_wm` from {len(replays)} training starts, "
+        "and the same actions replayed open loop in the simulator from the same scene and initial state. Each "
+        "strip: frames evenly spaced in time, each frame the world model's (both views) | its goal | the "
+        f"simulator's. The two worlds agree on the outcome in {agree} of {len(replays)}:",
+        "",
+        "![replays](replay.png)",
+        "",
+        "| start | family | scene | world-model return | world-model success | simulator success | video |",
+        "|---:|---|---|---:|:---:|:---:|---|",
+        *(
+            f"| {r['episode_index']} | {r['family']} | {r['scene']} | {r['world_model_return']:.2f} | "
+            f"{'yes' if r['world_model_success'] else 'no'} | {'yes' if r['simulator_success'] else 'no'} | "
+            f"[{r['video']}](videos/{r['video']}) |"
+            for r in replays
+        ),
+        "",
+        "## Time of each step",
+        "",
+        "| step | minutes |",
+        "|---|---:|",
+        *(f"| {step} | {seconds / 60:.1f} |" for step, seconds in summary["seconds"].items()),
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def command(cfg) -> str:
+    p = cfg.pipeline
+    parts = [f"roboscape-experiment --pipeline.scale={p.scale} --pipeline.output_dir={p.output_dir}"]
+    if cfg.sft_checkpoint:
+        parts.append(f"--sft_checkpoint={cfg.sft_checkpoint}")
+    parts.append(f"--report_dir={cfg.report_dir}")
+    return " ".join(parts)
+
+
+def _relative(path: str, report_dir: str) -> str:
+    return str(Path("../" * len(Path(report_dir).parts)) / path)
+
+
+def readme_block(cfg, summary: dict) -> str:
+    """The README's results: the claim's targets and Table 1, with the machine and the command."""
+    p = cfg.pipeline
+    lines = [
+        f"Measured on {summary['machine']} ({summary['date']}); the report with figures, videos and the time of "
+        f"each step is [{cfg.report_dir}/report.md]({cfg.report_dir}/report.md). Regenerate it with "
+        f"`{command(cfg)}`.",
+        "",
+        "| target | measured | goal | met |",
+        "|---|---:|---|:---:|",
+        *(
+            f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |"
+            for name, t in summary["targets"].items()
+        ),
+        "",
+        format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
+    ]
+    return "\n".join(lines)
+
+
+def update_readme(readme: Path, block: str) -> None:
+    """Replace what stands between the README's results markers with `block`."""
+    text = readme.read_text()
+    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
+    if not pattern.search(text):
+        raise ValueError(f"{readme} has no {README_BEGIN} ... {README_END} block for the results")
+    readme.write_text(pattern.sub(lambda _: f"{README_BEGIN}\n{block}\n{README_END}", text))
