@@ -178,7 +178,7 @@ def test_a_scale_too_small_to_judge_says_so_instead_of_missing_every_target():
     assert "same number of iterations (2)" in tiny and "collects no held-out OOD episodes" in tiny
     bench = report_markdown("bench", device="cpu")
     assert "| tokenizer reconstruction PSNR, whole frame, wrist (dB) | 20.000 | >= 27 | **no** |" in bench
-    assert "8 OOD scenes" in bench and "(4 min)" in bench
+    assert "8 OOD scenes" in bench and "(8 min)" in bench
 
 
 def test_the_report_gives_each_cells_interval_width_and_the_evaluation_time():

@@ -54,6 +54,15 @@ GOAL_SOURCES = ("text_model", "dataset_last_frame")
 GOAL_BATCH = 8
 
 
+def goal_generation_seconds(path: Path) -> float | None:
+    """Seconds the text model spent generating the goals of a goal file (`goal_file`), when it recorded them."""
+    if not Path(path).is_file():
+        return None
+    with safe_open(str(path), "pt") as f:
+        seconds = f.metadata().get("seconds")
+    return None if seconds is None else float(seconds)
+
+
 class Goal(NamedTuple):
     tokens: torch.Tensor  # (S,)
     reached: bool  # the text model crossed theta (else its last generated frame is the goal)
@@ -309,7 +318,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             return
         started = time.perf_counter()
         self._generate_goals(missing)
-        logger.info("generated %d goals in %.0f s into %s", len(missing), time.perf_counter() - started, path)
+        seconds = time.perf_counter() - started
+        logger.info("generated %d goals in %.0f s into %s", len(missing), seconds, path)
+        seconds += goal_generation_seconds(path) or 0.0
         goals = sorted(self._goal_cache.items())
         tensors = {
             "episode_index": torch.tensor([index for index, _ in goals]),
@@ -319,7 +330,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         }
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp")
-        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings)})
+        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": f"{seconds:.1f}"})
         os.replace(tmp, path)
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:

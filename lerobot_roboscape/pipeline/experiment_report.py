@@ -12,11 +12,13 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from lerobot_roboscape.envs.world_model_env import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.report import _measured, _target, machine, ppo_curves
 from lerobot_roboscape.pipeline.stages import (
     EVAL_DIR,
+    GOAL_FILE,
     REWARD_ABLATION,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
@@ -188,6 +190,9 @@ def step_times(out: Path, runs: list[dict]) -> dict[str, float]:
     """Seconds of each step of the experiment, from the stage records in `out`. A PPO run's wall-clock holds its
     setup too: the first world-model run's holds the generation of every start's goal."""
     times = {}
+    goals = goal_generation_seconds(out / GOAL_FILE)
+    if goals is not None:
+        times["goals of the world-model starts (the text model, once, before PPO's clock)"] = goals
     for run in runs:
         times[f"PPO {run['method']}: PPO's clock (the budget)"] = run["ppo_seconds"]
         if run["wall_seconds"]:
@@ -210,22 +215,37 @@ def _difference(d: dict) -> str:
     return f"{100 * d['difference']:+.0f} [{100 * low:+.0f}, {100 * high:+.0f}]"
 
 
-def protocol(cfg, summary: dict) -> str:
+def protocol(cfg) -> str:
     p = cfg.pipeline
     sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`" if cfg.sft_checkpoint else "SFT with lerobot-train"
+    budget = (
+        f"the same {p.ppo_minutes:g} min of PPO's clock (rollouts and updates)"
+        if p.ppo_minutes
+        else f"the same number of iterations ({p.ppo_iterations})"
+    )
+    steps = f"{p.ppo_episode_length} steps" if p.ppo_episode_length else "the family's horizon"
+    length = p.table_episode_length or p.ppo_episode_length
+    envs = "`roboscape_wm` starting from the first frame of a demonstration in every training scene (" + (
+        f"{p.wm_starts_per_scene} per family and scene)" if p.wm_starts_per_scene else "every demonstration)"
+    )
+    if p.ppo_one_scene:
+        envs += (
+            ", `roboscape_maniskill` in one scene per family (the paper's baseline, which \"only initializes a "
+            'single type of environment")'
+        )
+    envs += " and `roboscape_maniskill` in every training scene"
     return (
-        f"Task families {', '.join(p.families)}. PPO starts from {sft} and runs in three envs, one multi-task run "
-        f"each, {p.ppo_envs} parallel episodes of {p.ppo_episode_length} steps per iteration, for the same "
-        f"{p.ppo_minutes:g} min of PPO's clock (rollouts and updates) on the same machine, one run at a time: "
-        "`roboscape_wm` starting from the first frame of a demonstration in every training scene ("
-        f"{p.wm_starts_per_scene or 'all'} per family and scene), `roboscape_maniskill` in one scene per family (the "
-        'paper\'s baseline, which "only initializes a single type of environment"), and `roboscape_maniskill` in '
-        "every training scene. The world model's reward is the paper's: alpha x the sparse done reward + beta x "
-        "the similarity to the goal frame the text model generated; the reward ablation pays one term only. Success "
-        f"is measured in the simulator, {p.table_episodes} episodes per (split, family) on the same initial states "
-        f"for every method, episodes end at success or after {p.table_episode_length} steps. IND: the training "
-        "scenes with new initial states; OOD: the held-out scenes (unseen objects and object-container pairs). "
-        "Differences are our success minus theirs with Newcombe's 95% interval for independent proportions."
+        f"Task families {', '.join(p.families)}. PPO starts from {sft}, one multi-task run per env, "
+        f"{p.ppo_envs} parallel episodes of {steps} per iteration, for {budget} on the same machine, one run at a "
+        f"time: {envs}. The world model's reward is the paper's: alpha x the sparse done reward + beta x the "
+        "similarity to the goal frame the text model generated"
+        + ("; the reward ablation pays one term only" if p.reward_ablation else "")
+        + f". Success is measured in the simulator, {p.table_episodes} episodes per (split, family) on the same "
+        "initial states for every method; episodes end at success or after "
+        + (f"{length} steps" if length else "the family's horizon")
+        + ". IND: the training scenes with new initial states; OOD: the held-out scenes (unseen objects and "
+        "object-container pairs). Differences are our success minus theirs, with Newcombe's 95% interval for "
+        "independent proportions."
     )
 
 
@@ -240,7 +260,7 @@ def markdown(cfg, summary: dict) -> str:
         "",
         "## Protocol",
         "",
-        protocol(cfg, summary),
+        protocol(cfg),
         "",
         "## Targets",
         "",
@@ -286,7 +306,8 @@ def markdown(cfg, summary: dict) -> str:
         )
     lines += [
         "",
-        "A decision is one look of the policy: it executes 4 actions of its chunk, as in evaluation. Each run's "
+        "A decision is one look of the policy: it executes the actions of its chunk that evaluation executes (the "
+        "MLP: 4). Each run's "
         "success and return are measured in its own env (in the world model, by its done signal):",
         "",
         "![PPO curves](ppo_curves.png)",

@@ -7,7 +7,7 @@ from gymnasium.utils.env_checker import check_env
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
-from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, goal_generation_seconds
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
@@ -88,6 +88,7 @@ def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monk
     path = tmp_path / "goals.safetensors"
     env = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
     assert path.is_file() and set(env._goal_cache) == {s.episode_index for s in env.starts}  # made at creation
+    assert goal_generation_seconds(path) > 0
     _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
 
     def no_generation(*args):
