@@ -4,7 +4,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.evaluation.success_rate import EvalConfig, run_episodes, wilson_interval
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, difference_interval, run_episodes, wilson_interval
 from lerobot_roboscape.rl.policy_loading import PolicyIO
 from tests.rl.reach_env import TARGET, ReachEnv
 
@@ -13,6 +13,15 @@ def test_wilson_interval_known_values():
     assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
     assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)
     assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+
+
+def test_difference_interval_matches_newcombe():
+    # Newcombe (1998), "Interval estimation for the difference between independent proportions", example (a):
+    # 56/70 against 48/80, method 10 (hybrid score): 0.0524 to 0.3339.
+    a, b = {"successes": 56, "episodes": 70}, {"successes": 48, "episodes": 80}
+    assert difference_interval(a, b) == pytest.approx((0.2, 0.0524, 0.3339), abs=1e-4)
+    d, low, high = difference_interval(b, a)
+    assert (d, low, high) == pytest.approx((-0.2, -0.3339, -0.0524), abs=1e-4)  # swapped sides mirror it
 
 
 @pytest.mark.parametrize(("constant_action", "expected"), [(TARGET, True), (-TARGET, False)])
