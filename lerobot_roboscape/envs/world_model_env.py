@@ -330,7 +330,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         }
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp")
-        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": f"{seconds:.1f}"})
+        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": str(seconds)})
         os.replace(tmp, path)
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
