@@ -15,7 +15,7 @@ import numpy as np
 from lerobot_roboscape.envs.world_model_env import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
-from lerobot_roboscape.pipeline.report import _measured, _target, machine, ppo_curves
+from lerobot_roboscape.pipeline.report import _target, machine, ppo_curves, targets_table
 from lerobot_roboscape.pipeline.stages import (
     EVAL_DIR,
     GOAL_FILE,
@@ -264,12 +264,7 @@ def markdown(cfg, summary: dict) -> str:
         "",
         "## Targets",
         "",
-        "| target | measured | goal | met |",
-        "|---|---:|---|:---:|",
-        *(
-            f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |"
-            for name, t in targets.items()
-        ),
+        *targets_table(targets),
         "",
         "## Table 1",
         "",
@@ -388,12 +383,7 @@ def readme_block(cfg, summary: dict) -> str:
         f"each step is [{cfg.report_dir}/report.md]({cfg.report_dir}/report.md). Regenerate it with "
         f"`{command(cfg)}`.",
         "",
-        "| target | measured | goal | met |",
-        "|---|---:|---|:---:|",
-        *(
-            f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |"
-            for name, t in summary["targets"].items()
-        ),
+        *targets_table(summary["targets"]),
         "",
         format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
     ]

@@ -338,6 +338,14 @@ def _episodes(n: int) -> str:
     return f"{n} episode" if n == 1 else f"{n} episodes"
 
 
+def targets_table(targets: dict) -> list[str]:
+    """Markdown rows of {target: row}: what was measured, the goal, whether it is met."""
+    rows = [
+        f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |" for name, t in targets.items()
+    ]
+    return ["| target | measured | goal | met |", "|---|---:|---|:---:|", *rows]
+
+
 def _target(value, goal: str, met: bool, detail: str | None = None) -> dict:
     """A target row: the measured value, the goal, whether it is met, and what the value is made of (optional)."""
     row = {"value": None if value is None else round(float(value), 4), "goal": goal, "met": bool(met)}
@@ -429,11 +437,7 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         "",
     ]
     if cfg.scale in JUDGED_SCALES:
-        lines += ["| target | measured | goal | met |", "|---|---:|---|:---:|"]
-        lines += [
-            f"| {name} | {_measured(t)} | {t['goal']} | {'yes' if t['met'] else '**no**'} |"
-            for name, t in targets.items()
-        ]
+        lines += targets_table(targets)
     else:
         lines += [
             f"The {cfg.scale} scale trains every model for minutes to show each stage working; it is too small to "
