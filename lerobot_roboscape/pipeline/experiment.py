@@ -77,7 +77,7 @@ class TrainedStages:
 
 def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
     """The demonstrations, tokenizer, world models, done report and reward models of the run in `out`."""
-    train = DatasetConfig(repo_id="local/roboscape_demos", root=str(out / stages.DEMOS_DIR))
+    train = DatasetConfig(repo_id=stages.DEMOS_REPO_ID, root=str(out / stages.DEMOS_DIR))
     tokenizer = out / stages.TOKENIZER_DIR / FINAL
     models = {control: out / stages.world_model_dir(control) / FINAL for control in ("action", "text")}
     done = out / stages.DONE_REPORT_DIR / "done_report.json"
@@ -170,7 +170,7 @@ def replay_in_simulator(
         if (terminated | truncated).all():
             break
     actions = np.stack(actions)  # (T, B, A)
-    rows = []
+    rows, strips = [], []
     for i, start in enumerate(chosen):
         family, scene, seed = start.facts["task_family"], start.facts["scene"], int(start.facts["seed"])
         job = EpisodeJob(family, scene, seed, "optimal", p.image_size)
@@ -190,8 +190,8 @@ def replay_in_simulator(
         )
         row["video"] = f"{i:02d}_{family}_{outcome}.mp4"
         write_video(folder / row["video"], clip, CONTROL_FREQ)
-        rows.append(row | {"strip": _strip(clip)})
-    strips = [row.pop("strip") for row in rows]
+        rows.append(row)
+        strips.append(_strip(clip))
     iio.imwrite(folder / "replay.png", np.concatenate(strips[:REPLAY_STRIPS], axis=0))
     env.close()
     write_text_atomically(folder / "replay.json", json.dumps(rows, indent=2))

@@ -73,6 +73,7 @@ SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classi
 # ---- where the stages write: folders under output_dir (the report and the run's summary read them here) ---------
 
 DEMOS_DIR = "datasets/roboscape_demos"
+DEMOS_REPO_ID = "local/roboscape_demos"
 HELDOUT_DIR = "datasets/roboscape_heldout"
 VALIDATION_DIR = "datasets/roboscape_validation"
 CONTROL_DIR = "datasets/roboscape_controllability"
@@ -227,7 +228,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
     scenes and a controllability set from OOD starts."""
     train = _collect(
         CollectConfig(
-            repo_id="local/roboscape_demos",
+            repo_id=DEMOS_REPO_ID,
             root=str(out / DEMOS_DIR),
             families=cfg.families,
             split="ind",
