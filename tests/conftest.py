@@ -112,11 +112,12 @@ def token_cache(demo_dataset, trained_tokenizer, tmp_path_factory):
     from lerobot_roboscape.world_model.train import prepare_token_cache
 
     _, root = demo_dataset
-    return prepare_token_cache(
+    cache, _ = prepare_token_cache(
         DatasetConfig(repo_id="test/demos", root=str(root)),
         str(trained_tokenizer),
         tmp_path_factory.mktemp("token_cache"),
     )
+    return cache
 
 
 # A world model small enough to train in seconds on the tests' token cache.

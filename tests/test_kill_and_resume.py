@@ -196,7 +196,7 @@ def test_token_cache(demo_dataset, trained_tokenizer, token_cache, tmp_path):
     ]
     kill_when(command("train_wm", *args), lambda: any(cache_dir.glob(".v*")))  # killed while tokenizing
     assert not [p for p in cache_dir.iterdir() if not p.name.startswith(".")]  # no cache a later run would open
-    rebuilt = prepare_token_cache(
+    rebuilt, _ = prepare_token_cache(
         DatasetConfig(repo_id="test/demos", root=str(root)), str(trained_tokenizer), cache_dir
     )
     assert [p.name for p in cache_dir.iterdir()] == [rebuilt.root.name]  # the killed build's leftovers are gone

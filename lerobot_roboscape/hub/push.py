@@ -123,9 +123,12 @@ def stage_world_models(
 
     def wm_fields(key):
         c = configs[key]
+        stats = {name: [f"{v:.4g}" for v in c.get(name) or []] for name in ("action_mean", "action_std")}
         return {
             "size": f"d_model {c['d_model']}, {c['n_layer']} layers",
             "parameters": parameter_count(sources[key] / "model.safetensors"),
+            "dims": list(range(len(stats["action_mean"]))),
+            **stats,
         }
 
     card = model_card(

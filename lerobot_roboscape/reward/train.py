@@ -59,7 +59,7 @@ class TrainRewardConfig:
 
 
 def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
-    cache = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
+    cache, _ = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).eval().requires_grad_(False)
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)

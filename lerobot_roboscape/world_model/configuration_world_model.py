@@ -6,6 +6,8 @@ from lerobot_roboscape.errors import InvalidInputError
 
 CONTROLS = ("action", "text")
 DONE_LOSSES = ("balanced_bce", "rmse")
+ADALN_GATES = ("none", "one_plus", "zero")
+MASKGIT_ORDERS = ("confidence", "annealed", "random")
 
 
 @dataclass
@@ -22,6 +24,10 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         tokens_per_side: side of one view's token grid (the tokenizer's).
         vocab_size: tokenizer codebook size.
         action_dim: width of the actions (action model).
+        action_mean, action_std: per-dimension statistics of the training data's actions (LeRobot's
+            dataset.meta.stats["action"]), filled in by training: the action model reads (action - mean) / std,
+            with std floored at ACTION_STD_FLOOR. Saved with the model; a saved action model without them is
+            refused at load.
         text_encoder: T5 checkpoint (Hub id or local directory) for the text model; None builds a small random
             T5 with a byte-level tokenizer (tests and the tiny preset: instructions are told apart, not understood).
         text_max_length: instructions are truncated to this many T5 tokens.
@@ -33,6 +39,22 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         window: frames the model sees at once (training clip length and generation context).
         prompt_frames: real frames given before prediction starts in evaluation.
         maskgit_steps: parallel decoding steps per generated frame.
+        maskgit_order: which tokens a decoding step keeps: "confidence" (the most confident, greedy), "annealed"
+            (MaskGIT: confidence plus Gumbel noise annealed to 0 over the steps) or "random" (1X's GENIE code: a
+            random order, since confidence ranking tends to copy the previous frame).
+        maskgit_noise: the Gumbel noise's temperature at the first step of "annealed" decoding (MaskGIT's 4.5).
+        adaln: the frame's control in every block's LayerNorms (scale, shift and gate from the pooled control, the
+            projection zero-initialised as in DiT): "none", "one_plus" (each sub-layer gated by 1 + g, so training
+            starts from the block without it) or "zero" (DiT's AdaLN-Zero: gated by g, every block starts as the
+            identity).
+        normalize_control: LayerNorm the control tokens before each block's cross-attention and the pooled control
+            before the adaptive LayerNorm (raw, they start ~8x smaller than the image tokens).
+        control_dropout: share of training frames (action model) or clips (text model) whose control is replaced
+            by the learned null control, so that the model also learns an unconditional mode for guidance.
+        guidance_scale: classifier-free guidance at generation, logits = null + scale * (control - null); 1 is
+            off. Needs a model trained with control_dropout > 0.
+        full_mask_prob: share of training frames (after the first) masked entirely, as the first decoding step
+            sees them.
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
         add_action: also add the action's embedding (the mean of its control tokens) to every token of the frame it
@@ -53,6 +75,8 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     # Control.
     control: str = "action"
     action_dim: int = 7
+    action_mean: list[float] | None = None
+    action_std: list[float] | None = None
     text_encoder: str | None = None
     text_max_length: int = 64
     # Frames.
@@ -69,8 +93,16 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     window: int = 8
     prompt_frames: int = 2
     maskgit_steps: int = 2
+    maskgit_order: str = "confidence"
+    maskgit_noise: float = 4.5
+    guidance_scale: float = 1.0
+    # Control path.
+    adaln: str = "none"
+    normalize_control: bool = False
+    control_dropout: float = 0.0
     # Training.
     clean_frame_prob: float = 0.25
+    full_mask_prob: float = 0.0
     add_action: bool = False
     changed_token_weight: float = 0.0
     context_drop_prob: float = 0.0
@@ -89,6 +121,25 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             raise InvalidInputError(f"done_loss must be one of {DONE_LOSSES}, got {self.done_loss!r}")
         if self.maskgit_steps < 1:
             raise InvalidInputError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
+        for name in ("action_mean", "action_std"):
+            if (stats := getattr(self, name)) is not None and len(stats) != self.action_dim:
+                raise InvalidInputError(
+                    f"{name} has {len(stats)} dimensions but the actions have action_dim={self.action_dim}: "
+                    "statistics of another action layout; retrain the world model on this dataset (roboscape-train-wm)"
+                )
+        if (self.action_mean is None) != (self.action_std is None):
+            raise InvalidInputError("action_mean and action_std are set together (from dataset.meta.stats['action'])")
+        if self.maskgit_order not in MASKGIT_ORDERS:
+            raise InvalidInputError(f"maskgit_order must be one of {MASKGIT_ORDERS}, got {self.maskgit_order!r}")
+        if self.adaln not in ADALN_GATES:
+            raise InvalidInputError(f"adaln must be one of {ADALN_GATES}, got {self.adaln!r}")
+        for name in ("control_dropout", "full_mask_prob", "clean_frame_prob"):
+            if not 0 <= getattr(self, name) < 1:
+                raise InvalidInputError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        if self.guidance_scale != 1 and self.control_dropout == 0:
+            raise InvalidInputError(
+                f"guidance_scale={self.guidance_scale} needs a null control: train with control_dropout > 0"
+            )
 
     @classmethod
     def default_choice_name(cls) -> str:

@@ -1,4 +1,6 @@
-"""Control encoders: what the world model's cross-attention reads. Both return `Control` tokens, one set per frame."""
+"""Control encoders: what the world model reads of its control. Both return `Control`: tokens for the cross-attention
+and one pooled vector per frame for the blocks' adaptive LayerNorm, and a null control of the same shapes (the
+unconditional mode that control dropout trains and classifier-free guidance subtracts)."""
 
 from pathlib import Path
 from typing import NamedTuple
@@ -11,21 +13,51 @@ from lerobot_roboscape.world_model.configuration_world_model import WorldModelCo
 
 # Several tokens per action let each image token's query pick its own mix of the action's features.
 ACTION_TOKENS = 4
+# Planned rotations barely move (std ~1e-3): a policy's exploratory 0.1 rad would read as 100 std without a floor.
+ACTION_STD_FLOOR = 0.05
 TINY_T5 = dict(d_model=64, d_kv=16, d_ff=128, num_layers=2, num_heads=4, dropout_rate=0.0)
 
 
 class Control(NamedTuple):
     tokens: torch.Tensor  # (B, T, L, C), or (B, 1, L, C) when every frame shares it (text)
     mask: torch.Tensor | None  # (B, T or 1, L) bool, True where a token may be attended to; None = all
+    pooled: torch.Tensor  # (B, T or 1, C): what the adaptive LayerNorm of every block reads
+
+    def frames(self, frames: slice) -> "Control":
+        """The controls of some frames; a control shared by every frame (text) is returned whole."""
+        if self.tokens.shape[1] == 1:
+            return self
+        return Control(
+            self.tokens[:, frames], None if self.mask is None else self.mask[:, frames], self.pooled[:, frames]
+        )
+
+    def where(self, use_null: torch.Tensor, null: "Control") -> "Control":
+        """This control with the null one where `use_null` ((B, T or 1) bool) is set."""
+        tokens = torch.where(use_null[..., None, None], null.tokens, self.tokens)
+        mask = None if self.mask is None else torch.where(use_null[..., None], null.mask, self.mask)
+        return Control(tokens, mask, torch.where(use_null[..., None], null.pooled, self.pooled))
+
+    @staticmethod
+    def cat(controls: list["Control"], dim: int) -> "Control":
+        masks = [c.mask for c in controls]
+        mask = None if masks[0] is None else torch.cat(masks, dim)
+        return Control(torch.cat([c.tokens for c in controls], dim), mask, torch.cat([c.pooled for c in controls], dim))
 
 
 class ActionEncoder(nn.Module):
-    """7-D actions -> ACTION_TOKENS tokens per frame. Frames with no preceding action (an episode's first frame)
-    get a learned null action."""
+    """7-D actions, normalised by the training data's statistics -> ACTION_TOKENS tokens per frame. Frames with no
+    preceding action (an episode's first frame) get a learned null action.
+
+    Every caller (training, generation, the reports, `roboscape_wm`) passes raw actions: the normalisation lives
+    here only, with the statistics saved in the model's config."""
 
     def __init__(self, config: WorldModelConfig):
         super().__init__()
         self.action_dim, self.d_model = config.action_dim, config.d_model
+        mean = torch.zeros(config.action_dim) if config.action_mean is None else torch.tensor(config.action_mean)
+        std = torch.ones(config.action_dim) if config.action_std is None else torch.tensor(config.action_std)
+        self.register_buffer("mean", mean.float(), persistent=False)
+        self.register_buffer("std", std.float().clamp(min=ACTION_STD_FLOOR), persistent=False)
         self.mlp = nn.Sequential(
             nn.Linear(config.action_dim, config.d_model),
             nn.GELU(),
@@ -37,10 +69,18 @@ class ActionEncoder(nn.Module):
         """actions: (B, T, action_dim) float; no_action: (B, T) bool."""
         if actions.ndim != 3 or actions.shape[-1] != self.action_dim:
             raise ValueError(f"actions must have shape (B, T, {self.action_dim}), got {tuple(actions.shape)}")
-        emb = self.mlp(actions)
+        emb = self.mlp((actions - self.mean.to(actions.dtype)) / self.std.to(actions.dtype))
         if no_action is not None:
             emb = torch.where(no_action[..., None], self.null.to(emb.dtype), emb)
-        return Control(emb.unflatten(-1, (ACTION_TOKENS, self.d_model)), None)
+        return self._control(emb)
+
+    def null_control(self, like: Control) -> Control:
+        """The null action in every frame of `like`."""
+        return self._control(self.null.to(like.tokens.dtype).expand(*like.tokens.shape[:2], -1))
+
+    def _control(self, emb_BTX: torch.Tensor) -> Control:
+        tokens = emb_BTX.unflatten(-1, (ACTION_TOKENS, self.d_model))
+        return Control(tokens, None, tokens.mean(dim=2))
 
 
 class TextEncoder(nn.Module):
@@ -60,6 +100,7 @@ class TextEncoder(nn.Module):
             self.t5 = T5EncoderModel(T5Config(vocab_size=len(self.tokenizer), **TINY_T5))
         self.t5.requires_grad_(False).eval()
         self.proj = nn.Linear(self.t5.config.d_model, config.d_model)
+        self.null = nn.Parameter(torch.zeros(config.d_model))  # the "no instruction" token
         self._cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def train(self, mode: bool = True):
@@ -84,7 +125,17 @@ class TextEncoder(nn.Module):
         if not instructions or not all(isinstance(s, str) and s for s in instructions):
             raise ValueError(f"instructions must be non-empty strings, got {instructions!r}")
         states, mask = self._t5_states(list(instructions), self.proj.weight.device)
-        return Control(self.proj(states.to(self.proj.weight.dtype))[:, None], mask[:, None])
+        tokens = self.proj(states.to(self.proj.weight.dtype))  # (B, L, C)
+        pooled = (tokens * mask[..., None]).sum(1) / mask.sum(1, keepdim=True).clamp(min=1)
+        return Control(tokens[:, None], mask[:, None], pooled[:, None])
+
+    def null_control(self, like: Control) -> Control:
+        """The null instruction: one attended token, the same for every sample."""
+        B, T, L, C = like.tokens.shape
+        mask = torch.zeros(B, T, L, dtype=torch.bool, device=like.tokens.device)
+        mask[..., 0] = True
+        null = self.null.to(like.tokens.dtype)
+        return Control(null.expand(B, T, L, C), mask, null.expand(B, T, C))
 
     def save_tokenizer_and_config(self, directory: str | Path) -> None:
         self.tokenizer.save_pretrained(directory)

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from huggingface_hub import snapshot_download
 from torch import nn
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
@@ -43,6 +44,8 @@ class STWorldModel(
             self.control_encoder = ActionEncoder(config)
         else:
             self.control_encoder = TextEncoder(config, saved_dir=text_encoder_dir)
+        # The pooled control the blocks' adaptive LayerNorm reads, normalised like the tokens the cross-attention reads
+        self.ln_pooled = nn.LayerNorm(C) if config.normalize_control else nn.Identity()
         self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
         self.ln_f = nn.LayerNorm(C)
         self.head = nn.Linear(C, config.vocab_size)
@@ -51,6 +54,8 @@ class STWorldModel(
             if not name.startswith("control_encoder.t5"):
                 self._init_weights(module)
         nn.init.normal_(self.pos_emb, std=0.02)
+        for block in self.blocks:
+            block.zero_init_modulation()
 
     @staticmethod
     def _init_weights(module):
@@ -71,6 +76,10 @@ class STWorldModel(
             raise ValueError("the text world model needs instructions")
         return self.control_encoder(instructions)
 
+    def null_control(self, like: Control) -> Control:
+        """The learned null control (no action, no instruction) in the shapes of `like`."""
+        return self.control_encoder.null_control(like)
+
     # ---- the network ---------------------------------------------------------------------------------------
 
     def compute_hidden(self, tokens_BTS, control: Control, cache: KVCache | None = None):
@@ -81,11 +90,12 @@ class STWorldModel(
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
         x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
         if self.config.add_action and self.config.control == "action":
-            x_BTSC = x_BTSC + control.tokens.mean(dim=2, keepdim=True)  # (B, T, 1, C): each frame its action
+            x_BTSC = x_BTSC + control.pooled[:, :, None]  # (B, T, 1, C): each frame its action
+        control = control._replace(pooled=self.ln_pooled(control.pooled))
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         kvs = []
         for block, layer_cache in zip(self.blocks, layer_caches, strict=True):
-            x_BTSC, kv = block(x_BTSC, control.tokens, control.mask, layer_cache)
+            x_BTSC, kv = block(x_BTSC, control, layer_cache)
             kvs.append(kv)
         return self.ln_f(x_BTSC), kvs
 
@@ -100,11 +110,17 @@ class STWorldModel(
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
         """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, A) + no_action (B, T) or task (B
-        strings). Frames after the first are masked at a MaskGIT ratio each, or left clean with clean_frame_prob."""
+        strings). Frames after the first are masked at a MaskGIT ratio each, left clean with clean_frame_prob, or
+        masked whole with full_mask_prob; controls are replaced by the null control with control_dropout."""
         tokens, done = batch["tokens"], batch["done"]
         B, T, S = tokens.shape
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
+        if self.config.control_dropout > 0:
+            dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < self.config.control_dropout
+            control = control.where(dropped, self.null_control(control))
         ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
+        if self.config.full_mask_prob > 0:
+            ratio = ratio.masked_fill(torch.rand(B, T, 1, device=tokens.device) < self.config.full_mask_prob, 1.0)
         ratio[:, 0] = 0.0
         ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
         # Some clips start over at a random frame: the frames before it are hidden (mask tokens, no loss) and it is
@@ -172,12 +188,10 @@ class STWorldModel(
             got = None if actions is None else tuple(actions.shape)
             raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
         control = self.episode_control(actions, no_action, instructions)
-        rollout = Rollout.start(self, prompt_BPS, self.frame_control(control, slice(0, P)), use_cache)
+        rollout = Rollout.start(self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True)
         frames, dones = [], []
         for t in range(P, P + n_frames):
-            frame, done = rollout.predict_next_frame(
-                self.frame_control(control, slice(t, t + 1)), temperature, generator
-            )
+            frame, done = rollout.predict_next_frame(control.frames(slice(t, t + 1)), temperature, generator)
             frames.append(frame)
             dones.append(done)
         return torch.stack(frames, 1), torch.stack(dones, 1)
@@ -187,11 +201,10 @@ class STWorldModel(
         """Read known frames one after the other, as a rollout would (each sees the window before it). Returns
         done probabilities (B, T) and features (B, T, C). Actions: (B, T - 1, A), action t leading to frame t + 1."""
         control = self.episode_control(actions, instructions=instructions)
-        rollout = Rollout.start(self, tokens_BTS[:, :1], self.frame_control(control, slice(0, 1)))
+        rollout = Rollout.start(self, tokens_BTS[:, :1], control.frames(slice(0, 1)))
         done, features = [rollout.done], [rollout.features]
         for t in range(1, tokens_BTS.shape[1]):
-            frame_control = self.frame_control(control, slice(t, t + 1))
-            done.append(rollout.observe(tokens_BTS[:, t : t + 1], frame_control))
+            done.append(rollout.observe(tokens_BTS[:, t : t + 1], control.frames(slice(t, t + 1))))
             features.append(rollout.features)
         return torch.stack(done, 1), torch.stack(features, 1)
 
@@ -206,9 +219,6 @@ class STWorldModel(
         if no_action is not None:
             flags[:, 1:] |= no_action
         return self.encode_control(shifted, flags)
-
-    def frame_control(self, control: Control, frames: slice) -> Control:
-        return control if self.config.control == "text" else Control(control.tokens[:, frames], None)
 
     # ---- saving --------------------------------------------------------------------------------------------
 
@@ -245,7 +255,7 @@ class STWorldModel(
             )
         if (root / TEXT_ENCODER_DIR).is_dir():
             kwargs["text_encoder_dir"] = str(root / TEXT_ENCODER_DIR)
-        return super()._from_pretrained(
+        model = super()._from_pretrained(
             model_id=model_id,
             revision=revision,
             cache_dir=cache_dir,
@@ -254,3 +264,11 @@ class STWorldModel(
             token=token,
             **kwargs,
         )
+        if model.config.control == "action" and model.config.action_mean is None:
+            zeros, ones = [0.0] * model.config.action_dim, [1.0] * model.config.action_dim
+            raise InvalidInputError(
+                f"{model_id}: an action world model saved without action statistics (before actions were "
+                "normalised); retrain it with roboscape-train-wm, or keep its raw-action behaviour by adding "
+                f'"action_mean": {zeros}, "action_std": {ones} to its config.json'
+            )
+        return model

@@ -6,6 +6,9 @@ before it. Without it, every step re-reads the whole window of past frames, as t
 `STMaskGIT.generate`) does. Both give the same tokens while the rollout fits in the window; past it, a cached frame
 keeps the keys and values it was computed with (its own window of context), where recomputing re-reads the oldest
 frames of the window without theirs.
+
+With classifier-free guidance (`guidance_scale` != 1) the rollout runs twice the batch: each sample under its control
+and under the null control, each half with its own keys and values, and decodes from the guided logits.
 """
 
 import math
@@ -21,24 +24,35 @@ from lerobot_roboscape.world_model.st_transformer import KVCache
 @dataclass
 class Rollout:
     """What a running generation remembers: the last `window - 1` frames as tokens, their controls, and (with the
-    cache) every layer's keys and values of those frames."""
+    cache) every layer's keys and values of those frames. When guided, tokens, controls and cache hold the samples
+    under their control followed by the same samples under the null control."""
 
     model: nn.Module  # an STWorldModel (not imported: it imports this module to generate)
-    tokens: torch.Tensor  # (B, T, S) long
+    tokens: torch.Tensor  # (B, T, S) long, (2B, T, S) when guided
     control: Control  # (B, T, L, C) for the action model; (B, 1, L, C) shared for the text model
     cache: KVCache | None  # None when generating by recomputing the window
     done: torch.Tensor  # (B,) done probability of the latest frame
     features: torch.Tensor  # (B, C) the latest frame's final hidden state, averaged over its tokens
     frames_seen: int = 0
+    guided: bool = False
 
     @classmethod
     @torch.no_grad()
-    def start(cls, model: nn.Module, prompt_BPS, control: Control, use_cache: bool = True) -> "Rollout":
-        """Read the prompt frames (real tokens) with their controls."""
+    def start(
+        cls, model: nn.Module, prompt_BPS, control: Control, use_cache: bool = True, guided: bool = True
+    ) -> "Rollout":
+        """Read the prompt frames (real tokens) with their controls. `guided`: apply the model's guidance scale
+        (reading known frames only, as teacher forcing does, needs no guidance)."""
+        guided = guided and model.config.guidance_scale != 1
+        B = prompt_BPS.shape[0]
+        if guided:
+            prompt_BPS = torch.cat([prompt_BPS, prompt_BPS])
+            control = Control.cat([control, model.null_control(control)], 0)
         hidden_BTSC, kvs = model.compute_hidden(prompt_BPS, control)
         cache = KVCache(kvs, model.config.window) if use_cache else None
-        done = torch.sigmoid(model.done_logits(hidden_BTSC[:, -1:])[:, 0].float())
-        rollout = cls(model, prompt_BPS, control, cache, done, hidden_BTSC[:, -1].mean(dim=1), prompt_BPS.shape[1])
+        done = torch.sigmoid(model.done_logits(hidden_BTSC[:B, -1:])[:, 0].float())
+        features = hidden_BTSC[:B, -1].mean(dim=1)
+        rollout = cls(model, prompt_BPS, control, cache, done, features, prompt_BPS.shape[1], guided)
         rollout.slide()
         return rollout
 
@@ -47,9 +61,11 @@ class Rollout:
         self, control: Control, temperature: float = 0.0, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Generate the next frame under `control` ((B, 1, L, C)) in `maskgit_steps` parallel decoding steps, each
-        keeping the most confident of the tokens still masked, then observe it. Returns tokens (B, S) and done (B,)."""
+        keeping the tokens still masked that rank highest in the config's `maskgit_order`, then observe it. Returns
+        tokens (B, S) and done (B,)."""
         config = self.model.config
-        B, S = self.tokens.shape[0], config.tokens_per_frame
+        control = self._paired(control)
+        B, S = self.done.shape[0], config.tokens_per_frame
         frame_B1S = torch.full((B, 1, S), config.mask_token_id, dtype=torch.long, device=self.tokens.device)
         known_BS = torch.zeros(B, S, dtype=torch.bool, device=frame_B1S.device)
         steps = config.maskgit_steps
@@ -63,25 +79,41 @@ class Rollout:
             if step == steps:  # the last step keeps every token still masked
                 frame_B1S[:, 0] = torch.where(known_BS, frame_B1S[:, 0], sample_BS)
                 break
-            confidence_BS = logits_BSV.softmax(-1).gather(-1, sample_BS[..., None]).squeeze(-1)
+            rank_BS = self._rank(logits_BSV, sample_BS, 1 - step / steps, generator)
             n_known = max(int(S * (1 - math.cos(math.pi / 2 * step / steps))), 1)
-            keep_BS = known_BS.scatter(1, confidence_BS.masked_fill(known_BS, math.inf).topk(n_known).indices, True)
+            keep_BS = known_BS.scatter(1, rank_BS.masked_fill(known_BS, math.inf).topk(n_known).indices, True)
             frame_B1S[:, 0] = torch.where(keep_BS & ~known_BS, sample_BS, frame_B1S[:, 0])
             known_BS = keep_BS
-        return frame_B1S[:, 0], self.observe(frame_B1S, control)
+        return frame_B1S[:, 0], self._observe_paired(frame_B1S, control)
+
+    def _rank(self, logits_BSV, sample_BS, noise_left: float, generator) -> torch.Tensor:
+        """Which sampled tokens a decoding step keeps first (higher first)."""
+        config = self.model.config
+        if config.maskgit_order == "random":
+            return torch.rand(sample_BS.shape, generator=generator, device=sample_BS.device)
+        log_confidence = logits_BSV.log_softmax(-1).gather(-1, sample_BS[..., None]).squeeze(-1)
+        if config.maskgit_order == "confidence":
+            return log_confidence
+        uniform = torch.rand(sample_BS.shape, generator=generator, device=sample_BS.device).clamp(min=1e-20)
+        return log_confidence + config.maskgit_noise * noise_left * -torch.log(-torch.log(uniform))
 
     @torch.no_grad()
     def observe(self, frame_B1S, control: Control) -> torch.Tensor:
         """Append a known frame (generated, or real for teacher forcing) to the rollout; returns its done (B,)."""
-        model = self.model
+        return self._observe_paired(frame_B1S, self._paired(control))
+
+    def _observe_paired(self, frame_B1S, control: Control) -> torch.Tensor:
+        model, B = self.model, frame_B1S.shape[0]
+        if self.guided:
+            frame_B1S = torch.cat([frame_B1S, frame_B1S])
         if self.cache is not None:
             hidden_BTSC, _ = model.compute_hidden(frame_B1S, control, self.cache)
             self.cache.commit()
         else:
             tokens = torch.cat([self.tokens, frame_B1S], 1)
             hidden_BTSC, _ = model.compute_hidden(tokens, self._concat_controls(self.control, control))
-        self.features = hidden_BTSC[:, -1].mean(dim=1)
-        self.done = torch.sigmoid(model.done_logits(hidden_BTSC[:, -1:])[:, 0].float())
+        self.features = hidden_BTSC[:B, -1].mean(dim=1)
+        self.done = torch.sigmoid(model.done_logits(hidden_BTSC[:B, -1:])[:, 0].float())
         self.tokens = torch.cat([self.tokens, frame_B1S], 1)
         self.control = self._concat_controls(self.control, control)
         self.frames_seen += 1
@@ -92,18 +124,27 @@ class Rollout:
         """Keep the last window - 1 frames: with the new one, a generated frame sees `window` frames."""
         keep = self.model.config.window - 1
         self.tokens = self.tokens[:, -keep:]
-        if self.model.config.control == "action":
-            self.control = Control(self.control.tokens[:, -keep:], None)
+        self.control = self.control.frames(slice(-keep, None))
+
+    def _paired(self, control: Control) -> Control:
+        """A frame's control, followed by the null control when guided."""
+        return Control.cat([control, self.model.null_control(control)], 0) if self.guided else control
 
     def _logits_of_new_frame(self, frame_B1S, control: Control) -> torch.Tensor:
-        """Logits (B, S, V) of the frame being generated."""
+        """Logits (B, S, V) of the frame being generated (guided: null + scale * (control - null))."""
+        if self.guided:
+            frame_B1S = torch.cat([frame_B1S, frame_B1S])
         if self.cache is not None:
-            return self.model.compute_logits(frame_B1S, control, self.cache)[0][:, -1]
-        # Without the cache: recompute the whole window (past frames + the new one), as the paper's code did.
-        tokens = torch.cat([self.tokens, frame_B1S], 1)
-        return self.model.compute_logits(tokens, self._concat_controls(self.control, control))[0][:, -1]
+            logits = self.model.compute_logits(frame_B1S, control, self.cache)[0][:, -1]
+        else:  # without the cache: recompute the whole window (past frames + the new one), as the paper's code did
+            tokens = torch.cat([self.tokens, frame_B1S], 1)
+            logits = self.model.compute_logits(tokens, self._concat_controls(self.control, control))[0][:, -1]
+        if not self.guided:
+            return logits
+        conditioned, null = logits.float().chunk(2)
+        return null + self.model.config.guidance_scale * (conditioned - null)
 
     def _concat_controls(self, past: Control, new: Control) -> Control:
         if self.model.config.control == "text":
             return past  # one instruction for every frame
-        return Control(torch.cat([past.tokens, new.tokens], 1), None)
+        return Control.cat([past, new], 1)

@@ -15,6 +15,7 @@ from einops import rearrange
 from torch import nn
 
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.world_model.control_encoders import Control
 
 KV = tuple[torch.Tensor, torch.Tensor]  # keys (rotary-rotated) and values of every frame: (P, H, T, D)
 
@@ -156,28 +157,61 @@ class Mlp(nn.Module):
 
 class STBlock(nn.Module):
     """Spatial attention within each frame, causal temporal attention per token position, cross-attention to the
-    frame's control tokens, MLP; each a pre-norm residual."""
+    frame's control tokens, MLP; each a pre-norm residual.
+
+    With `adaln`, every one of the four LayerNorms is modulated by the frame's pooled control (DiT's adaptive
+    LayerNorm, per frame as in IRASim): x + gate * sublayer(LN(x) * (1 + scale) + shift), so the control reaches
+    every token of its frame in every block, not only through the cross-attention's softmax.
+    """
+
+    N_SUBLAYERS = 4  # spatial, temporal, cross, mlp
 
     def __init__(self, config: WorldModelConfig):
         super().__init__()
-        self.ln_spatial, self.spatial = nn.LayerNorm(config.d_model), Attention(config)
-        self.ln_temporal, self.temporal = nn.LayerNorm(config.d_model), TemporalAttention(config)
-        self.ln_cross, self.cross = nn.LayerNorm(config.d_model), Attention(config)
-        self.ln_mlp, self.mlp = nn.LayerNorm(config.d_model), Mlp(config)
+        C = config.d_model
+        self.ln_spatial, self.spatial = nn.LayerNorm(C), Attention(config)
+        self.ln_temporal, self.temporal = nn.LayerNorm(C), TemporalAttention(config)
+        self.ln_cross, self.cross = nn.LayerNorm(C), Attention(config)
+        self.ln_mlp, self.mlp = nn.LayerNorm(C), Mlp(config)
+        self.ln_context = nn.LayerNorm(C) if config.normalize_control else nn.Identity()
+        self.gate_offset = 1.0 if config.adaln == "one_plus" else 0.0
+        self.modulation = None
+        if config.adaln != "none":
+            self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(C, 3 * self.N_SUBLAYERS * C))
 
-    def forward(self, x_BTSC, control_BTLC, control_mask_BTL=None, cache: LayerCache | None = None):
+    def zero_init_modulation(self):
+        """The control starts with no effect (DiT): called after the model's normal initialisation."""
+        if self.modulation is not None:
+            nn.init.zeros_(self.modulation[1].weight)
+            nn.init.zeros_(self.modulation[1].bias)
+
+    def forward(self, x_BTSC, control: Control, cache: LayerCache | None = None):
         B, T, S, _ = x_BTSC.shape
-        x_FSC = rearrange(x_BTSC, "b t s c -> (b t) s c")
-        x_FSC = x_FSC + self.spatial(self.ln_spatial(x_FSC))
+        if self.modulation is None:
+            mods = [(None, None, None)] * self.N_SUBLAYERS
+        else:  # (B, T or 1, 12C) -> 4 x (shift, scale, gate), each (B, T or 1, 1, C)
+            chunks = self.modulation(control.pooled)[:, :, None].chunk(3 * self.N_SUBLAYERS, dim=-1)
+            mods = [chunks[3 * i : 3 * i + 3] for i in range(self.N_SUBLAYERS)]
 
-        x_PTC = rearrange(x_FSC, "(b t) s c -> (b s) t c", b=B)
-        h_PTC, kv = self.temporal(self.ln_temporal(x_PTC), cache)
-        x_FSC = rearrange(x_PTC + h_PTC, "(b s) t c -> (b t) s c", b=B)
+        def norm(ln, x, mod):
+            shift, scale, _ = mod
+            return ln(x) if shift is None else ln(x) * (1 + scale) + shift
 
-        control_FLC = rearrange(control_BTLC.expand(B, T, -1, -1), "b t l c -> (b t) l c")
+        def gated(h, mod):
+            return h if mod[2] is None else (self.gate_offset + mod[2]) * h
+
+        h_BTSC = rearrange(norm(self.ln_spatial, x_BTSC, mods[0]), "b t s c -> (b t) s c")
+        x_BTSC = x_BTSC + gated(rearrange(self.spatial(h_BTSC), "(b t) s c -> b t s c", b=B), mods[0])
+
+        h_PTC = rearrange(norm(self.ln_temporal, x_BTSC, mods[1]), "b t s c -> (b s) t c")
+        h_PTC, kv = self.temporal(h_PTC, cache)
+        x_BTSC = x_BTSC + gated(rearrange(h_PTC, "(b s) t c -> b t s c", b=B), mods[1])
+
+        context_FLC = rearrange(self.ln_context(control.tokens).expand(B, T, -1, -1), "b t l c -> (b t) l c")
         mask = None
-        if control_mask_BTL is not None:
-            mask = rearrange(control_mask_BTL.expand(B, T, -1), "b t l -> (b t) 1 1 l")
-        x_FSC = x_FSC + self.cross(self.ln_cross(x_FSC), control_FLC, mask)
-        x_FSC = x_FSC + self.mlp(self.ln_mlp(x_FSC))
-        return rearrange(x_FSC, "(b t) s c -> b t s c", b=B), kv
+        if control.mask is not None:
+            mask = rearrange(control.mask.expand(B, T, -1), "b t l -> (b t) 1 1 l")
+        h_FSC = self.cross(rearrange(norm(self.ln_cross, x_BTSC, mods[2]), "b t s c -> (b t) s c"), context_FLC, mask)
+        x_BTSC = x_BTSC + gated(rearrange(h_FSC, "(b t) s c -> b t s c", b=B), mods[2])
+        x_BTSC = x_BTSC + gated(self.mlp(norm(self.ln_mlp, x_BTSC, mods[3])), mods[3])
+        return x_BTSC, kv

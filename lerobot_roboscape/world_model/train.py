@@ -4,8 +4,10 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
+from lerobot.utils.constants import ACTION
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -65,17 +67,22 @@ def prepare_token_cache(
     cache_dir: Path,
     token_cache: Path | None = None,
     device: str = "auto",
-) -> TokenCache:
-    """The token cache of every episode of the dataset under this tokenizer, built on first use."""
+) -> tuple[TokenCache, dict]:
+    """The token cache of every episode of the dataset under this tokenizer, built on first use, and the dataset's
+    action statistics (LeRobot's dataset.meta.stats["action"])."""
     dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root)  # the cache covers all episodes
+    stats = dataset.meta.stats[ACTION]
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
     if token_cache is not None:
-        return open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
-    return load_or_build_token_cache(dataset, tokenizer, cache_dir, device=resolve_device(device))
+        cache = open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
+    else:
+        cache = load_or_build_token_cache(dataset, tokenizer, cache_dir, device=resolve_device(device))
+    return cache, stats
 
 
-def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache) -> WorldModelConfig:
-    """Frame layout and action width come from the data; say so when they differ from the preset."""
+def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, action_stats: dict) -> WorldModelConfig:
+    """Frame layout, action width and action statistics come from the data; say so when the layout differs from
+    the preset."""
     for name, value in (
         ("n_cameras", len(cache.cameras)),
         ("tokens_per_side", cache.tokens_per_side),
@@ -85,11 +92,14 @@ def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache) -> WorldModelCo
         if getattr(wm, name) != value:
             logger.info("wm.%s = %s (from the token cache; the preset had %s)", name, value, getattr(wm, name))
             setattr(wm, name, value)
+    wm.action_mean = np.asarray(action_stats["mean"], dtype=np.float64).reshape(-1).tolist()
+    wm.action_std = np.asarray(action_stats["std"], dtype=np.float64).reshape(-1).tolist()
+    wm.__post_init__()  # the statistics must fit the action layout
     return wm
 
 
 def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
-    cache = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
+    cache, action_stats = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
     text = cfg.wm.control == "text"
     episodes = select_episodes(
         cache,
@@ -105,7 +115,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         cache.root,
     )
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
-    model = STWorldModel(fit_config_to_cache(cfg.wm, cache))
+    model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
     batches = ClipSampler(cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed)
     run_config = {**asdict(cfg), "token_cache": str(cache.root)}
     return fit(

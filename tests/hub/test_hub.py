@@ -101,6 +101,9 @@ def test_world_models_repo_and_card(trained_tokenizer, world_models, tmp_path):
     assert "--env.world_models=me/roboscape_wm" in card.text
     assert '"steps": 20' in card.text  # the training config of the world models
     assert "No fidelity report" in card.text
+    action_config = json.loads((repo / "action_world_model" / "config.json").read_text())
+    std_row = "| std | " + " | ".join(f"{v:.4g}" for v in action_config["action_std"]) + " |"
+    assert std_row in card.text  # the action statistics the model normalises by
 
 
 def test_world_models_push_uploads_the_staged_folder(trained_tokenizer, world_models, recorded_hub):

@@ -1,7 +1,9 @@
 import pytest
 import torch
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.configuration_world_model import PaperWorldModelConfig, TinyWorldModelConfig
+from lerobot_roboscape.world_model.control_encoders import ACTION_STD_FLOOR
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
 
@@ -17,11 +19,27 @@ MICRO = dict(
     done_hidden=32,
 )
 TASKS = ["push the red cube forward", "pull the red cube back"]
+STATS = dict(action_mean=[0.1] * 7, action_std=[0.3] * 7)
+# The control path's levers together, each active (the AdaLN projections and the null text token start at 0).
+CONTROL_PATH = dict(adaln="one_plus", normalize_control=True, control_dropout=0.1, guidance_scale=2.0)
+VARIANTS = [
+    ("action", {}),
+    ("action", {"add_action": True}),
+    ("action", CONTROL_PATH),
+    ("action", {**CONTROL_PATH, "adaln": "zero", "maskgit_order": "annealed"}),
+    ("text", {}),
+    ("text", {**CONTROL_PATH, "maskgit_order": "random"}),
+]
 
 
 def make_model(control="action", **overrides):
     torch.manual_seed(0)
-    return STWorldModel(TinyWorldModelConfig(control=control, **{**MICRO, **overrides})).eval()
+    stats = STATS if control == "action" else {}
+    model = STWorldModel(TinyWorldModelConfig(control=control, **{**MICRO, **stats, **overrides})).eval()
+    for name, param in model.named_parameters():  # zero-initialised control paths, made to act
+        if "modulation" in name or name == "control_encoder.null":
+            torch.nn.init.normal_(param, std=0.05)
+    return model
 
 
 def random_batch(B=2, T=4, S=8, V=16, seed=0):
@@ -67,9 +85,9 @@ def test_shapes_and_loss(control):
     assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_loss"}
 
 
-@pytest.mark.parametrize("control,add_action", [("action", False), ("action", True), ("text", False)])
-def test_future_frames_never_influence_the_past(control, add_action):
-    model = make_model(control, add_action=add_action)
+@pytest.mark.parametrize("control,overrides", VARIANTS)
+def test_future_frames_never_influence_the_past(control, overrides):
+    model = make_model(control, **overrides)
     batch = random_batch()
     control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
     logits, done, _ = model.compute_logits(batch["tokens"], control_tokens)
@@ -84,14 +102,15 @@ def test_future_frames_never_influence_the_past(control, add_action):
     assert not torch.allclose(logits2[:, 2:], logits[:, 2:])
 
 
-@pytest.mark.parametrize("control,add_action", [("action", False), ("action", True), ("text", False)])
-def test_cached_generation_equals_recomputing_the_window(control, add_action):
-    model = make_model(control, add_action=add_action)
+@pytest.mark.parametrize("control,overrides", VARIANTS)
+def test_cached_generation_equals_recomputing_the_window(control, overrides):
+    """Guided, each half (under the control, under the null control) keeps its own cache."""
+    model = make_model(control, **overrides)
     batch = random_batch(T=4)
     prompt = batch["tokens"][:, :1]
     kw = control_kwargs(model, batch, 3)
-    cached, done_cached = model.generate(prompt, 3, use_cache=True, **kw)
-    full, done_full = model.generate(prompt, 3, use_cache=False, **kw)
+    cached, done_cached = model.generate(prompt, 3, use_cache=True, generator=torch.Generator().manual_seed(0), **kw)
+    full, done_full = model.generate(prompt, 3, use_cache=False, generator=torch.Generator().manual_seed(0), **kw)
     assert torch.equal(cached, full)
     torch.testing.assert_close(done_cached, done_full)
 
@@ -108,6 +127,105 @@ def test_added_action_reaches_every_token_of_its_frame():
         a = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]))[0]
         b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]))[0]
         assert (not torch.allclose(a, b)) == reacts
+
+
+@pytest.mark.parametrize("gate", ["one_plus", "zero"])
+def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame(gate):
+    batch = random_batch()
+    plain = make_model()
+    torch.manual_seed(0)  # unperturbed: the zero-initialised modulation, as training starts
+    fresh = STWorldModel(TinyWorldModelConfig(control="action", adaln=gate, **MICRO, **STATS)).eval()
+    logits = fresh.compute_logits(batch["tokens"], fresh.encode_control(batch["actions"], batch["no_action"]))[0]
+    if gate == "one_plus":  # the same weights as the model without AdaLN: the same function
+        fresh_weights = {k: v for k, v in fresh.state_dict().items() if "modulation" not in k}
+        plain.load_state_dict(fresh_weights)
+        expected = plain.compute_logits(batch["tokens"], plain.encode_control(batch["actions"], batch["no_action"]))
+        torch.testing.assert_close(logits, expected[0])
+    else:  # DiT's AdaLN-Zero: every block starts as the identity
+        x = fresh.token_emb(batch["tokens"]) + fresh.pos_emb
+        torch.testing.assert_close(logits, fresh.head(fresh.ln_f(x)))
+
+    model = make_model(adaln=gate)
+    for block in model.blocks:  # no cross-attention path: what remains is the modulation
+        torch.nn.init.zeros_(block.cross.proj.weight)
+        torch.nn.init.zeros_(block.cross.proj.bias)
+    flipped = batch["actions"].clone()
+    flipped[:, 2] = -flipped[:, 2]  # frame 2's action only
+    a = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]))[0]
+    b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]))[0]
+    torch.testing.assert_close(a[:, :2], b[:, :2])
+    assert ((a[:, 2] - b[:, 2]).abs().amax(-1) > 1e-6).all()  # every token of frame 2
+
+
+def test_actions_are_normalised_by_the_dataset_statistics():
+    normalised = make_model()
+    raw = make_model(action_mean=None, action_std=None)
+    raw.load_state_dict(normalised.state_dict())
+    actions = torch.rand(2, 3, 7) * 0.7 - 0.35
+    std = torch.tensor(STATS["action_std"])
+    expected = raw.encode_control((actions - torch.tensor(STATS["action_mean"])) / std).tokens
+    torch.testing.assert_close(normalised.encode_control(actions).tokens, expected)
+    floored = make_model(action_std=[1e-4] * 7)  # an action that never moved in the data is not blown up
+    assert floored.control_encoder.std.min() == ACTION_STD_FLOOR
+
+
+def test_a_model_without_action_statistics_is_refused_at_load(tmp_path):
+    make_model(action_mean=None, action_std=None).save_pretrained(tmp_path)
+    with pytest.raises(InvalidInputError, match=r"without action statistics.*roboscape-train-wm.*action_mean"):
+        STWorldModel.from_pretrained(tmp_path)
+    with pytest.raises(InvalidInputError, match=r"action_mean has 6 dimensions.*action_dim=7.*roboscape-train-wm"):
+        TinyWorldModelConfig(action_mean=[0.0] * 6, action_std=[1.0] * 6)
+
+
+@pytest.mark.parametrize("control", ["action", "text"])
+def test_dropped_controls_are_the_null_control(control):
+    model = make_model(control, control_dropout=0.999).train()
+    batch = random_batch()
+    other = {**batch, "actions": -batch["actions"], "task": TASKS[::-1]}
+    torch.manual_seed(3)
+    loss, _ = model(batch)
+    torch.manual_seed(3)
+    torch.testing.assert_close(model(other)[0], loss)  # nothing of the control is read
+
+
+def test_guidance_extrapolates_from_the_null_control():
+    model = make_model(**CONTROL_PATH)
+    batch = random_batch()
+    control = model.episode_control(batch["actions"][:, :1])
+    prompt = batch["tokens"][:, :1]
+    frame = torch.full((2, 1, 8), model.config.mask_token_id)
+    guided = Rollout.start(model, prompt, control.frames(slice(0, 1)))
+    logits = guided._logits_of_new_frame(frame, guided._paired(control.frames(slice(1, 2))))
+    parts = []
+    for c in (control, model.null_control(control)):
+        plain = Rollout.start(model, prompt, c.frames(slice(0, 1)), guided=False)
+        parts.append(plain._logits_of_new_frame(frame, c.frames(slice(1, 2))))
+    torch.testing.assert_close(logits, parts[1] + 2.0 * (parts[0] - parts[1]))
+
+
+def test_full_masked_frames_show_only_the_first_frame():
+    model = make_model(full_mask_prob=0.999).train()
+    seen = []
+    compute = model.compute_logits
+    model.compute_logits = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
+    batch = random_batch()
+    model(batch)
+    assert torch.equal(seen[0][:, 0], batch["tokens"][:, 0])
+    clean = (seen[0][:, 1:] == batch["tokens"][:, 1:]).all(-1)  # clean_frame_prob keeps some frames unmasked
+    assert ((seen[0][:, 1:] == model.config.mask_token_id).all(-1) | clean).all()
+
+
+@pytest.mark.parametrize("order", ["confidence", "annealed", "random"])
+def test_decoding_orders_are_reproducible_from_their_generator(order):
+    model = make_model(maskgit_order=order, maskgit_steps=3)
+    batch = random_batch()
+    kw = control_kwargs(model, batch, 3)
+    runs = [
+        model.generate(batch["tokens"][:, :1], 3, generator=torch.Generator().manual_seed(s), **kw)[0]
+        for s in (0, 0, 1)
+    ]
+    assert torch.equal(runs[0], runs[1])
+    assert runs[0].min() >= 0 and runs[0].max() < 16
 
 
 def test_changed_tokens_weigh_more_only_where_frames_change():
@@ -152,11 +270,11 @@ def test_long_rollout_stays_finite_with_a_bounded_cache():
     tokens, done = model.generate(prompt, 320, actions=actions, temperature=1.0, generator=g)
     assert tokens.shape == (3, 320, 8) and tokens.min() >= 0 and tokens.max() < 16
     assert torch.isfinite(done).all() and (done >= 0).all() and (done <= 1).all()
-    first_control = model.frame_control(model.episode_control(actions[:, :1]), slice(0, 1))
+    first_control = model.episode_control(actions[:, :1]).frames(slice(0, 1))
     rollout = Rollout.start(model, prompt, first_control)
     control = model.episode_control(actions)
     for t in range(1, 12):
-        rollout.predict_next_frame(model.frame_control(control, slice(t, t + 1)))
+        rollout.predict_next_frame(control.frames(slice(t, t + 1)))
         # a fixed ring of `window` frames per layer
         assert all(layer.k.shape[2] == 4 for layer in rollout.cache.layers) and rollout.cache.frames == t + 1
         assert rollout.tokens.shape[1] == min(t + 1, 3)

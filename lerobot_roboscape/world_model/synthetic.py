@@ -1,0 +1,220 @@
+"""Synthetic token worlds where nothing but the control predicts the change: the world model's control path, tested.
+
+A frame is one G x G token grid: a per-start random background texture and a 2 x 2 square (its own token) on it.
+Only the square moves, and only the control says where:
+- *wiring*: the action alone says where the square is next (its first two dimensions name the cell);
+- *motion*: the action moves the square one cell from where it is (the sign of its first two dimensions), clamped
+  at the borders;
+- *text*: the instruction says which way the square moves, one cell per step.
+Actions are 7-D and small, as the robot planner's are (at most ACTION_SCALE of the range, rotation almost still).
+
+`retrieval` asks the world model to roll out from one start under K controls and scores how often each rollout is
+nearer its own real future than the others' (token agreement, averaged over the horizon): chance is 1 / K.
+"""
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from lerobot_roboscape.world_model.controllability import retrieval_accuracy
+
+WORLDS = ("wiring", "motion", "text")
+ACTION_SCALE = 0.35  # the planner uses at most this share of the translation range
+ACTION_DIM = 7
+SQUARE = 2
+INSTRUCTIONS = {"move the square right": (1, 0), "move the square down": (0, 1)}
+
+
+@dataclass
+class SyntheticWorld:
+    """Args:
+    kind: "wiring", "motion" or "text".
+    grid: side of the token grid.
+    vocab_size: token codebook size; the last token is the square, the others the background texture.
+    background_tokens: distinct background tokens (0..background_tokens - 1); 1 = a plain background.
+    """
+
+    kind: str = "motion"
+    grid: int = 8
+    vocab_size: int = 16
+    background_tokens: int = 4
+
+    def __post_init__(self):
+        if self.kind not in WORLDS:
+            raise ValueError(f"kind must be one of {WORLDS}, got {self.kind!r}")
+        if not 1 <= self.background_tokens < self.vocab_size:
+            raise ValueError(f"background_tokens={self.background_tokens} must be in [1, vocab_size)")
+
+    @property
+    def square_token(self) -> int:
+        return self.vocab_size - 1
+
+    @property
+    def cells(self) -> int:
+        """Positions of the square's top-left corner per axis."""
+        return self.grid - SQUARE + 1
+
+    # ---- dynamics ------------------------------------------------------------------------------------------
+
+    def random_controls(self, rng: np.random.Generator, n: int, steps: int) -> np.ndarray:
+        """Actions (n, steps, 7) for wiring and motion; instruction indices (n,) for text."""
+        if self.kind == "text":
+            return rng.integers(0, len(INSTRUCTIONS), n)
+        actions = rng.uniform(-0.02, 0.02, (n, steps, ACTION_DIM)) * ACTION_SCALE  # rotation and gripper: still
+        if self.kind == "wiring":
+            actions[..., :2] = rng.uniform(-ACTION_SCALE, ACTION_SCALE, (n, steps, 2))
+        else:  # one of the 8 directions or stay, with a little noise
+            actions[..., :2] = rng.integers(-1, 2, (n, steps, 2)) * ACTION_SCALE * rng.uniform(0.7, 1, (n, steps, 1))
+        return actions.astype(np.float32)
+
+    def random_starts(self, rng: np.random.Generator, n: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """Backgrounds (n, G, G) and square positions (n, 2). Text starts leave room for `steps` cells each way, so
+        that the two instructions lead apart."""
+        background = rng.integers(0, self.background_tokens, (n, self.grid, self.grid))
+        high = max(self.cells - steps, 1) if self.kind == "text" else self.cells
+        return background, rng.integers(0, high, (n, 2))
+
+    def next_position(self, position: np.ndarray, control: np.ndarray) -> np.ndarray:
+        """position (n, 2) after one step of control (actions (n, 7) or instruction indices (n,))."""
+        if self.kind == "wiring":
+            cell = np.floor((control[:, :2] / ACTION_SCALE + 1) / 2 * self.cells)
+            return np.clip(cell, 0, self.cells - 1).astype(np.int64)
+        if self.kind == "motion":
+            step = np.sign(np.round(control[:, :2] / ACTION_SCALE))
+        else:
+            step = np.array(list(INSTRUCTIONS.values()))[control]
+        return np.clip(position + step, 0, self.cells - 1).astype(np.int64)
+
+    def render(self, background: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """Tokens (n, G * G): the background with the square drawn at `position`."""
+        frame = background.copy()
+        for i, (x, y) in enumerate(position):
+            frame[i, y : y + SQUARE, x : x + SQUARE] = self.square_token
+        return frame.reshape(len(frame), -1)
+
+    def episodes(self, rng: np.random.Generator, n: int, steps: int, controls=None, starts=None) -> dict:
+        """n episodes of `steps` controls: tokens (n, steps + 1, S), controls and their instructions."""
+        background, position = self.random_starts(rng, n, steps) if starts is None else starts
+        controls = self.random_controls(rng, n, steps) if controls is None else controls
+        frames = [self.render(background, position)]
+        for t in range(steps):
+            position = self.next_position(position, controls if self.kind == "text" else controls[:, t])
+            frames.append(self.render(background, position))
+        return {"tokens": np.stack(frames, 1), "controls": controls}
+
+    # ---- what the world model reads ------------------------------------------------------------------------
+
+    def training_batch(self, step: int, batch_size: int, window: int, seed: int = 0, shuffle: bool = False) -> dict:
+        """A batch in the world-model training layout (ClipSampler's), a pure function of (seed, step): tokens
+        (B, T, S), actions (B, T, 7) with frame t carrying the action that led to it, no_action, done and task.
+        `shuffle`: every clip gets another clip's controls (text: one instruction for all), so that nothing but
+        chance links a control to its frames."""
+        rng = np.random.default_rng([seed, step])
+        episode = self.episodes(rng, batch_size, window - 1)
+        controls = episode["controls"]
+        if shuffle and self.kind != "text":
+            controls = controls[np.roll(np.arange(batch_size), 1)]
+        actions = np.zeros((batch_size, window, ACTION_DIM), np.float32)
+        if self.kind == "text":
+            names = list(INSTRUCTIONS)
+            task = [names[0] if shuffle else names[c] for c in controls]
+        else:
+            actions[:, 1:] = controls
+            task = ["move the square"] * batch_size
+        no_action = np.zeros((batch_size, window), bool)
+        no_action[:, 0] = True
+        return {
+            "tokens": torch.from_numpy(episode["tokens"]).long(),
+            "actions": torch.from_numpy(actions),
+            "no_action": torch.from_numpy(no_action),
+            "done": torch.zeros(batch_size, window),
+            "task": task,
+        }
+
+    def action_stats(self, seed: int = 0, n: int = 4096) -> dict[str, np.ndarray]:
+        """The actions' statistics as LeRobot computes them for a dataset (dataset.meta.stats["action"])."""
+        actions = self.random_controls(np.random.default_rng(seed), n, 1)[:, 0]
+        return {"mean": actions.mean(0), "std": actions.std(0), "min": actions.min(0), "max": actions.max(0)}
+
+
+@torch.no_grad()
+def retrieval(model, world: SyntheticWorld, starts: int = 32, K: int = 4, horizon: int = 4, seed: int = 1234):
+    """Retrieval accuracy of the model's rollouts among K controls from each of `starts` starts (K = 2 for text,
+    one rollout per instruction), and the rollouts (starts, K, horizon, S) with their real futures."""
+    rng = np.random.default_rng(seed)
+    K = len(INSTRUCTIONS) if world.kind == "text" else K
+    background, position = world.random_starts(rng, starts, horizon)
+    if world.kind == "text":
+        controls = np.tile(np.arange(K), starts)
+    else:
+        controls = world.random_controls(rng, starts * K, horizon)
+    starts_K = (np.repeat(background, K, 0), np.repeat(position, K, 0))
+    real = world.episodes(rng, starts * K, horizon, controls=controls, starts=starts_K)["tokens"]
+    device = next(model.parameters()).device
+    prompt = torch.from_numpy(real[:, :1]).to(device)
+    if world.kind == "text":
+        names = list(INSTRUCTIONS)
+        rollout, _ = model.generate(prompt, horizon, instructions=[names[c] for c in controls])
+    else:
+        rollout, _ = model.generate(prompt, horizon, actions=torch.from_numpy(controls).to(device))
+    rollout = rollout.cpu().numpy().reshape(starts, K, horizon, -1)
+    future = real[:, 1:].reshape(starts, K, horizon, -1)
+    # agreement[s, i, j]: rollout i of start s against real future j
+    agreement = (rollout[:, :, None] == future[:, None]).mean(axis=(3, 4))
+    accuracy = float(np.mean([retrieval_accuracy(a) for a in agreement]))
+    return accuracy, rollout, future
+
+
+def train_on_world(
+    model,
+    world: SyntheticWorld,
+    steps: int,
+    batch_size: int = 16,
+    lr: float = 1e-3,
+    warmup_steps: int = 50,
+    seed: int = 0,
+    shuffle: bool = False,
+    eval_every: int = 0,
+    minutes: float | None = None,
+    on_eval=None,
+) -> list[dict]:
+    """Train `model` on fresh batches of `world` (AdamW, linear warm-up), for `steps` steps or `minutes` of
+    training time, whichever ends first. Every `eval_every` steps (and at the end) measure retrieval; the clock
+    stops while it does. Returns the curve: {"step", "minutes", "retrieval", "loss"} per evaluation, each updated
+    with what `on_eval(point, model)` returns (other measures of the same model), also outside the clock."""
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=0.01)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup_steps))
+    curve, trained_seconds, losses = [], 0.0, []
+
+    def evaluate(step):
+        model.eval()
+        accuracy = retrieval(model, world)[0]
+        model.train()
+        point = {"step": step, "minutes": trained_seconds / 60, "retrieval": accuracy, "loss": float(np.mean(losses))}
+        if on_eval is not None:
+            point.update(on_eval(point, model) or {})
+            model.train()
+        curve.append(point)
+        losses.clear()
+
+    model.train()
+    for step in range(1, steps + 1):
+        tic = time.perf_counter()
+        batch = world.training_batch(step, batch_size, model.config.window, seed=seed, shuffle=shuffle)
+        loss, _ = model(batch)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        schedule.step()
+        trained_seconds += time.perf_counter() - tic
+        losses.append(loss.item())
+        out_of_time = minutes is not None and trained_seconds >= 60 * minutes
+        if step == steps or out_of_time or (eval_every and step % eval_every == 0):
+            evaluate(step)
+        if out_of_time:
+            break
+    model.eval()
+    return curve

@@ -1,0 +1,163 @@
+"""Each lever of the world model's control path, measured by curves on the synthetic worlds.
+
+`run` trains the tiny world model on one synthetic world with one variant of its config for a budget of training
+minutes, reading retrieval (K = 4 action sequences over 4 steps from 32 starts; 2 instructions for text) every
+`--eval-every` steps, and appends each point to OUT/<world>/<variant>.jsonl as it is measured. Each point also
+reads the same model decoded in MaskGIT's annealed and in random order, and guided (scale 2 and 4) when the variant
+trains a null control: decoding levers need no training of their own.
+
+`report` draws OUT/control_levers.png and prints the table of every run.
+
+    python scripts/control_levers.py run --world motion --variant adaln_one_plus --minutes 10
+    python scripts/control_levers.py report
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.synthetic import ACTION_DIM, SyntheticWorld, retrieval, train_on_world
+
+OUT = Path("docs/results/world_model/control_levers")
+WINDOW = 5  # the retrieval horizon (4) and its prompt frame
+COMBINED = {"adaln": "one_plus", "normalize_control": True, "normalize_actions": True, "control_dropout": 0.1}
+VARIANTS = {
+    "as_built": {},
+    # The new levers, each alone.
+    "adaln_one_plus": {"adaln": "one_plus"},
+    "adaln_zero": {"adaln": "zero"},
+    "normalize_control": {"normalize_control": True},
+    "normalize_actions": {"normalize_actions": True},
+    "control_dropout": {"control_dropout": 0.1},
+    "full_mask": {"full_mask_prob": 0.1},
+    # The old levers, each alone.
+    "add_action": {"add_action": True},
+    "changed_token_weight": {"changed_token_weight": 4.0},
+    "context_drop": {"context_drop_prob": 0.25},
+    # The combination, and each of its levers left out.
+    "combined": COMBINED,
+    **{f"combined_without_{k}": {**{n: v for n, v in COMBINED.items() if n != k}} for k in COMBINED},
+}
+DECODINGS = {"annealed": {"maskgit_order": "annealed"}, "random": {"maskgit_order": "random"}}
+GUIDANCE = (2.0, 4.0)
+
+
+def build_model(world: SyntheticWorld, variant: dict, seed: int = 0) -> STWorldModel:
+    overrides = dict(variant)
+    if overrides.pop("normalize_actions", False) and world.kind != "text":
+        stats = world.action_stats()
+        overrides.update(action_mean=stats["mean"].tolist(), action_std=stats["std"].tolist())
+    torch.manual_seed(seed)
+    config = TinyWorldModelConfig(
+        control="text" if world.kind == "text" else "action",
+        action_dim=ACTION_DIM,
+        n_cameras=1,
+        tokens_per_side=world.grid,
+        vocab_size=world.vocab_size,
+        window=WINDOW,
+        prompt_frames=1,
+        **overrides,
+    )
+    return STWorldModel(config)
+
+
+def other_decodings(model: STWorldModel, world: SyntheticWorld) -> dict:
+    """Retrieval of the same model under each decoding lever (and guidance when it has a null control)."""
+    config, out = model.config, {}
+    settings = {name: change for name, change in DECODINGS.items()}
+    if config.control_dropout > 0:
+        settings.update({f"guidance_{g:g}": {"guidance_scale": g} for g in GUIDANCE})
+    for name, change in settings.items():
+        saved = {k: getattr(config, k) for k in change}
+        for k, v in change.items():
+            setattr(config, k, v)
+        out[f"retrieval_{name}"] = retrieval(model, world)[0]
+        for k, v in saved.items():
+            setattr(config, k, v)
+    return out
+
+
+def run(args):
+    torch.set_num_threads(args.threads)
+    world = SyntheticWorld(args.world)
+    model = build_model(world, VARIANTS[args.variant], args.seed)
+    path = args.out / args.world / f"{args.variant}.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("")
+    started = time.time()
+
+    def on_eval(point, model):
+        extra = other_decodings(model, world)
+        line = {**point, **extra, "wall_minutes": (time.time() - started) / 60, "threads": args.threads}
+        with path.open("a") as f:
+            f.write(json.dumps(line) + "\n")
+        print(args.world, args.variant, json.dumps(line), flush=True)
+        return extra
+
+    train_on_world(
+        model,
+        world,
+        steps=10**9,
+        batch_size=args.batch_size,
+        seed=args.seed,
+        eval_every=args.eval_every,
+        minutes=args.minutes,
+        on_eval=on_eval,
+    )
+
+
+def report(args):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    worlds = sorted(p.name for p in args.out.iterdir() if p.is_dir())
+    fig, axes = plt.subplots(1, len(worlds), figsize=(7 * len(worlds), 5), squeeze=False)
+    print("| world | variant | steps | minutes | retrieval at 5 min | at 10 min | best of annealed / random / guided |")
+    print("|---|---|---:|---:|---:|---:|---|")
+    for ax, world in zip(axes[0], worlds, strict=True):
+        for name in VARIANTS:
+            path = args.out / world / f"{name}.jsonl"
+            if not path.is_file() or not path.read_text().strip():
+                continue
+            curve = [json.loads(line) for line in path.read_text().splitlines()]
+            style = "-" if name.startswith("combined") or name == "as_built" else "--"
+            ax.plot([p["minutes"] for p in curve], [p["retrieval"] for p in curve], style, label=name)
+
+            def at(minutes, curve=curve):
+                before = [p for p in curve if p["minutes"] <= minutes + 0.05]
+                return f"{before[-1]['retrieval']:.2f}" if before else "-"
+
+            last = curve[-1]
+            others = " / ".join(f"{k[10:]} {v:.2f}" for k, v in last.items() if k.startswith("retrieval_"))
+            print(f"| {world} | {name} | {last['step']} | {last['minutes']:.1f} | {at(5)} | {at(10)} | {others} |")
+        ax.axhline(0.25, color="grey", lw=0.5)
+        ax.set(title=f"{world}: retrieval (K=4, 4 steps, 32 starts)", xlabel="training minutes", ylabel="retrieval")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.out / "control_levers.png", dpi=80)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("command", choices=["run", "report"])
+    parser.add_argument("--world", default="motion", choices=["wiring", "motion", "text"])
+    parser.add_argument("--variant", default="as_built", choices=list(VARIANTS))
+    parser.add_argument("--minutes", type=float, default=10.0, help="training minutes (evaluation not counted)")
+    parser.add_argument("--eval-every", type=int, default=100)
+    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args()
+    run(args) if args.command == "run" else report(args)
+
+
+if __name__ == "__main__":
+    main()
