@@ -4,14 +4,18 @@ pixels (tokenizer), the reward (similarity to the goal, done) and, with `--done-
 classifier on the decoded frames.
 
 Uses the models and dataset of a pipeline run (`roboscape-demo`: tiny models; --demo-dir=outputs/bench: the bench
-scale's 16x16-grid models).
+scale's 16x16-grid models). `--random-preset bench --frame-skips 1 4` instead times untrained models of a preset at
+each frame skip k (speed does not depend on the weights), on the run's dataset, goals from its last frames: env
+steps are control steps, and the model makes a frame every k of them.
 
     python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
     python scripts/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
+    python scripts/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40
 """
 
 import argparse
 import functools
+import tempfile
 import time
 from pathlib import Path
 
@@ -21,6 +25,10 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
 
 
@@ -65,9 +73,17 @@ def main():
         default="world_model",
         help="classifier: the success classifier of --demo-dir/reward_success decides done",
     )
+    parser.add_argument("--random-preset", choices=["tiny", "bench", "paper"], help="untrained models of a preset")
+    parser.add_argument("--frame-skips", type=int, nargs="+", default=[4], help="with --random-preset")
     args = parser.parse_args()
     demo = args.demo_dir
     torch.manual_seed(0)
+    if args.random_preset:
+        for k in args.frame_skips:
+            with tempfile.TemporaryDirectory() as tmp:
+                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}")
+                measure(args, random_models_config(demo, args.random_preset, k, Path(tmp)))
+        return
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
         raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
     wm_config = RoboscapeWorldModelEnvConfig(
@@ -85,6 +101,35 @@ def main():
         if args.done_source == "classifier"
         else None,
     )
+    measure(args, wm_config)
+
+
+def random_models_config(demo: Path, preset: str, frame_skip: int, out: Path) -> RoboscapeWorldModelEnvConfig:
+    """An env config on untrained models of `preset` at `frame_skip`, saved under `out`, and the run's dataset."""
+    tokenizer = VisualTokenizer(TokenizerConfig.get_choice_class(preset)())
+    tokenizer.save_pretrained(out / "tokenizer")
+    wm = WorldModelConfig.get_choice_class(preset)(
+        frame_skip=frame_skip,
+        tokens_per_side=tokenizer.config.tokens_per_side,
+        vocab_size=tokenizer.config.codebook_size,
+        action_mean=[0.0] * 7,
+        action_std=[0.3] * 7,
+    )
+    STWorldModel(wm).save_pretrained(out / "action_world_model")
+    return RoboscapeWorldModelEnvConfig(
+        dataset_repo_id="local/roboscape_demos",
+        dataset_root=str(demo / "datasets" / "roboscape_demos"),
+        tokenizer=str(out / "tokenizer"),
+        action_world_model=str(out / "action_world_model"),
+        goal_source="dataset_last_frame",
+        allow_random_lpips=True,
+        episode_length=10_000,
+        theta=1.0,
+        image_size=tokenizer.config.image_size,
+    )
+
+
+def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
     image_size = wm_config.image_size
     ms_config = RoboscapeManiSkillEnvConfig(image_size=image_size, episode_length=10_000)
     print(

@@ -61,10 +61,11 @@ def frames_per_second(model: STWorldModel, batch: int, frames: int, use_cache: b
     prompt_len = cfg.window - 1
     g = torch.Generator(device="cpu").manual_seed(0)
     prompt = torch.randint(0, cfg.vocab_size, (batch, prompt_len, cfg.tokens_per_frame), generator=g).to(device)
-    actions = (torch.rand(batch, prompt_len + frames, cfg.action_dim, generator=g) * 2 - 1).to(device)
+    k = cfg.frame_skip  # actions per frame
+    actions = (torch.rand(batch, (prompt_len + frames) * k, cfg.action_dim, generator=g) * 2 - 1).to(device)
 
     def generate(n: int):
-        model.generate(prompt, n, actions=actions[:, : prompt_len + n - 1], use_cache=use_cache)
+        model.generate(prompt, n, actions=actions[:, : (prompt_len + n - 1) * k], use_cache=use_cache)
 
     with torch.autocast(device_type=device, dtype=dtype, enabled=dtype != torch.float32):
         generate(1)  # warm-up

@@ -71,7 +71,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         terminate_on_success: end an episode when done >= theta, paying the rest of its horizon at the most a step
             can earn (the default runs the fixed horizon, as Algorithm 1).
         clip_actions: clip actions to the per-dimension range seen in the dataset (`env.action_range`).
-        max_goal_steps: frames the text model may generate while looking for the goal.
+        max_goal_steps: control steps the text model may generate while looking for the goal (a frame per frame_skip).
         goal_file: a file of generated goals (safetensors): the env reads it when made, generates every start's
             missing goal then (once, before any episode) and writes them back. A file made with other models or
             settings is an error. Null: each goal is generated when its start first comes up.

@@ -27,6 +27,7 @@ from torchmetrics.functional.classification import binary_auroc
 from lerobot_roboscape.dataset.reader import open_dataset, read_episode
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, load_reward_model
+from lerobot_roboscape.world_model.clips import model_frames
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -59,27 +60,28 @@ class RewardReportConfig:
 
 @torch.no_grad()
 def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[str, np.ndarray]:
-    """Every reward type along one recorded episode, step by step over its horizon (frames 1..T-1 follow an
-    action; then the last one holds)."""
-    frames = {cam: episode.images[cam] for cam in env.cameras}
-    tokens = env._encode(frames)  # (T, S)
+    """Every reward type along one recorded episode, step by step over its horizon. The world model reads the
+    episode's model frames (every k-th step); its reward is what the env pays (at each chunk's last step), the
+    others are read at the model frame seen after each step (the last one holds)."""
+    indices = model_frames(len(episode.action), env.frame_skip)
+    frames = {cam: episode.images[cam][indices] for cam in env.cameras}
+    tokens = env._encode(frames)  # (T, S), T model frames
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal_tokens, _ = env.goals_for([start])
     decoded = env._decode(tokens)  # (T, n, 3, H, W)
     goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
-    actions = torch.from_numpy(episode.action).to(env.device)
-    done, features = env.teacher_forced_done(tokens, actions[:-1])
+    actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
+    done, features = env.teacher_forced_done(tokens, actions)
     world_model, _ = env.replay(episode.index, tokens, done)
-    done, features = done[1:], features[1:]
     per_frame = {
-        "world_model_dense": env.reward_fn(decoded[1:], goal[1:], done).dense,
-        "rule_based": torch.from_numpy(episode.reward_label[1:]),
+        "world_model_dense": env.reward_fn(decoded, goal, done).dense,
+        "rule_based": torch.from_numpy(episode.reward_label[indices]),
     }
     if "embedding" in models:
         per_frame["embedding"] = models["embedding"](features)
     if "proxy" in models:
-        per_frame["proxy"] = models["proxy"](decoded[1:])
-    held = np.minimum(np.arange(start.horizon), len(tokens) - 2)
+        per_frame["proxy"] = models["proxy"](decoded)
+    held = np.minimum(np.arange(1, start.horizon + 1) // env.frame_skip, len(tokens) - 1)
     return {"world_model": world_model} | {k: v.float().cpu().numpy()[held] for k, v in per_frame.items()}
 
 

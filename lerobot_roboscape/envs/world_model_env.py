@@ -5,9 +5,14 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 - **reset** draws each episode's initial frame and instruction from the episodes of a LeRobot dataset, across
   the scenes and task families selected, so one env covers many scenes at once. The goal frame of each start is
   generated once by the text world model (the first frame whose done >= theta) and cached.
-- **step** predicts the next frame and done from the action; the reward is `WorldModelReward` (sparse done term +
-  similarity to the goal). As in Algorithm 1, an episode runs its fixed horizon (by default the longest successful
-  demonstration of its task family) and does not terminate at done; `is_success` is true once done crossed theta
+- **step** takes one action, as LeRobot steps every env. The action world model steps once per k = `frame_skip`
+  actions (a model frame per executed action chunk, k saved with the model): the k-th action of a chunk predicts
+  the next frame and done from the chunk, and is paid the reward of that frame, `WorldModelReward` (sparse done
+  term + similarity to the goal); the steps between observe the last frame and are paid 0. A policy that executes
+  k-action chunks so decides once per model frame; one that acts every step (OpenVLA) looks k times at each frame.
+  `render()` and videos run at the model's frame rate: a frame repeats for its k steps. As in Algorithm 1, an
+  episode runs its fixed horizon in control steps (by default the longest successful demonstration of its task
+  family) and does not terminate at done; `is_success` is true once done crossed theta
   at any step. `terminate_on_success` ends episodes at success instead, with a terminal bonus (see `EpisodeBook`).
   A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
 """
@@ -154,6 +159,13 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             raise InvalidInputError(
                 f"{action_model} is a {self.action_model.config.control} world model, not an action world model"
             )
+        self.frame_skip = self.action_model.config.frame_skip
+        if self.text_model is not None and self.text_model.config.frame_skip != self.frame_skip:
+            raise InvalidInputError(
+                f"the text world model {text_model} steps every {self.text_model.config.frame_skip} control steps but "
+                f"the action world model {action_model} every {self.frame_skip}: train both with the same "
+                "--wm.frame_skip"
+            )
         self.reward_fn = WorldModelReward(
             load_reward_distance(
                 config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips, self.device
@@ -262,8 +274,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     @torch.no_grad()
     def teacher_forced_done(self, tokens_TS: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Done probability (T,) of known frames of one episode, and the action model's features (T, C) of them,
-        as the action model reads them one after the other (actions (T - 1, A), action t leading to frame t + 1)."""
+        """Done probability (T,) of known model frames of one episode, and the action model's features (T, C) of
+        them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step)."""
         done, features = self.action_model.teacher_forced(tokens_TS[None], actions[None])
         return self.done_of(tokens_TS, done[0]), features[0]
 
@@ -295,6 +307,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "success_classifier": str(cfg.success_classifier),
             "theta": cfg.theta,
             "max_goal_steps": cfg.max_goal_steps,
+            "frame_skip": self.frame_skip,
         }
 
     def _use_goal_file(self, path: Path) -> None:
@@ -345,14 +358,15 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         rollout = Rollout.start(model, prompt, control)
         goal = prompt[:, 0].clone()
         reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
-        steps = torch.full((len(padded),), self.config.max_goal_steps, device=prompt.device)
-        for step in range(1, self.config.max_goal_steps + 1):
+        k, max_frames = self.frame_skip, -(-self.config.max_goal_steps // self.frame_skip)  # steps -> frames
+        steps = torch.full((len(padded),), max_frames * k, device=prompt.device)
+        for frame_index in range(1, max_frames + 1):
             frame, done = rollout.predict_next_frame(control)
             done = self.done_of(frame, done)
             newly = (done >= theta) & ~reached
             goal[newly] = frame[newly]
             goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
-            steps[newly] = step
+            steps[newly] = frame_index * k
             reached |= newly
             if reached.all():
                 break
@@ -389,9 +403,14 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
         self._rollout = Rollout.start(self.action_model, first[:, None], control)
+        self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
+        self._substep = 0  # actions of the current chunk taken so far
+        self._done = torch.zeros(self.num_envs, device=self.device)  # the latest frame's done probability
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
+        start_parts = self.reward_fn(self._frames, self._goals, self._done)
+        self._distance = start_parts.distance.cpu().numpy()  # to the goal, of the frame shown
         self._book = EpisodeBook(
             np.array([s.horizon for s in starts]), self.config.terminate_on_success, self.reward_fn.max_step_reward
         )
@@ -409,28 +428,43 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         actions, clipped = self._check_actions(actions)
         if self.config.clip_actions:
             actions = np.clip(actions, *self.action_range)
-        control = self.action_model.encode_control(torch.from_numpy(actions).to(self.device)[:, None])
-        tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
-        frames = self._decode(tokens)
-        done = self.done_of(tokens, done, frames)
-        parts = self.reward_fn(frames, self._goals, done)
+        self._chunk[:, self._substep] = actions
+        self._substep += 1
         live = ~self._book.finished
-        self._frames = torch.where(
-            torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
-        )
-        done_np = done.cpu().numpy()
-        reward = self._book.step(self.compute_reward(parts, frames).cpu().numpy(), done_np >= self.config.theta)
+        if self._substep < self.frame_skip:  # within a chunk: the last frame stays, nothing is paid
+            reward = self._book.step(np.zeros(self.num_envs, np.float32), self._succeeding())
+            zeros = np.zeros(self.num_envs, np.float32)
+            parts = {"reward_sparse": zeros, "reward_dense": zeros, "distance_to_goal": self._distance}
+        else:
+            self._substep = 0
+            chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
+            control = self.action_model.encode_control(chunk)
+            tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
+            frames = self._decode(tokens)
+            self._done = self.done_of(tokens, done, frames)
+            paid = self.reward_fn(frames, self._goals, self._done)
+            self._frames = torch.where(
+                torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
+            )
+            reward = self._book.step(self.compute_reward(paid, frames).cpu().numpy(), self._succeeding())
+            self._distance = paid.distance.cpu().numpy()
+            parts = {
+                "reward_sparse": paid.sparse.cpu().numpy() * live,
+                "reward_dense": paid.dense.cpu().numpy() * live,
+                "distance_to_goal": self._distance,
+            }
         info = {
             "is_success": self._book.succeeded.copy(),
-            "done_probability": done_np,
-            "reward_sparse": parts.sparse.cpu().numpy() * live,
-            "reward_dense": parts.dense.cpu().numpy() * live,
-            "distance_to_goal": parts.distance.cpu().numpy(),
+            "done_probability": self._done.cpu().numpy(),
+            **parts,
             "clipped_actions": clipped,
             "goal": self._pixels(self._goals),
         }
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
+
+    def _succeeding(self) -> np.ndarray:
+        return self._done.cpu().numpy() >= self.config.theta
 
     @torch.no_grad()
     def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:
@@ -443,18 +477,22 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     @torch.no_grad()
     def replay(self, episode_index: int, tokens_TS: torch.Tensor, done_T: torch.Tensor) -> tuple[np.ndarray, bool]:
-        """The world-model reward this env pays along given frames from one of its starts, as if the action model
-        had predicted them: frames (T, S) tokens, the first being the start, and the done signal of each (T,).
-        Past the last frame, it holds (with its done) until the start's horizon. Returns the rewards of the
-        horizon's steps (0 after an early termination) and whether the episode succeeded."""
+        """The world-model reward this env pays along given model frames from one of its starts, as if the action
+        model had predicted them: frames (T, S) tokens, the first being the start, one per `frame_skip` control
+        steps, and the done signal of each (T,). As in `step`, a frame is paid at the last step of its chunk and
+        the steps between are paid 0; past the last frame, it holds (with its done) until the start's horizon.
+        Returns the rewards of the horizon's control steps (0 after an early termination) and whether the episode
+        succeeded."""
         start = next(s for s in self.starts if s.episode_index == episode_index)
-        shown = np.minimum(np.arange(1, start.horizon + 1), len(tokens_TS) - 1)  # the frame after each step
+        k, steps = self.frame_skip, np.arange(1, start.horizon + 1)
+        shown = np.minimum(steps // k, len(tokens_TS) - 1)  # the model frame seen after each control step
+        paid = steps % k == 0
         goal = self._decode(self.goals_for([start])[0])
         per_step = []
         for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
             frames = self._decode(tokens_TS[chunk])
             per_step.append(self.reward_fn(frames, goal.expand_as(frames), done_T[chunk]).reward.cpu().numpy())
-        per_step, done = np.concatenate(per_step), done_T[shown].cpu().numpy()
+        per_step, done = np.where(paid, np.concatenate(per_step), 0.0), done_T[shown].cpu().numpy()
         book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
         rewards = np.array(
             [book.step(per_step[t : t + 1], done[t : t + 1] >= self.config.theta)[0] for t in range(start.horizon)]

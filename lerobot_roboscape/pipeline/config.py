@@ -235,7 +235,7 @@ class PipelineConfig:
         (null: all); each start's goal is generated once, before PPO.
     table_episodes: simulator episodes per (split, family) behind each cell of Table 1.
     table_episode_length: steps of those episodes; null: as ppo_episode_length.
-    max_goal_steps: frames the text world model may generate while looking for a goal.
+    max_goal_steps: control steps the text world model may generate while looking for a goal (a frame per frame_skip).
     loader_workers: data-loading processes of lerobot-train (0 saves their start-up on tiny runs).
     device: "cpu", "cuda" or "auto".
     push_to_hub: upload every artifact to the Hub (needs `hf auth login`); otherwise write the repos to

@@ -31,6 +31,7 @@ from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 matplotlib.use("Agg")
@@ -90,8 +91,9 @@ class DoneSources:
         return torch.cat([self.classifier.success_probability(chunk) for chunk in images.split(64)])
 
     @torch.no_grad()
-    def teacher_forced(self, tokens_TS, actions_TA) -> dict[str, np.ndarray]:
-        done = self.model.teacher_forced(tokens_TS[None], actions_TA[None, :-1])[0][0]
+    def teacher_forced(self, tokens_TS, actions_NA) -> dict[str, np.ndarray]:
+        """Scores of known model frames (T, S) read with the actions between them ((T - 1) * k, A)."""
+        done = self.model.teacher_forced(tokens_TS[None], actions_NA[None])[0][0]
         scores = {"world_model": done}
         if self.classifier is not None:
             scores["classifier"] = self.classify(tokens_TS)
@@ -99,18 +101,19 @@ class DoneSources:
 
     @torch.no_grad()
     def open_loop(self, episodes: list[tuple[torch.Tensor, torch.Tensor]]) -> list[dict[str, np.ndarray]]:
-        """Episodes (tokens (T, S), actions (T, A)) generated from their prompt frames and recorded actions to
-        their end, scored by each source; the prompt frames keep their teacher-forced scores."""
-        P = self.model.config.prompt_frames
-        length = max(len(a) for _, a in episodes)
-        pad = lambda a: torch.cat([a, a[-1:].expand(length - len(a), -1)])  # noqa: E731  (hold the last action)
+        """Episodes (model frames (T, S), the actions between them ((T - 1) * k, A)) generated from their prompt
+        frames and recorded actions to their end, scored by each source; the prompt frames keep their
+        teacher-forced scores."""
+        P, k = self.model.config.prompt_frames, self.model.config.frame_skip
+        length = max(len(t) for t, _ in episodes)
+        pad = lambda a: torch.cat([a, a[-1:].expand((length - 1) * k - len(a), -1)])  # noqa: E731  (hold the last)
         actions = torch.stack([pad(a) for _, a in episodes])
         prompt = torch.stack([t[:P] for t, _ in episodes])
-        frames, done = self.model.generate(prompt, length - P, actions=actions[:, : length - 1])
+        frames, done = self.model.generate(prompt, length - P, actions=actions)
         out = []
         for i, (tokens, actions_i) in enumerate(episodes):
-            T = len(actions_i)
-            forced = self.teacher_forced(tokens[:P], actions_i[:P])
+            T = len(tokens)
+            forced = self.teacher_forced(tokens[:P], actions_i[: (P - 1) * k])
             scores = {"world_model": np.concatenate([forced["world_model"], done[i, : T - P].float().cpu().numpy()])}
             if self.classifier is not None:
                 generated = self.classify(frames[i, : T - P]).float().cpu().numpy()
@@ -124,14 +127,15 @@ def score_episodes(dataset, sources: DoneSources, open_loop: bool, batch_size: i
     episodes, pending = [], []
     for index in episode_indices(dataset):
         episode = read_episode(dataset, index)
+        k = sources.model.config.frame_skip
+        frames = model_frames(len(episode.action), k)  # the model reads every k-th step
         tokens = sources.tokenizer.encode_views(
-            [torch.from_numpy(episode.images[c]).permute(0, 3, 1, 2).to(device) for c in cameras]
+            [torch.from_numpy(episode.images[c][frames]).permute(0, 3, 1, 2).to(device) for c in cameras]
         )
-        actions = torch.from_numpy(episode.action).to(device)
+        actions = torch.from_numpy(episode.action[: (len(frames) - 1) * k]).to(device)
         scores = {(s, "teacher_forced"): v for s, v in sources.teacher_forced(tokens, actions).items()}
-        episodes.append(
-            EpisodeScores(index, episode.task, bool(episode.done_label.max() > 0.5), episode.done_label, scores)
-        )
+        labels = episode.done_label[frames]
+        episodes.append(EpisodeScores(index, episode.task, bool(episode.done_label.max() > 0.5), labels, scores))
         if open_loop and len(tokens) > sources.model.config.prompt_frames:
             pending.append((episodes[-1], tokens, actions))
     pending.sort(key=lambda item: len(item[2]))  # batches of similar lengths pad less

@@ -64,7 +64,7 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
     cfg.reward.image_size, cfg.reward.n_cameras = tokenizer.config.image_size, len(cache.cameras)
     episodes = select_episodes(cache, cfg.dataset.episodes)
     images = cfg.reward.kind in IMAGE_KINDS
-    world_model, window = None, 1  # an image network reads single frames
+    world_model, window, frame_skip = None, 1, 1  # an image network reads single frames
     if not images:
         world_model = STWorldModel.from_pretrained(cfg.action_world_model).eval().requires_grad_(False)
         if world_model.config.control != "action":
@@ -72,7 +72,8 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
                 f"{cfg.action_world_model} is a {world_model.config.control} world model, not an action one"
             )
         cfg.reward.d_model, window = world_model.config.d_model, world_model.config.window
-    batches = ClipSampler(cache, episodes, window, cfg.train.batch_size, cfg.train.seed)
+        frame_skip = world_model.config.frame_skip  # the frames the world model reads
+    batches = ClipSampler(cache, episodes, window, cfg.train.batch_size, cfg.train.seed, frame_skip=frame_skip)
 
     def loss_fn(model, batch):
         with torch.no_grad():

@@ -75,6 +75,19 @@ def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
             )
 
 
+def check_policy_fits_frame_skip(policy, env, path) -> None:
+    """A policy that executes action chunks must execute one world-model frame's worth (k actions) per look, so that
+    each decision sees the frame its previous chunk made; a policy that acts every step (1 action) always fits."""
+    k = getattr(env, "frame_skip", 1)
+    executed = getattr(policy.config, "n_action_steps", 1)
+    if executed > 1 and executed != k:
+        raise InvalidInputError(
+            f"The policy at {path} executes {executed} actions per look but the world model makes a frame every "
+            f"{k} actions (frame_skip, saved with the model): train the policy with n_action_steps={k}, or the "
+            f"world models with --wm.frame_skip={executed}"
+        )
+
+
 class PolicyIO:
     """Env observations -> the policy's batch (LeRobot's conversion, then the policy's preprocessor), and the
     policy's normalised actions -> env actions (its postprocessor)."""

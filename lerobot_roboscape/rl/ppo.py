@@ -29,7 +29,13 @@ from tqdm import tqdm
 from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
-from lerobot_roboscape.rl.policy_loading import PolicyIO, check_actor_critic, check_policy_fits_env, load_policy
+from lerobot_roboscape.rl.policy_loading import (
+    PolicyIO,
+    check_actor_critic,
+    check_policy_fits_env,
+    check_policy_fits_frame_skip,
+    load_policy,
+)
 from lerobot_roboscape.tasks.base import CONTROL_FREQ
 from lerobot_roboscape.training import resolve_mixed_precision
 
@@ -520,6 +526,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
     envs_here = math.ceil(cfg.num_envs / accelerator.num_processes)
     torch.manual_seed(cfg.seed)  # whatever an env draws at construction, the same in every run
     env = cfg.env.create_envs(envs_here)[cfg.env.type][0]
+    check_policy_fits_frame_skip(policy, env, start_path)
     reward = getattr(env, "reward_description", "the env's own")
     logger.info("PPO reward: %s", reward)
     accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})

@@ -35,15 +35,30 @@ def select_episodes(
     return rows
 
 
+def model_frames(length: int, frame_skip: int) -> np.ndarray:
+    """Control steps of an episode of `length` steps that are model frames: every k-th from the first."""
+    return np.arange(0, length, frame_skip)
+
+
 class ClipSampler:
     """Batches of `window`-frame clips, a pure function of (step, process) so that resumed runs repeat them.
 
-    Each clip's frame t carries the action taken in frame t - 1 (the first frame of an episode has none).
-    Episodes shorter than the window are padded with their last frame held still (zero action).
+    Clip frames are `frame_skip` (k) control steps apart, from any step of the episode. Each clip's frame t carries
+    the k actions taken from frame t - 1 (the first frame of an episode has none: `no_action`). Actions before the
+    episode's start or past its last step are zeros, and episodes shorter than the clip hold their last frame still.
     """
 
-    def __init__(self, cache: TokenCache, episodes: list[dict], window: int, batch_size: int, seed: int = 0):
+    def __init__(
+        self,
+        cache: TokenCache,
+        episodes: list[dict],
+        window: int,
+        batch_size: int,
+        seed: int = 0,
+        frame_skip: int = 1,
+    ):
         self.cache, self.episodes, self.window, self.batch_size, self.seed = cache, episodes, window, batch_size, seed
+        self.frame_skip = frame_skip
         lengths = np.array([row["length"] for row in episodes], dtype=np.float64)
         self.weights = lengths / lengths.sum()
 
@@ -57,17 +72,18 @@ class ClipSampler:
         return batch
 
     def clip(self, row: dict, rng: np.random.Generator) -> dict:
-        start, length = row["start"], row["length"]
-        offset = int(rng.integers(0, max(1, length - self.window + 1)))
-        frames = np.minimum(np.arange(offset, offset + self.window), length - 1)  # hold the last frame if short
+        start, length, k = row["start"], row["length"], self.frame_skip
+        span = (self.window - 1) * k + 1  # control steps a clip covers
+        offset = int(rng.integers(0, max(1, length - span + 1)))
+        frames = np.minimum(offset + k * np.arange(self.window), length - 1)  # hold the last frame if short
         tokens = self.cache.tokens[start + frames].reshape(self.window, -1)  # views side by side: (T, S)
-        prev = offset + np.arange(self.window) - 1
-        valid = (prev >= 0) & (prev < length - 1)
-        actions = np.where(valid[:, None], self.cache.actions[start + np.clip(prev, 0, length - 1)], 0.0)
+        steps = offset + k * (np.arange(self.window)[:, None] - 1) + np.arange(k)  # (T, k): the actions of frame t
+        valid = (steps >= 0) & (steps < length - 1)
+        actions = np.where(valid[..., None], self.cache.actions[start + np.clip(steps, 0, length - 1)], 0.0)
         return {
             "tokens": tokens.astype(np.int64),
-            "actions": actions.astype(np.float32),
-            "no_action": prev < 0,
+            "actions": actions.astype(np.float32),  # (T, k, A)
+            "no_action": (steps < 0).all(axis=1),
             "done": np.asarray(self.cache.done[start + frames], dtype=np.float32),
             "reward": np.asarray(self.cache.rewards[start + frames], dtype=np.float32),
             "task": row["task"],

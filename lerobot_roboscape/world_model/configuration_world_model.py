@@ -24,6 +24,9 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         tokens_per_side: side of one view's token grid (the tokenizer's).
         vocab_size: tokenizer codebook size.
         action_dim: width of the actions (action model).
+        frame_skip: control steps per model frame (k): a frame's control is the k actions that lead to it, and
+            the model steps once per executed action chunk (DIAMOND, IRIS and Cosmos step every 4 frames). Lengths
+            a user gives (episode length, horizon, goal search) stay in control steps. 1: a frame per action.
         action_mean, action_std: per-dimension statistics of the training data's actions (LeRobot's
             dataset.meta.stats["action"]), filled in by training: the action model reads (action - mean) / std,
             with std floored at ACTION_STD_FLOOR. Saved with the model; a saved action model without them is
@@ -57,14 +60,6 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             sees them.
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
-        add_action: also add the action's embedding (the mean of its control tokens) to every token of the frame it
-            leads to, besides the cross-attention (action model): a direct path that the model cannot route around
-            by copying the previous frames.
-        context_drop_prob: share of training clips that start over at a random frame: the frames before it are
-            hidden from the model and from the loss, so that one real frame and the actions must explain the rest
-            (as in a rollout from a single prompt frame).
-        changed_token_weight: extra weight of the token loss where a token differs from the previous frame's at its
-            position (0: none). Most of a frame repeats the one before; the changes are the dynamics.
         done_hidden: hidden width of the done head.
         done_weight: weight of the done loss.
         done_loss: "balanced_bce" (binary cross-entropy averaged over done frames and over the others separately,
@@ -75,6 +70,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     # Control.
     control: str = "action"
     action_dim: int = 7
+    frame_skip: int = 4
     action_mean: list[float] | None = None
     action_std: list[float] | None = None
     text_encoder: str | None = None
@@ -97,15 +93,12 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     maskgit_noise: float = 4.5
     guidance_scale: float = 1.0
     # Control path.
-    adaln: str = "none"
+    adaln: str = "one_plus"
     normalize_control: bool = False
     control_dropout: float = 0.0
     # Training.
     clean_frame_prob: float = 0.25
     full_mask_prob: float = 0.0
-    add_action: bool = False
-    changed_token_weight: float = 0.0
-    context_drop_prob: float = 0.0
     done_hidden: int = 128
     done_weight: float = 1.0
     done_loss: str = "balanced_bce"
@@ -121,6 +114,8 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             raise InvalidInputError(f"done_loss must be one of {DONE_LOSSES}, got {self.done_loss!r}")
         if self.maskgit_steps < 1:
             raise InvalidInputError(f"maskgit_steps must be >= 1, got {self.maskgit_steps}")
+        if self.frame_skip < 1:
+            raise InvalidInputError(f"frame_skip must be >= 1, got {self.frame_skip}")
         for name in ("action_mean", "action_std"):
             if (stats := getattr(self, name)) is not None and len(stats) != self.action_dim:
                 raise InvalidInputError(

@@ -45,31 +45,35 @@ class Control(NamedTuple):
 
 
 class ActionEncoder(nn.Module):
-    """7-D actions, normalised by the training data's statistics -> ACTION_TOKENS tokens per frame. Frames with no
-    preceding action (an episode's first frame) get a learned null action.
+    """A frame's chunk of k 7-D actions, normalised by the training data's statistics -> ACTION_TOKENS tokens per
+    frame. Frames with no preceding action (an episode's first frame) get a learned null action.
 
     Every caller (training, generation, the reports, `roboscape_wm`) passes raw actions: the normalisation lives
     here only, with the statistics saved in the model's config."""
 
     def __init__(self, config: WorldModelConfig):
         super().__init__()
-        self.action_dim, self.d_model = config.action_dim, config.d_model
+        self.action_dim, self.frame_skip, self.d_model = config.action_dim, config.frame_skip, config.d_model
         mean = torch.zeros(config.action_dim) if config.action_mean is None else torch.tensor(config.action_mean)
         std = torch.ones(config.action_dim) if config.action_std is None else torch.tensor(config.action_std)
         self.register_buffer("mean", mean.float(), persistent=False)
         self.register_buffer("std", std.float().clamp(min=ACTION_STD_FLOOR), persistent=False)
         self.mlp = nn.Sequential(
-            nn.Linear(config.action_dim, config.d_model),
+            nn.Linear(config.frame_skip * config.action_dim, config.d_model),
             nn.GELU(),
             nn.Linear(config.d_model, ACTION_TOKENS * config.d_model),
         )
         self.null = nn.Parameter(torch.zeros(ACTION_TOKENS * config.d_model))
 
     def forward(self, actions: torch.Tensor, no_action: torch.Tensor | None = None) -> Control:
-        """actions: (B, T, action_dim) float; no_action: (B, T) bool."""
-        if actions.ndim != 3 or actions.shape[-1] != self.action_dim:
-            raise ValueError(f"actions must have shape (B, T, {self.action_dim}), got {tuple(actions.shape)}")
-        emb = self.mlp((actions - self.mean.to(actions.dtype)) / self.std.to(actions.dtype))
+        """actions: (B, T, k, action_dim) float, the k actions leading to each frame; no_action: (B, T) bool."""
+        if actions.ndim != 4 or actions.shape[-2:] != (self.frame_skip, self.action_dim):
+            raise ValueError(
+                f"actions must have shape (B, T, {self.frame_skip}, {self.action_dim}) (k = frame_skip actions per "
+                f"frame), got {tuple(actions.shape)}"
+            )
+        normalised = (actions - self.mean.to(actions.dtype)) / self.std.to(actions.dtype)
+        emb = self.mlp(normalised.flatten(-2))
         if no_action is not None:
             emb = torch.where(no_action[..., None], self.null.to(emb.dtype), emb)
         return self._control(emb)

@@ -40,7 +40,8 @@ class ControllabilityReportConfig:
     tokenizer: the world model's tokenizer.
     world_model: the action world model.
     output_dir: where controllability.json and controllability.png go.
-    horizon: generated frames compared per rollout (each sequence needs horizon + 1 frames).
+    horizon: control steps compared per rollout (each sequence needs horizon + 1 frames); the model generates
+        horizon // frame_skip frames, compared with the real frames they stand for.
     picture_starts: starts drawn in controllability.png (each sequence's real future beside its rollout).
     device: "auto", "cpu" or "cuda".
     """
@@ -102,17 +103,19 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
     model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
     if model.config.control != "action":
         raise InvalidInputError(f"{cfg.world_model} is a {model.config.control} world model, not an action one")
-    cameras, n, T = camera_names(dataset), model.config.n_cameras, cfg.horizon
+    cameras, n, k = camera_names(dataset), model.config.n_cameras, model.config.frame_skip
+    T = max(1, cfg.horizon // k)  # model frames over the horizon's control steps
+    future = k * np.arange(1, T + 1)  # the control steps those frames show
     per_start, pictures = [], []
     for start, indices in _groups(dataset).items():
         episodes = [read_episode(dataset, i) for i in indices]
-        if min(len(e.action) for e in episodes) < T + 1:
+        if min(len(e.action) for e in episodes) < T * k + 1:
             raise InvalidInputError(
-                f"{dataset.root} start {start}: its sequences need {T + 1} frames for horizon {T}, the shortest has "
-                f"{min(len(e.action) for e in episodes)}"
+                f"{dataset.root} start {start}: its sequences need {T * k + 1} frames for horizon {cfg.horizon}, the "
+                f"shortest has {min(len(e.action) for e in episodes)}"
             )
         real = torch.stack(
-            [torch.stack([torch.from_numpy(e.images[c][1 : T + 1]) for c in cameras], 1) for e in episodes]
+            [torch.stack([torch.from_numpy(e.images[c][future]) for c in cameras], 1) for e in episodes]
         )  # (K, T, n, H, W, 3)
         real = real.permute(0, 1, 2, 5, 3, 4).to(device).float() / 255
         masks = torch.stack(
@@ -120,12 +123,12 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
                 torch.from_numpy(np.stack(list(read_masks(dataset.root, i, cameras, len(e.action)).values()), 1))
                 for i, e in zip(indices, episodes, strict=True)
             ]
-        )[:, 1 : T + 1].to(device)
+        )[:, future].to(device)
         first = tokenizer.encode_views(
             [torch.from_numpy(episodes[0].images[c][:1]).permute(0, 3, 1, 2).to(device) for c in cameras]
         )  # (1, S): every sequence starts from this frame
         K = len(episodes)
-        actions = torch.stack([torch.from_numpy(e.action[:T]) for e in episodes]).to(device)
+        actions = torch.stack([torch.from_numpy(e.action[: T * k]) for e in episodes]).to(device)
         prompt = first[None].expand(K, -1, -1)
         rollouts = {
             "world_model": model.generate(prompt, T, actions=actions)[0],
@@ -165,7 +168,8 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "sequences_per_start": len(per_start[0]["episodes"]),
-        "horizon": T,
+        "horizon": cfg.horizon,
+        "frame_skip": k,
         "summary": summary,
         "starts": per_start,
     }

@@ -1,10 +1,10 @@
 """Fidelity report of the action world model: open-loop predictions against held-out episodes given the same actions.
 
-For each episode the model reads `prompt_frames` real frames, then generates `horizon` frames from the recorded
-actions alone. Per horizon step it reports PSNR, SSIM and LPIPS of the decoded prediction against the real frame,
-next to the tokenizer's own reconstruction of the real frame (the best the world model could do), on the whole
-frame and on the task object's region. The done signals have their own report (reward/done_report.py), and so does
-whether the model follows its actions (world_model/controllability.py).
+For each episode the model reads `prompt_frames` real model frames, then generates `horizon` control steps (a frame
+per `frame_skip` steps) from the recorded actions alone. Per generated frame it reports PSNR, SSIM and LPIPS of the
+decoded prediction against the real frame, next to the tokenizer's own reconstruction of the real frame (the best
+the world model could do), on the whole frame and on the task object's region. The done signals have their own
+report (reward/done_report.py), and so does whether the model follows its actions (world_model/controllability.py).
 """
 
 import json
@@ -27,6 +27,7 @@ from lerobot_roboscape.image_fidelity import frame_measures
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.controllability import ControllabilityReportConfig, evaluate_controllability
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
@@ -57,7 +58,7 @@ class FidelityConfig:
     world_model: the action world model (local directory or Hub repo id).
     output_dir: where fidelity.json, fidelity.md, fidelity.png and side_by_side.mp4 go.
     prompt_frames: real frames read before generating (default: the model's prompt_frames).
-    horizon: generated frames compared per episode.
+    horizon: control steps generated per episode (horizon // frame_skip model frames are compared).
     max_episodes: episodes evaluated, at most.
     video_episodes: episodes shown in the side-by-side video.
     controllability: a controllability set (`roboscape-collect-control`); when given, the report also says whether
@@ -125,35 +126,41 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         )
     lpips_metric = load_lpips(tokenizer.config.lpips_net, cfg.lpips_weights, cfg.allow_random_lpips).to(device)
     prompt = cfg.prompt_frames or model.config.prompt_frames
-    n_cameras = model.config.n_cameras
+    n_cameras, k = model.config.n_cameras, model.config.frame_skip
+    horizon_frames = max(1, cfg.horizon // k)  # the horizon is in control steps; the model makes a frame per k
 
     masks = has_masks(dataset.root)
     metrics = METRICS + (OBJECT_METRICS if masks else ())
     per_step = {
-        f"{kind}_{m}": [[] for _ in range(cfg.horizon)] for kind in ("prediction", "reconstruction") for m in metrics
+        f"{kind}_{m}": [[] for _ in range(horizon_frames)] for kind in ("prediction", "reconstruction") for m in metrics
     }
     episodes_out, videos = [], []
     for index in episode_indices(dataset)[: cfg.max_episodes]:
         episode = read_episode(dataset, index)
+        frames = model_frames(len(episode.action), k)
+        images = {camera: f[frames] for camera, f in episode.images.items()}
         tokens = tokenizer.encode_views(
-            [torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in episode.images.values()]
-        )  # (T, S)
+            [torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in images.values()]
+        )  # (T, S), T model frames
         actions = torch.from_numpy(episode.action).to(device)
-        horizon = min(cfg.horizon, len(tokens) - prompt)
+        horizon = min(horizon_frames, len(tokens) - prompt)
         if horizon < 1:
             logger.warning(
                 "episode %d has %d frames, not more than the %d prompt frames: skipped", index, len(tokens), prompt
             )
             continue
-        pred_tokens, _ = model.generate(tokens[None, :prompt], horizon, actions=actions[None, : prompt + horizon - 1])
-        real = torch.stack([torch.from_numpy(f) for f in episode.images.values()], 1).permute(0, 1, 4, 2, 3)
+        pred_tokens, _ = model.generate(
+            tokens[None, :prompt], horizon, actions=actions[None, : (prompt + horizon - 1) * k]
+        )
+        real = torch.stack([torch.from_numpy(f) for f in images.values()], 1).permute(0, 1, 4, 2, 3)
         real = real.to(device).float() / 255  # (T, n, 3, H, W)
         target = real[prompt : prompt + horizon]
         pred = tokenizer.decode_views(pred_tokens[0], n_cameras)
         recon = tokenizer.decode_views(tokens[prompt : prompt + horizon], n_cameras)
         if masks:
-            labels = read_masks(dataset.root, index, camera_names(dataset), len(tokens))
-            labels = torch.from_numpy(np.stack(list(labels.values()), 1)[prompt : prompt + horizon]).to(device)
+            labels = read_masks(dataset.root, index, camera_names(dataset), len(episode.action))
+            labels = np.stack(list(labels.values()), 1)[frames]
+            labels = torch.from_numpy(labels[prompt : prompt + horizon]).to(device)
         for kind, images in (("prediction", pred), ("reconstruction", recon)):
             values = _image_metrics(images, target, lpips_metric)
             if masks:
@@ -162,7 +169,9 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 for step, value in enumerate(per_frame):
                     if not np.isnan(value):
                         per_step[f"{kind}_{metric}"][step].append(float(value))
-        episodes_out.append({"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon})
+        episodes_out.append(
+            {"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon, "frame_skip": k}
+        )
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
     if not episodes_out:

@@ -1,7 +1,8 @@
 """STWorldModel: next-frame token prediction (MaskGIT-style) and a done head, conditioned on actions or text.
 
-Frame t is conditioned on the control that led to it: for the action model, the action taken in frame t - 1; for
-the text model, the instruction. Tokens are (B, T, S) integer grids flattened per frame (views side by side).
+A model frame stands for k = `frame_skip` control steps. Frame t is conditioned on the control that led to it: for
+the action model, the k actions taken from frame t - 1; for the text model, the instruction. Tokens are (B, T, S)
+integer grids flattened per frame (views side by side). Generation takes actions one per control step, k per frame.
 """
 
 import math
@@ -67,7 +68,8 @@ class STWorldModel(
     # ---- control -------------------------------------------------------------------------------------------
 
     def encode_control(self, actions=None, no_action=None, instructions=None) -> Control:
-        """Action model: actions (B, T, action_dim), no_action (B, T) bool. Text model: instructions, B strings."""
+        """Action model: actions (B, T, k, action_dim), the k actions leading to each frame, no_action (B, T) bool.
+        Text model: instructions, B strings."""
         if self.config.control == "action":
             if actions is None:
                 raise ValueError("the action world model needs actions")
@@ -89,8 +91,6 @@ class STWorldModel(
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
         x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
-        if self.config.add_action and self.config.control == "action":
-            x_BTSC = x_BTSC + control.pooled[:, :, None]  # (B, T, 1, C): each frame its action
         control = control._replace(pooled=self.ln_pooled(control.pooled))
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         kvs = []
@@ -109,7 +109,7 @@ class STWorldModel(
         return self.done_head(hidden_BTSC.mean(dim=2)).squeeze(-1)
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
-        """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, A) + no_action (B, T) or task (B
+        """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, k, A) + no_action (B, T) or task (B
         strings). Frames after the first are masked at a MaskGIT ratio each, left clean with clean_frame_prob, or
         masked whole with full_mask_prob; controls are replaced by the null control with control_dropout."""
         tokens, done = batch["tokens"], batch["done"]
@@ -121,31 +121,16 @@ class STWorldModel(
         ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
         if self.config.full_mask_prob > 0:
             ratio = ratio.masked_fill(torch.rand(B, T, 1, device=tokens.device) < self.config.full_mask_prob, 1.0)
-        ratio[:, 0] = 0.0
         ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
-        # Some clips start over at a random frame: the frames before it are hidden (mask tokens, no loss) and it is
-        # the only real frame the rest can read, as a rollout from one prompt frame; the motion must come from the
-        # actions.
-        first = torch.zeros(B, 1, device=tokens.device, dtype=torch.long)
-        if self.config.context_drop_prob > 0:
-            cut = torch.rand(B, device=tokens.device) < self.config.context_drop_prob
-            first[cut, 0] = torch.randint(1, max(T - 1, 2), (int(cut.sum()),), device=tokens.device)
-        frame = torch.arange(T, device=tokens.device)[None]
-        hidden, prompt = frame < first, frame == first
-        ratio = ratio.masked_fill(prompt[..., None], 0.0)
+        ratio[:, 0] = 0.0  # the first frame is the prompt
         mask = torch.rand(B, T, S, device=tokens.device) < ratio
-        inputs = tokens.masked_fill(mask | hidden[..., None], self.config.mask_token_id)
-        mask = mask & ~hidden[..., None]
+        inputs = tokens.masked_fill(mask, self.config.mask_token_id)
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
         token_loss = logits.sum() * 0
         if mask.any():
-            per_token = F.cross_entropy(logits[mask].float(), tokens[mask], reduction="none")
-            changed = torch.zeros_like(mask)
-            changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
-            weight = 1 + self.config.changed_token_weight * changed[mask].float()
-            token_loss = (per_token * weight).sum() / weight.sum()
-        done_loss = self.done_loss(done_logits.float()[~hidden], done[~hidden])
+            token_loss = F.cross_entropy(logits[mask].float(), tokens[mask])
+        done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + self.config.done_weight * done_loss
         accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
         return loss, {
@@ -179,14 +164,18 @@ class STWorldModel(
     ):
         """Open-loop generation of `n_frames` frames after the prompt.
 
-        Action model: `actions` (B, P + n_frames - 1, A) are the actions of the prompt frames and of each generated
-        frame but the last (the control of frame t is action t - 1); `no_action` flags frames without one.
+        Action model: `actions` (B, (P + n_frames - 1) * k, A), one per control step, are the actions taken from the
+        prompt frames and from each generated frame but the last (the control of frame t is the k actions from
+        frame t - 1); `no_action` (B, P + n_frames - 1) flags frames without one.
         Returns tokens (B, n_frames, S) and done probabilities (B, n_frames).
         """
-        P = prompt_BPS.shape[1]
-        if self.config.control == "action" and (actions is None or actions.shape[1] != P + n_frames - 1):
+        P, k = prompt_BPS.shape[1], self.config.frame_skip
+        if self.config.control == "action" and (actions is None or actions.shape[1] != (P + n_frames - 1) * k):
             got = None if actions is None else tuple(actions.shape)
-            raise ValueError(f"need {P + n_frames - 1} actions for {P} prompt and {n_frames} new frames, got {got}")
+            raise ValueError(
+                f"need {(P + n_frames - 1) * k} actions ({k} per frame) for {P} prompt and {n_frames} new frames, "
+                f"got {got}"
+            )
         control = self.episode_control(actions, no_action, instructions)
         rollout = Rollout.start(self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True)
         frames, dones = [], []
@@ -199,7 +188,8 @@ class STWorldModel(
     @torch.no_grad()
     def teacher_forced(self, tokens_BTS, actions=None, instructions=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Read known frames one after the other, as a rollout would (each sees the window before it). Returns
-        done probabilities (B, T) and features (B, T, C). Actions: (B, T - 1, A), action t leading to frame t + 1."""
+        done probabilities (B, T) and features (B, T, C). Actions: (B, (T - 1) * k, A), actions t * k .. t * k + k - 1
+        leading to frame t + 1."""
         control = self.episode_control(actions, instructions=instructions)
         rollout = Rollout.start(self, tokens_BTS[:, :1], control.frames(slice(0, 1)))
         done, features = [rollout.done], [rollout.features]
@@ -209,11 +199,16 @@ class STWorldModel(
         return torch.stack(done, 1), torch.stack(features, 1)
 
     def episode_control(self, actions=None, no_action=None, instructions=None) -> Control:
-        """Controls of an episode's frames from its actions (B, T - 1, A), action t leading to frame t + 1 (frame
-        0 has none), or from its instructions (one control shared by all frames)."""
+        """Controls of an episode's frames from its actions (B, (T - 1) * k, A), one per control step, chunk t leading
+        to frame t + 1 (frame 0 has none), or from its instructions (one control shared by all frames)."""
         if self.config.control == "text":
             return self.encode_control(instructions=instructions)
-        shifted = torch.cat([actions.new_zeros(actions.shape[0], 1, actions.shape[2]), actions], 1)
+        B, N, A = actions.shape
+        k = self.config.frame_skip
+        if N % k:
+            raise ValueError(f"{N} actions do not make whole frames of frame_skip={k} actions")
+        chunks = actions.reshape(B, N // k, k, A)
+        shifted = torch.cat([chunks.new_zeros(B, 1, k, A), chunks], 1)
         flags = torch.zeros(shifted.shape[:2], dtype=torch.bool, device=shifted.device)
         flags[:, 0] = True
         if no_action is not None:

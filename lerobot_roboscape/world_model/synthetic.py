@@ -106,27 +106,30 @@ class SyntheticWorld:
 
     # ---- what the world model reads ------------------------------------------------------------------------
 
-    def training_batch(self, step: int, batch_size: int, window: int, seed: int = 0, shuffle: bool = False) -> dict:
+    def training_batch(
+        self, step: int, batch_size: int, window: int, seed: int = 0, shuffle: bool = False, frame_skip: int = 1
+    ) -> dict:
         """A batch in the world-model training layout (ClipSampler's), a pure function of (seed, step): tokens
-        (B, T, S), actions (B, T, 7) with frame t carrying the action that led to it, no_action, done and task.
-        `shuffle`: every clip gets another clip's controls (text: one instruction for all), so that nothing but
-        chance links a control to its frames."""
+        (B, T, S) every `frame_skip` (k) control steps, actions (B, T, k, 7) with frame t carrying the k actions that
+        led to it, no_action, done and task. `shuffle`: every clip gets another clip's controls (text: one
+        instruction for all), so that nothing but chance links a control to its frames."""
         rng = np.random.default_rng([seed, step])
-        episode = self.episodes(rng, batch_size, window - 1)
+        k = frame_skip
+        episode = self.episodes(rng, batch_size, (window - 1) * k)
         controls = episode["controls"]
         if shuffle and self.kind != "text":
             controls = controls[np.roll(np.arange(batch_size), 1)]
-        actions = np.zeros((batch_size, window, ACTION_DIM), np.float32)
+        actions = np.zeros((batch_size, window, k, ACTION_DIM), np.float32)
         if self.kind == "text":
             names = list(INSTRUCTIONS)
             task = [names[0] if shuffle else names[c] for c in controls]
         else:
-            actions[:, 1:] = controls
+            actions[:, 1:] = controls.reshape(batch_size, window - 1, k, ACTION_DIM)
             task = ["move the square"] * batch_size
         no_action = np.zeros((batch_size, window), bool)
         no_action[:, 0] = True
         return {
-            "tokens": torch.from_numpy(episode["tokens"]).long(),
+            "tokens": torch.from_numpy(episode["tokens"][:, ::k]).long(),
             "actions": torch.from_numpy(actions),
             "no_action": torch.from_numpy(no_action),
             "done": torch.zeros(batch_size, window),
@@ -142,16 +145,18 @@ class SyntheticWorld:
 @torch.no_grad()
 def retrieval(model, world: SyntheticWorld, starts: int = 32, K: int = 4, horizon: int = 4, seed: int = 1234):
     """Retrieval accuracy of the model's rollouts among K controls from each of `starts` starts (K = 2 for text,
-    one rollout per instruction), and the rollouts (starts, K, horizon, S) with their real futures."""
+    one rollout per instruction) over `horizon` model frames (each the model's frame_skip control steps), and the
+    rollouts (starts, K, horizon, S) with their real futures."""
     rng = np.random.default_rng(seed)
     K = len(INSTRUCTIONS) if world.kind == "text" else K
-    background, position = world.random_starts(rng, starts, horizon)
+    k = model.config.frame_skip
+    background, position = world.random_starts(rng, starts, horizon * k)
     if world.kind == "text":
         controls = np.tile(np.arange(K), starts)
     else:
-        controls = world.random_controls(rng, starts * K, horizon)
+        controls = world.random_controls(rng, starts * K, horizon * k)
     starts_K = (np.repeat(background, K, 0), np.repeat(position, K, 0))
-    real = world.episodes(rng, starts * K, horizon, controls=controls, starts=starts_K)["tokens"]
+    real = world.episodes(rng, starts * K, horizon * k, controls=controls, starts=starts_K)["tokens"][:, ::k]
     device = next(model.parameters()).device
     prompt = torch.from_numpy(real[:, :1]).to(device)
     if world.kind == "text":
@@ -179,11 +184,13 @@ def train_on_world(
     eval_every: int = 0,
     minutes: float | None = None,
     on_eval=None,
+    until: float | None = None,
 ) -> list[dict]:
     """Train `model` on fresh batches of `world` (AdamW, linear warm-up), for `steps` steps or `minutes` of
-    training time, whichever ends first. Every `eval_every` steps (and at the end) measure retrieval; the clock
-    stops while it does. Returns the curve: {"step", "minutes", "retrieval", "loss"} per evaluation, each updated
-    with what `on_eval(point, model)` returns (other measures of the same model), also outside the clock."""
+    training time, whichever ends first, or once retrieval reached `until` at two evaluations in a row. Every
+    `eval_every` steps (and at the end) measure retrieval; the clock stops while it does. Returns the curve:
+    {"step", "minutes", "retrieval", "loss"} per evaluation, each updated with what `on_eval(point, model)`
+    returns (other measures of the same model), also outside the clock."""
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=0.01)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup_steps))
     curve, trained_seconds, losses = [], 0.0, []
@@ -202,7 +209,9 @@ def train_on_world(
     model.train()
     for step in range(1, steps + 1):
         tic = time.perf_counter()
-        batch = world.training_batch(step, batch_size, model.config.window, seed=seed, shuffle=shuffle)
+        batch = world.training_batch(
+            step, batch_size, model.config.window, seed=seed, shuffle=shuffle, frame_skip=model.config.frame_skip
+        )
         loss, _ = model(batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -214,7 +223,8 @@ def train_on_world(
         out_of_time = minutes is not None and trained_seconds >= 60 * minutes
         if step == steps or out_of_time or (eval_every and step % eval_every == 0):
             evaluate(step)
-        if out_of_time:
+        solved = until is not None and len(curve) >= 2 and min(p["retrieval"] for p in curve[-2:]) >= until
+        if out_of_time or solved:
             break
     model.eval()
     return curve

@@ -116,7 +116,9 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     )
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
-    batches = ClipSampler(cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed)
+    batches = ClipSampler(
+        cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed, frame_skip=cfg.wm.frame_skip
+    )
     run_config = {**asdict(cfg), "token_cache": str(cache.root)}
     return fit(
         model,

@@ -11,6 +11,7 @@ from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, goal_
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
+from lerobot_roboscape.world_model.clips import model_frames
 from tests.conftest import IMAGE_SIZE
 
 
@@ -145,22 +146,25 @@ def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, termin
     )
     env = RoboscapeWorldModelEnv(config, num_envs=1)
     data = open_dataset("test/demos", root)
+    k = env.frame_skip
     episode = next(
         e
         for e in map(lambda i: read_episode(data, i), range(data.meta.total_episodes))
-        if e.done_label.max() > 0 and e.info["task_family"] == "push"
+        if e.done_label[::k].max() > 0 and e.info["task_family"] == "push"  # success shows in a model frame
     )
     start = next(s for s in env.starts if s.episode_index == episode.index)
     facts = [episode_facts(data, i) for i in range(data.meta.total_episodes)]
     assert start.horizon == max(
         data.meta.episodes[i]["length"] for i, f in enumerate(facts) if f["task_family"] == "push" and f["success"]
     )  # the longest successful push
-    tokens = env._encode({cam: episode.images[cam] for cam in env.cameras})
-    reached, reached_success = env.replay(episode.index, tokens, torch.from_numpy(episode.done_label))
+    frames = model_frames(len(episode.action), k)  # what the action model would have made, a frame per k steps
+    tokens = env._encode({cam: episode.images[cam][frames] for cam in env.cameras})
+    reached, reached_success = env.replay(episode.index, tokens, torch.from_numpy(episode.done_label[frames]))
     still, still_success = env.replay(episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
     assert reached_success and not still_success
     assert len(reached) == len(still) == start.horizon
     assert reached.sum() > still.sum()
+    assert (reached[np.arange(start.horizon) % k != k - 1] == 0).all()  # paid at each chunk's last step only
 
 
 def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):

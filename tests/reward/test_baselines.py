@@ -8,6 +8,8 @@ from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.world_model.clips import model_frames
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE
 
 
@@ -152,10 +154,11 @@ def test_done_report_chooses_source_and_threshold_on_validation(
 @pytest.mark.parametrize("kind", ["embedding", "proxy"])
 def test_env_uses_the_baseline_reward(kind, reward_models, env_config):
     dirs, _ = reward_models
-    small = dict(episode_length=3, max_goal_steps=2, theta=1.0)
+    small = dict(episode_length=8, max_goal_steps=2, theta=1.0)
     env = RoboscapeWorldModelEnv(env_config(reward_type=kind, reward_model=str(dirs[kind]), **small), num_envs=2)
     env.reset(seed=0)
-    _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
+    for _ in range(env.frame_skip):  # the chunk's last action makes the frame and is paid its reward
+        _, reward, *_ = env.step(np.zeros((2, 7), np.float32))
     model = RewardModel.from_pretrained(dirs[kind]).eval()
     with torch.no_grad():
         expected = model(env._rollout.features if kind == "embedding" else env._frames)
@@ -205,10 +208,11 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
         steps = horizon[facts[index]["task_family"]]
         for kind, values in episode["rewards"].items():
             assert len(values) == steps and np.isfinite(values).all(), kind
-        # The rule-based curve is the dataset's own reward, shifted onto the frame it scores, then held.
-        row = rows[index]
-        recorded = token_cache.rewards[row["start"] + 1 : row["start"] + row["length"]]
-        rule_based = np.asarray(episode["rewards"]["rule_based"])
-        shown = min(steps, len(recorded))
-        np.testing.assert_allclose(rule_based[:shown], recorded[:shown])
-        np.testing.assert_allclose(rule_based[shown:], recorded[-1])
+        # The rule-based curve is the dataset's own reward of the model frame seen after each step (a frame every
+        # k steps), the last one held; the world model pays at each chunk's last step only.
+        row, k = rows[index], STWorldModel.from_pretrained(world_models["action"]).config.frame_skip
+        frames = model_frames(row["length"], k)
+        seen = frames[np.minimum(np.arange(1, steps + 1) // k, len(frames) - 1)]
+        recorded = token_cache.rewards[row["start"] + seen]
+        np.testing.assert_allclose(episode["rewards"]["rule_based"], recorded)
+        assert (np.asarray(episode["rewards"]["world_model"])[np.arange(steps) % k != k - 1] == 0).all()

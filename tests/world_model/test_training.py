@@ -1,6 +1,7 @@
 import json
 
 import draccus
+import numpy as np
 import pytest
 import torch
 
@@ -49,13 +50,28 @@ def action_wm(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory):
 def test_clips_follow_the_action_convention(token_cache):
     episodes = select_episodes(token_cache)
     batch = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=0)(step=5)
-    assert batch["tokens"].shape == (8, 4, 32) and batch["actions"].shape == (8, 4, 7)
+    assert batch["tokens"].shape == (8, 4, 32) and batch["actions"].shape == (8, 4, 1, 7)
     again = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=0)(step=5)
     assert torch.equal(batch["tokens"], again["tokens"])  # a pure function of the step: resumable
     row = episodes[0]
     clip = ClipSampler(token_cache, episodes, 4, 1).clip(row, rng=_FixedStart(0))
     assert clip["no_action"].tolist() == [True, False, False, False]
-    assert (clip["actions"][1] == token_cache.actions[row["start"]]).all()  # frame 1 carries action 0
+    assert (clip["actions"][1, 0] == token_cache.actions[row["start"]]).all()  # frame 1 carries action 0
+
+
+def test_clips_of_action_chunks(token_cache):
+    """With frame_skip k, clip frames are k control steps apart and each carries the k actions leading to it."""
+    row = max(select_episodes(token_cache), key=lambda r: r["length"])
+    start, k = row["start"], 3
+    sampler = ClipSampler(token_cache, [row], window=3, batch_size=1, frame_skip=k)
+    clip = sampler.clip(row, rng=_FixedStart(1))
+    assert np.array_equal(clip["tokens"], token_cache.tokens[start + np.array([1, 4, 7])].reshape(3, -1))
+    assert clip["no_action"].tolist() == [False, False, False]
+    assert (clip["actions"][0, :2] == 0).all()  # steps -2 and -1: before the episode
+    assert np.array_equal(clip["actions"][0, 2], token_cache.actions[start])
+    assert np.array_equal(clip["actions"][2], token_cache.actions[start + 4 : start + 7])  # steps 4..6 lead to 7
+    end = sampler.clip(row, rng=_FixedStart(row["length"] - 2))  # past the end: the last frame held, no actions
+    assert (end["tokens"][1] == end["tokens"][2]).all() and (end["actions"][2] == 0).all()
 
 
 class _FixedStart:
@@ -123,21 +139,23 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
             f"--tokenizer={trained_tokenizer}",
             f"--world_model={action_wm / FINAL}",
             f"--output_dir={tmp_path}",
-            "--horizon=6",
+            "--horizon=8",
             "--allow_random_lpips=true",
         ],
     )
     report = evaluate_fidelity(cfg)
+    frames = 8 // STWorldModel.from_pretrained(action_wm / FINAL).config.frame_skip  # a frame per k control steps
+    assert frames == 2 and report["episodes"][0]["frame_skip"] == 4
     for name in ("fidelity.json", "fidelity.md", "fidelity.png", "side_by_side.mp4"):
         assert (tmp_path / name).stat().st_size > 0
     assert [e["episode_index"] for e in report["episodes"]] == [1, 3]
     for key, values in report["per_step"].items():
-        assert len(values) == 6 and all(v is not None and v == v for v in values), key
+        assert len(values) == frames and all(v is not None and v == v for v in values), key
     assert report["lpips_trunk"].startswith("random")
     # The reconstruction baseline is the tokenizer's own round trip; PSNR is in a sane range for both.
     assert 5 < report["mean"]["reconstruction_psnr"] < 60 and 5 < report["mean"]["prediction_psnr"] < 60
     # The demo dataset has the object's masks: the object's region is measured per step too.
-    assert len(report["per_step"]["prediction_object_psnr"]) == 6
+    assert len(report["per_step"]["prediction_object_psnr"]) == frames
     assert "object PSNR pred" in (tmp_path / "fidelity.md").read_text()
 
 

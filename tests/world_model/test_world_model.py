@@ -17,17 +17,18 @@ MICRO = dict(
     window=4,
     prompt_frames=1,
     done_hidden=32,
+    frame_skip=1,
 )
 TASKS = ["push the red cube forward", "pull the red cube back"]
 STATS = dict(action_mean=[0.1] * 7, action_std=[0.3] * 7)
 # The control path's levers together, each active (the AdaLN projections and the null text token start at 0).
 CONTROL_PATH = dict(adaln="one_plus", normalize_control=True, control_dropout=0.1, guidance_scale=2.0)
 VARIANTS = [
+    ("action", {"adaln": "none"}),
     ("action", {}),
-    ("action", {"add_action": True}),
     ("action", CONTROL_PATH),
     ("action", {**CONTROL_PATH, "adaln": "zero", "maskgit_order": "annealed"}),
-    ("text", {}),
+    ("text", {"adaln": "none"}),
     ("text", {**CONTROL_PATH, "maskgit_order": "random"}),
 ]
 
@@ -47,7 +48,7 @@ def random_batch(B=2, T=4, S=8, V=16, seed=0):
     return {
         "tokens": torch.randint(0, V, (B, T, S), generator=g),
         "done": (torch.rand(B, T, generator=g) > 0.5).float(),
-        "actions": torch.rand(B, T, 7, generator=g) * 2 - 1,
+        "actions": torch.rand(B, T, 1, 7, generator=g) * 2 - 1,  # frame t: the k = 1 action that led to it
         "no_action": torch.zeros(B, T, dtype=torch.bool),
         "task": TASKS[:B],
     }
@@ -55,7 +56,7 @@ def random_batch(B=2, T=4, S=8, V=16, seed=0):
 
 def control_kwargs(model, batch, n):
     if model.config.control == "action":
-        return {"actions": batch["actions"][:, :n]}
+        return {"actions": batch["actions"][:, :n, 0]}  # generation takes one action per control step
     return {"instructions": batch["task"]}
 
 
@@ -115,24 +116,10 @@ def test_cached_generation_equals_recomputing_the_window(control, overrides):
     torch.testing.assert_close(done_cached, done_full)
 
 
-def test_added_action_reaches_every_token_of_its_frame():
-    plain, added = make_model(), make_model(add_action=True)
-    batch = random_batch()
-    for model in (plain, added):  # no cross-attention path: what remains is the added action
-        for block in model.blocks:
-            torch.nn.init.zeros_(block.cross.proj.weight)
-            torch.nn.init.zeros_(block.cross.proj.bias)
-    flipped = -batch["actions"]
-    for model, reacts in ((plain, False), (added, True)):
-        a = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]))[0]
-        b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]))[0]
-        assert (not torch.allclose(a, b)) == reacts
-
-
 @pytest.mark.parametrize("gate", ["one_plus", "zero"])
 def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame(gate):
     batch = random_batch()
-    plain = make_model()
+    plain = make_model(adaln="none")
     torch.manual_seed(0)  # unperturbed: the zero-initialised modulation, as training starts
     fresh = STWorldModel(TinyWorldModelConfig(control="action", adaln=gate, **MICRO, **STATS)).eval()
     logits = fresh.compute_logits(batch["tokens"], fresh.encode_control(batch["actions"], batch["no_action"]))[0]
@@ -161,7 +148,7 @@ def test_actions_are_normalised_by_the_dataset_statistics():
     normalised = make_model()
     raw = make_model(action_mean=None, action_std=None)
     raw.load_state_dict(normalised.state_dict())
-    actions = torch.rand(2, 3, 7) * 0.7 - 0.35
+    actions = torch.rand(2, 3, 1, 7) * 0.7 - 0.35
     std = torch.tensor(STATS["action_std"])
     expected = raw.encode_control((actions - torch.tensor(STATS["action_mean"])) / std).tokens
     torch.testing.assert_close(normalised.encode_control(actions).tokens, expected)
@@ -191,7 +178,7 @@ def test_dropped_controls_are_the_null_control(control):
 def test_guidance_extrapolates_from_the_null_control():
     model = make_model(**CONTROL_PATH)
     batch = random_batch()
-    control = model.episode_control(batch["actions"][:, :1])
+    control = model.episode_control(batch["actions"][:, :1, 0])
     prompt = batch["tokens"][:, :1]
     frame = torch.full((2, 1, 8), model.config.mask_token_id)
     guided = Rollout.start(model, prompt, control.frames(slice(0, 1)))
@@ -228,34 +215,11 @@ def test_decoding_orders_are_reproducible_from_their_generator(order):
     assert runs[0].min() >= 0 and runs[0].max() < 16
 
 
-def test_changed_tokens_weigh_more_only_where_frames_change():
-    batch = random_batch()
-    still = {**batch, "tokens": batch["tokens"][:, :1].expand(-1, 4, -1).clone()}  # every frame the same
-
-    def loss(weight, data):
-        torch.manual_seed(1)  # the same masks
-        return make_model(changed_token_weight=weight).train()(data)[0]
-
-    torch.testing.assert_close(loss(0.0, still), loss(5.0, still))  # nothing changes: nothing to weigh
-    assert not torch.isclose(loss(0.0, batch), loss(5.0, batch))
-
-
-def test_hidden_context_frames_neither_inform_nor_count():
-    model = make_model(context_drop_prob=1.0).train()
-    batch = random_batch(T=4)
-    torch.manual_seed(3)
-    loss, _ = model(batch)
-    other = {**batch, "tokens": batch["tokens"].clone()}
-    other["tokens"][:, 0] = (other["tokens"][:, 0] + 7) % 16  # frame 0 is always hidden when every clip starts over
-    torch.manual_seed(3)
-    torch.testing.assert_close(model(other)[0], loss)
-
-
 @pytest.mark.gpu
 def test_cached_generation_on_gpu_equals_recomputing_the_window():
     model = make_model("action", window=6).cuda()
     batch = random_batch(T=6)
-    prompt, actions = batch["tokens"][:, :1].cuda(), batch["actions"][:, :5].cuda()
+    prompt, actions = batch["tokens"][:, :1].cuda(), batch["actions"][:, :5, 0].cuda()
     cached, done_cached = model.generate(prompt, 5, actions=actions, use_cache=True)  # fills the window
     full, done_full = model.generate(prompt, 5, actions=actions, use_cache=False)
     assert torch.equal(cached, full)
@@ -292,7 +256,7 @@ def test_overfits_one_clip():
         opt.step()
     model.eval()
     # In a batch, frame t carries the action that led to it; generate() takes actions in the order they were taken.
-    tokens, done = model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, 1:])
+    tokens, done = model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, 1:, 0])
     assert (tokens == batch["tokens"][:, 1:]).float().mean() > 0.95
     assert (done - batch["done"][:, 1:]).abs().max() < 0.2
 
@@ -310,13 +274,32 @@ def test_save_load_round_trip(control, tmp_path):
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
 
 
+def test_a_frame_per_action_chunk():
+    """With frame_skip k, generation takes one action per control step and each frame reads the k actions that
+    lead to it, in order."""
+    model = make_model(frame_skip=2)
+    g = torch.Generator().manual_seed(2)
+    prompt, actions = torch.randint(0, 16, (2, 1, 8), generator=g), torch.rand(2, 6, 7, generator=g) * 2 - 1
+    tokens, done = model.generate(prompt, 3, actions=actions)
+    assert tokens.shape == (2, 3, 8) and done.shape == (2, 3)
+    control = model.episode_control(actions)
+    chunks = torch.cat([torch.zeros(2, 1, 2, 7), actions.reshape(2, 3, 2, 7)], 1)
+    no_action = torch.tensor([[True, False, False, False]] * 2)
+    torch.testing.assert_close(control.tokens, model.encode_control(chunks, no_action).tokens)
+    swapped = actions.reshape(2, 3, 2, 7).flip(2).reshape(2, 6, 7)  # the same actions, in the other order
+    assert not torch.allclose(model.episode_control(swapped).tokens[:, 1:], control.tokens[:, 1:])
+
+
 def test_bad_inputs_are_named():
     model = make_model("action")
     batch = random_batch()
-    with pytest.raises(ValueError, match=r"\(B, T, 7\).*\(2, 4, 6\)"):
+    with pytest.raises(ValueError, match=r"\(B, T, 1, 7\).*\(2, 4, 1, 6\)"):
         model.encode_control(batch["actions"][..., :6])
+    chunked = make_model("action", frame_skip=2)
+    with pytest.raises(ValueError, match="need 6 actions \\(2 per frame\\)"):
+        chunked.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, :3, 0])
     with pytest.raises(ValueError, match="need 3 actions"):
-        model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, :2])
+        model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, :2, 0])
     with pytest.raises(ValueError, match="frames must have 8 tokens"):
         model.compute_logits(batch["tokens"][..., :5], model.encode_control(batch["actions"]))
     text = make_model("text")
