@@ -122,30 +122,39 @@ def report(args):
 
     worlds = [w for w in ("wiring", "motion", "text") if (args.out / w).is_dir()]
     fig, axes = plt.subplots(2, len(worlds), figsize=(7 * len(worlds), 9), squeeze=False)
-    columns = ["world", "variant", "steps", "minutes", "at 5 min", "at 10 min", "first >= 0.9 (step, min)"]
+    columns = ["world", "variant", "steps", "minutes", "at 5 min", "at 10 min", "at 600 / 1,000 / 1,200 steps"]
+    columns += ["first >= 0.9 (step, min)"]
     print("| " + " | ".join(columns + ["last: annealed / random / guided"]) + " |")
-    print("|---|---|---:|---:|---:|---:|---:|---|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---|")
     for column, world in enumerate(worlds):
         measured = {p.stem for p in (args.out / world).glob("*.jsonl")}
-        for name in [*[v for v in VARIANTS if v in measured], *sorted(measured - set(VARIANTS))]:
+        names = [*[v for v in VARIANTS if v in measured], *sorted(measured - set(VARIANTS))]
+        colors = dict(zip(names, plt.cm.tab20.colors, strict=False))
+        for name in names:
             path = args.out / world / f"{name}.jsonl"
             if not path.read_text().strip():
                 continue
             curve = [json.loads(line) for line in path.read_text().splitlines()]
             style = "-" if name.startswith("combined") or name == "as_built" else "--"
             for row, x in enumerate(("minutes", "step")):
-                axes[row, column].plot([p[x] for p in curve], [p["retrieval"] for p in curve], style, label=name)
+                axes[row, column].plot(
+                    [p[x] for p in curve], [p["retrieval"] for p in curve], style, color=colors[name], label=name
+                )
 
-            def at(minutes, curve=curve):
-                before = [p for p in curve if p["minutes"] <= minutes + 0.05]
-                return f"{before[-1]['retrieval']:.2f}" if before else "-"
+            def at(minutes, curve=curve, key="minutes"):
+                before = [p for p in curve if p[key] <= minutes + 0.05]
+                return f"{before[-1]['retrieval']:.2f}" if before and curve[-1][key] >= minutes else "-"
+
+            end = f"{curve[-1]['retrieval']:.2f}" if curve[-1]["minutes"] >= 9.9 else "-"  # the budget's end
+            at_steps = " / ".join(at(n, key="step") for n in (600, 1000, 1200))
 
             first = next((p for p in curve if p["retrieval"] >= 0.9), None)
             reached = f"{first['step']}, {first['minutes']:.1f}" if first else "never"
             last = curve[-1]
             others = " / ".join(f"{k[10:]} {v:.2f}" for k, v in last.items() if k.startswith("retrieval_"))
             print(
-                f"| {world} | {name} | {last['step']} | {last['minutes']:.1f} | {at(5)} | {at(10)} | {reached} "
+                f"| {world} | {name} | {last['step']} | {last['minutes']:.1f} | {at(5)} | {end} | {at_steps} "
+                f"| {reached} "
                 f"| {others} |"
             )
         for row, x in enumerate(("training minutes", "steps")):

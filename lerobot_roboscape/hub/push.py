@@ -127,6 +127,7 @@ def stage_world_models(
         return {
             "size": f"d_model {c['d_model']}, {c['n_layer']} layers",
             "parameters": parameter_count(sources[key] / "model.safetensors"),
+            "frame_skip": c.get("frame_skip", 1),
             "dims": list(range(len(stats["action_mean"]))),
             **stats,
         }

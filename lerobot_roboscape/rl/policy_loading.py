@@ -78,7 +78,9 @@ def check_policy_fits_env(policy, env_cfg: EnvConfig, path) -> None:
 def check_policy_fits_frame_skip(policy, env, path) -> None:
     """A policy that executes action chunks must execute one world-model frame's worth (k actions) per look, so that
     each decision sees the frame its previous chunk made; a policy that acts every step (1 action) always fits."""
-    k = getattr(env, "frame_skip", 1)
+    k = getattr(env, "frame_skip", None)  # only the world-model env steps in frames
+    if k is None:
+        return
     executed = getattr(policy.config, "n_action_steps", 1)
     if executed > 1 and executed != k:
         raise InvalidInputError(

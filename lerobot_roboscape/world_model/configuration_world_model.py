@@ -94,7 +94,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     guidance_scale: float = 1.0
     # Control path.
     adaln: str = "one_plus"
-    normalize_control: bool = False
+    normalize_control: bool = True
     control_dropout: float = 0.0
     # Training.
     clean_frame_prob: float = 0.25

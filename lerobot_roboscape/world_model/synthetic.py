@@ -138,6 +138,8 @@ class SyntheticWorld:
 
     def action_stats(self, seed: int = 0, n: int = 4096) -> dict[str, np.ndarray]:
         """The actions' statistics as LeRobot computes them for a dataset (dataset.meta.stats["action"])."""
+        if self.kind == "text":
+            raise ValueError("the text world has instructions, not actions")
         actions = self.random_controls(np.random.default_rng(seed), n, 1)[:, 0]
         return {"mean": actions.mean(0), "std": actions.std(0), "min": actions.min(0), "max": actions.max(0)}
 

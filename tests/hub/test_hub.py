@@ -104,6 +104,7 @@ def test_world_models_repo_and_card(trained_tokenizer, world_models, tmp_path):
     action_config = json.loads((repo / "action_world_model" / "config.json").read_text())
     std_row = "| std | " + " | ".join(f"{v:.4g}" for v in action_config["action_std"]) + " |"
     assert std_row in card.text  # the action statistics the model normalises by
+    assert f"Each model frame stands for k = {action_config['frame_skip']} control steps" in card.text
 
 
 def test_world_models_push_uploads_the_staged_folder(trained_tokenizer, world_models, recorded_hub):

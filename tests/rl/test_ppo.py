@@ -239,3 +239,18 @@ def test_unknown_policy_type_needs_every_setting(fresh_mlp, tmp_path):
     assert ppo_config(fresh_mlp, tmp_path / "ppo", **explicit).with_policy_defaults("act").value_loss == "huber"
     with pytest.raises(ValueError, match="value_loss must be mse or huber"):
         ppo_config(fresh_mlp, tmp_path / "ppo", value_loss="l1")
+
+
+def test_a_policy_must_execute_a_world_model_frame_of_actions():
+    """The world model makes a frame every k actions: a policy that executes chunks must execute k of them per look
+    (the MLP's 4 at k = 4), one that acts every step (OpenVLA) always fits; any other chunk is refused by name."""
+    from types import SimpleNamespace
+
+    from lerobot_roboscape.errors import InvalidInputError
+    from lerobot_roboscape.rl.policy_loading import check_policy_fits_frame_skip
+
+    env = SimpleNamespace(frame_skip=4)
+    for executed in (1, 4):
+        check_policy_fits_frame_skip(SimpleNamespace(config=SimpleNamespace(n_action_steps=executed)), env, "p")
+    with pytest.raises(InvalidInputError, match=r"executes 8 actions per look.*every 4 actions.*n_action_steps=4"):
+        check_policy_fits_frame_skip(SimpleNamespace(config=SimpleNamespace(n_action_steps=8)), env, "p")

@@ -20,7 +20,7 @@ SOLVED, EVAL_EVERY, MAX_STEPS = 0.95, 100, {"wiring": 2000, "motion": 2000, "tex
 def tiny_model(world: SyntheticWorld, seed: int = 0) -> STWorldModel:
     """The tiny preset (its architecture and control path), sized to the world's grid; a frame per action, as the
     worlds move one cell per action."""
-    stats = world.action_stats()
+    stats = world.action_stats() if world.kind != "text" else None
     torch.manual_seed(seed)
     config = TinyWorldModelConfig(
         control="text" if world.kind == "text" else "action",
@@ -31,8 +31,8 @@ def tiny_model(world: SyntheticWorld, seed: int = 0) -> STWorldModel:
         vocab_size=world.vocab_size,
         window=WINDOW,
         prompt_frames=1,
-        action_mean=None if world.kind == "text" else stats["mean"].tolist(),
-        action_std=None if world.kind == "text" else stats["std"].tolist(),
+        action_mean=None if stats is None else stats["mean"].tolist(),
+        action_std=None if stats is None else stats["std"].tolist(),
     )
     return STWorldModel(config)
 
