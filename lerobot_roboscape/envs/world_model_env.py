@@ -405,11 +405,11 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._rollout = Rollout.start(self.action_model, first[:, None], control)
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
-        self._done = torch.zeros(self.num_envs, device=self.device)  # the latest frame's done probability
+        self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
-        start_parts = self.reward_fn(self._frames, self._goals, self._done)
+        start_parts = self.reward_fn(self._frames, self._goals, torch.zeros(self.num_envs, device=self.device))
         self._distance = start_parts.distance.cpu().numpy()  # to the goal, of the frame shown
         self._book = EpisodeBook(
             np.array([s.horizon for s in starts]), self.config.terminate_on_success, self.reward_fn.max_step_reward
@@ -441,8 +441,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             control = self.action_model.encode_control(chunk)
             tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
             frames = self._decode(tokens)
-            self._done = self.done_of(tokens, done, frames)
-            paid = self.reward_fn(frames, self._goals, self._done)
+            done = self.done_of(tokens, done, frames)
+            self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync
+            paid = self.reward_fn(frames, self._goals, done)
             self._frames = torch.where(
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
             )
@@ -455,7 +456,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             }
         info = {
             "is_success": self._book.succeeded.copy(),
-            "done_probability": self._done.cpu().numpy(),
+            "done_probability": self._done.copy(),
             **parts,
             "clipped_actions": clipped,
             "goal": self._pixels(self._goals),
@@ -464,7 +465,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
     def _succeeding(self) -> np.ndarray:
-        return self._done.cpu().numpy() >= self.config.theta
+        return self._done >= self.config.theta
 
     @torch.no_grad()
     def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:

@@ -125,9 +125,9 @@ class DoneSources:
 def score_episodes(dataset, sources: DoneSources, open_loop: bool, batch_size: int, device) -> list[EpisodeScores]:
     cameras = camera_names(dataset)
     episodes, pending = [], []
+    k = sources.model.config.frame_skip
     for index in episode_indices(dataset):
         episode = read_episode(dataset, index)
-        k = sources.model.config.frame_skip
         frames = model_frames(len(episode.action), k)  # the model reads every k-th step
         tokens = sources.tokenizer.encode_views(
             [torch.from_numpy(episode.images[c][frames]).permute(0, 3, 1, 2).to(device) for c in cameras]
