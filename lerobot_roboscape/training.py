@@ -27,7 +27,8 @@ from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, 
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
-HELDOUT_CURVE = "heldout_curve.jsonl"  # one {"step", "seconds", <measure>: value} line per held-out evaluation
+# One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.
+HELDOUT_CURVE = "heldout_curve.jsonl"
 
 
 @dataclass
@@ -85,6 +86,18 @@ def resolve_mixed_precision(value: str | bool) -> str:
     if value != "auto":
         return value
     return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
+
+
+def native_bf16(device: str) -> bool:
+    """Whether `device` computes bf16 natively: a CUDA GPU that supports it, or a CPU with AVX512-BF16 or AMX
+    (Linux's CPU flags; elsewhere, no)."""
+    if device.startswith("cuda"):
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
 def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
@@ -165,7 +178,7 @@ def fit(
     if accelerator.is_main_process:
         (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
         _truncate_curve(output_dir / HELDOUT_CURVE, start)
-    began = time.time()
+    began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating
 
     model.train()
     progress = tqdm(
@@ -196,7 +209,10 @@ def fit(
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in ("loss", "token_acc", "l1")})
         last = step + 1 == config.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
-            _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, time.time() - began)
+            tic = time.time()
+            seconds = tic - began - evaluating
+            _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, seconds)
+            evaluating += time.time() - tic
         if (step + 1) % config.save_freq == 0 or last:
             _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints)
     accelerator.end_training()

@@ -10,11 +10,14 @@ steps are control steps, and the model makes a frame every k of them.
 
     python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
     python scripts/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
-    python scripts/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40
+    python scripts/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40 \
+        --precisions float32 bfloat16
 """
 
 import argparse
+import dataclasses
 import functools
+import itertools
 import tempfile
 import time
 from pathlib import Path
@@ -22,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.configs import PRECISIONS, RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
@@ -75,6 +78,9 @@ def main():
     )
     parser.add_argument("--random-preset", choices=["tiny", "bench", "paper"], help="untrained models of a preset")
     parser.add_argument("--frame-skips", type=int, nargs="+", default=[4], help="with --random-preset")
+    parser.add_argument(
+        "--precisions", nargs="+", default=["auto"], choices=PRECISIONS, help="roboscape_wm's precision"
+    )
     args = parser.parse_args()
     demo = args.demo_dir
     torch.manual_seed(0)
@@ -137,12 +143,12 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
         f"{args.steps} steps per measurement"
     )
     print(
-        f"{'batch':>6} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} {'done':>7} "
-        f"{'roboscape_maniskill steps/s':>28} {'ratio':>7}"
+        f"{'batch':>6} {'precision':>9} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
+        f"{'done':>7} {'roboscape_maniskill steps/s':>28} {'ratio':>7}"
     )
     predict_next_frame = Rollout.predict_next_frame
-    for batch in args.batch_sizes:
-        wm = RoboscapeWorldModelEnv(wm_config, num_envs=batch)
+    for batch, precision in itertools.product(args.batch_sizes, args.precisions):
+        wm = RoboscapeWorldModelEnv(dataclasses.replace(wm_config, precision=precision), num_envs=batch)
         timers = {
             "generate": Timed(predict_next_frame),
             "decode": Timed(wm._decode),
@@ -156,7 +162,7 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
         ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
         ms_rate, _ = steps_per_second(ms, args.steps)
         ms.close()
-        print(f"{batch:>6} {wm_rate:>21.1f} {shares} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
+        print(f"{batch:>6} {wm.precision:>9} {wm_rate:>21.1f} {shares} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
 
 
 if __name__ == "__main__":

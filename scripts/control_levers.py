@@ -8,8 +8,13 @@ trains a null control: decoding levers need no training of their own.
 
 `report` draws OUT/control_levers.png and prints the table of every run.
 
+`precision` trains the presets' combination on *motion* until it solves it, then reads the same model in float32,
+under bf16 autocast (roboscape_wm's `precision`) and with one MaskGIT pass: retrieval over 64 starts, and the
+share of float32's rollout tokens each keeps.
+
     python scripts/control_levers.py run --world motion --variant adaln_one_plus --minutes 10
     python scripts/control_levers.py report
+    python scripts/control_levers.py precision --threads 2
 """
 
 import argparse
@@ -166,9 +171,26 @@ def report(args):
     fig.savefig(args.out / "control_levers.png", dpi=70)
 
 
+def precision(args):
+    torch.set_num_threads(args.threads)
+    world = SyntheticWorld("motion")
+    presets = {"adaln": "one_plus", "normalize_control": True, "normalize_actions": True}  # dropout off
+    model = build_model(world, {**AS_BUILT, **presets}, args.seed)
+    trained = train_on_world(model, world, steps=10**9, eval_every=args.eval_every, minutes=args.minutes, until=0.97)
+    print(f"trained: {trained[-1]}")
+    reads = {"float32": ("float32", 2), "bfloat16": ("bfloat16", 2), "one pass": ("float32", 1)}
+    rollouts = {}
+    for name, (dtype, passes) in reads.items():
+        model.config.maskgit_steps = passes
+        with torch.autocast("cpu", torch.bfloat16, enabled=dtype == "bfloat16"):
+            accuracy, rollouts[name], _ = retrieval(model, world, starts=64)
+        kept = (rollouts[name] == rollouts["float32"]).mean()
+        print(f"{name:>9}: retrieval {accuracy:.3f}, float32's tokens kept {kept:.4f}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("command", choices=["run", "report"])
+    parser.add_argument("command", choices=["run", "report", "precision"])
     parser.add_argument("--world", default="motion", choices=["wiring", "motion", "text"])
     parser.add_argument("--variant", default="as_built", choices=list(VARIANTS))
     parser.add_argument("--minutes", type=float, default=10.0, help="training minutes (evaluation not counted)")
@@ -179,7 +201,7 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args()
-    run(args) if args.command == "run" else report(args)
+    {"run": run, "report": report, "precision": precision}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -160,6 +160,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{action_model} is a {self.action_model.config.control} world model, not an action world model"
             )
         self.frame_skip = self.action_model.config.frame_skip
+        self.precision = config.resolved_precision
+        bf16 = self.precision == "bfloat16"
+        self._precision = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
         if self.text_model is not None and self.text_model.config.frame_skip != self.frame_skip:
             raise InvalidInputError(
                 f"the text world model {text_model} steps every {self.text_model.config.frame_skip} control steps but "
@@ -261,7 +264,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     def _decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
         """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""
-        return self.tokenizer.decode_views(tokens_BS, self._n_cameras)
+        with self._precision():
+            return self.tokenizer.decode_views(tokens_BS, self._n_cameras).float()
 
     @torch.no_grad()
     def done_of(self, tokens_BS: torch.Tensor, model_done: torch.Tensor, images=None) -> torch.Tensor:
@@ -276,7 +280,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
     def teacher_forced_done(self, tokens_TS: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Done probability (T,) of known model frames of one episode, and the action model's features (T, C) of
         them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step)."""
-        done, features = self.action_model.teacher_forced(tokens_TS[None], actions[None])
+        with self._precision():
+            done, features = self.action_model.teacher_forced(tokens_TS[None], actions[None])
         return self.done_of(tokens_TS, done[0]), features[0]
 
     @torch.no_grad()
@@ -308,6 +313,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "theta": cfg.theta,
             "max_goal_steps": cfg.max_goal_steps,
             "frame_skip": self.frame_skip,
+            "precision": self.precision,
         }
 
     def _use_goal_file(self, path: Path) -> None:
@@ -347,8 +353,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         os.replace(tmp, path)
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
-        for chunk in range(0, len(starts), GOAL_BATCH):
-            self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
+        with self._precision():
+            for chunk in range(0, len(starts), GOAL_BATCH):
+                self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
 
     def _generate_goal_batch(self, starts: list[EpisodeStart]) -> None:
         model, theta = self.text_model, self.config.theta
@@ -402,7 +409,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
-        self._rollout = Rollout.start(self.action_model, first[:, None], control)
+        with self._precision():
+            self._rollout = Rollout.start(self.action_model, first[:, None], control)
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
         self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step
@@ -439,7 +447,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             self._substep = 0
             chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
             control = self.action_model.encode_control(chunk)
-            tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
+            with self._precision():
+                tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
             frames = self._decode(tokens)
             done = self.done_of(tokens, done, frames)
             self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync

@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from tests.conftest import IMAGE_SIZE
+from tests.conftest import IMAGE_SIZE, lerobot_train, roboscape_wm_args
 
 pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
@@ -30,3 +30,25 @@ def test_lerobot_eval_runs_a_lerobot_policy_in_the_simulator_env(act_checkpoint,
     assert result.returncode == 0, result.stderr[-3000:]
     info = json.loads((tmp_path / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2 and 0 <= info["overall"]["pc_success"] <= 100
+
+
+def test_lerobot_train_evaluates_the_mlp_in_the_world_model_env(
+    demo_dataset, trained_tokenizer, world_models, tmp_path
+):
+    """lerobot-train's periodic evaluation runs in roboscape_wm: the MLP executes 4-action chunks, and the env steps
+    its world model once per chunk (k = 4) and writes the episode's video."""
+    _, root = demo_dataset
+    lerobot_train(
+        root,
+        tmp_path / "train",
+        2,
+        "--policy.type=roboscape_mlp",
+        "--policy.hidden_dim=32",
+        "--policy.image_feature_dim=32",
+        "--env_eval_freq=2",
+        *roboscape_wm_args(root, trained_tokenizer, world_models),
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+    )
+    assert json.loads((world_models["action"] / "config.json").read_text())["frame_skip"] == 4
+    assert len(list((tmp_path / "train" / "eval" / "videos_step_000002").rglob("*.mp4"))) == 1

@@ -39,6 +39,32 @@ def test_batched_reset_and_step(env_config):
     assert env.call("_max_episode_steps") == (6, 6, 6) and len(env.call("task_description")) == 3
 
 
+def test_bfloat16_precision_runs_the_models_under_autocast(env_config, monkeypatch):
+    """precision=bfloat16: the world model's passes compute in bf16, the env's outputs stay float32 and finite, and
+    the goals it makes are told apart from float32 ones."""
+    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+    dtypes = []
+    compute_logits = STWorldModel.compute_logits
+
+    def spy(self, *args, **kwargs):
+        logits, *rest = compute_logits(self, *args, **kwargs)
+        dtypes.append(logits.dtype)
+        return logits, *rest
+
+    monkeypatch.setattr(STWorldModel, "compute_logits", spy)
+    env = RoboscapeWorldModelEnv(env_config(precision="bfloat16"), num_envs=2)
+    env.reset(seed=0)
+    for _ in range(4):  # one model frame (k = 4)
+        obs, reward, *_, info = env.step(env.action_space.sample())
+        assert reward.dtype == np.float32 and np.isfinite(reward).all() and np.isfinite(info["done_probability"]).all()
+    assert dtypes and set(dtypes) == {torch.bfloat16}
+    assert obs in env.observation_space
+    assert env._goal_settings()["precision"] == "bfloat16"
+    with pytest.raises(InvalidInputError, match="precision must be one of .*'float16'"):
+        env_config(precision="float16")
+
+
 def test_determinism_under_a_seed(env_config):
     env = RoboscapeWorldModelEnv(env_config(temperature=1.0), num_envs=2)
     actions = np.random.default_rng(0).uniform(-1, 1, (5, 2, 7)).astype(np.float32)

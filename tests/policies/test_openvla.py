@@ -34,7 +34,7 @@ from torch import nn
 from lerobot_roboscape.actor_critic import ActorCritic
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.hub.push import push_policy
-from tests.conftest import IMAGE_SIZE, lerobot_train
+from tests.conftest import IMAGE_SIZE, lerobot_train, roboscape_wm_args
 
 CAMERA = "observation.images.third_view"
 FIXTURES = Path(__file__).parents[1] / "fixtures"
@@ -409,7 +409,7 @@ def test_lora_is_gaussian_initialised_and_leaves_the_lm_head():
     assert any(n.startswith("language_model.lm_head.lora_A") for n, _ in with_head.vla.named_parameters())
 
 
-def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
+def test_lerobot_train_then_lerobot_eval(demo_dataset, trained_tokenizer, world_models, tmp_path):
     assert get_policy_class("openvla") is OpenVLAPolicy
     _, root = demo_dataset
     checkpoint = lerobot_train(
@@ -446,3 +446,9 @@ def test_lerobot_train_then_lerobot_eval(demo_dataset, tmp_path):
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+    # And in the world model: OpenVLA looks at every step, the model steps once per 4 of its actions.
+    cmd = [c for c in cmd if not c.startswith(("--env.", "--output_dir"))]
+    cmd += [*roboscape_wm_args(root, trained_tokenizer, world_models), f"--output_dir={tmp_path / 'eval_wm'}"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((tmp_path / "eval_wm" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
