@@ -9,7 +9,7 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 
 IMAGE_SIZE = 32
 # Session fixtures that run the simulator (a collection, a recorded file) or a command; a test using one is slow.
-SLOW_FIXTURES = {"demo_dataset", "recorded", "mlp_checkpoint", "act_checkpoint", "control_set"}
+SLOW_FIXTURES = {"demo_dataset", "exploration_dataset", "recorded", "mlp_checkpoint", "act_checkpoint", "control_set"}
 
 
 def pytest_collection_modifyitems(config, items):
@@ -40,6 +40,25 @@ def demo_dataset(tmp_path_factory):
         workers=2,
         seed=3,
         segmentation=True,
+    )
+    return collect(cfg), root
+
+
+@pytest.fixture(scope="session")
+def exploration_dataset(tmp_path_factory):
+    """Exploratory episodes in a dataset of their own, in the scene of `demo_dataset`: each kind (noisy,
+    excursion, random) once per family."""
+    root = tmp_path_factory.mktemp("explore") / "explore"
+    cfg = CollectConfig(
+        repo_id="test/explore",
+        root=str(root),
+        families=["pick_place", "push"],
+        max_scenes=1,
+        episodes_per_scene=3,
+        kinds=["noisy", "excursion", "random"],
+        image_size=IMAGE_SIZE,
+        workers=2,
+        seed=11,
     )
     return collect(cfg), root
 
@@ -185,6 +204,22 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
+
+
+def roboscape_wm_args(root, tokenizer, world_models) -> list[str]:
+    """`--env.*` arguments of LeRobot's commands for `roboscape_wm` on the test models (k = 4) and data."""
+    return [
+        "--env.type=roboscape_wm",
+        "--env.dataset_repo_id=test/demos",
+        f"--env.dataset_root={root}",
+        f"--env.tokenizer={tokenizer}",
+        f"--env.action_world_model={world_models['action']}",
+        f"--env.text_world_model={world_models['text']}",
+        f"--env.image_size={IMAGE_SIZE}",
+        "--env.allow_random_lpips=true",
+        "--env.episode_length=9",  # two model frames and a partial chunk
+        "--env.max_goal_steps=4",
+    ]
 
 
 @pytest.fixture(scope="session")

@@ -14,6 +14,8 @@ from tqdm import tqdm
 from lerobot_roboscape.atomic import make_tmp_dir
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.writer import check_target, write_dataset
+from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
+from lerobot_roboscape.demos.planner import KINDS
 from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
@@ -35,6 +37,9 @@ class CollectConfig:
     failed_fraction: share of deliberately failed attempts (a grasp or push beside the object, the object put
         down or pushed short of its target), dealt per family: the world model must see what failure looks like.
     suboptimal_fraction: share of suboptimal trajectories among the other attempts (the rest are optimal).
+    kinds: deal these plan kinds evenly instead of the fractions above. The exploratory kinds (noisy, excursion,
+        random: demos/exploration.py) make a dataset of their own for the action world model, never mixed with the
+        demonstrations that SFT imitates.
     seed: base seed; episode k of the run uses seed + k.
     image_size: square camera resolution for both cameras.
     workers: parallel ManiSkill processes (0: run in this process).
@@ -58,6 +63,7 @@ class CollectConfig:
     episodes_per_scene: int = 2
     failed_fraction: float = 0.25
     suboptimal_fraction: float = 0.5
+    kinds: list[str] | None = None
     seed: int = 0
     image_size: int = 64
     workers: int = 2
@@ -76,6 +82,16 @@ class CollectConfig:
             raise InvalidInputError(f"failed_fraction must be in [0, 1], got {self.failed_fraction}")
         if not 0.0 <= self.suboptimal_fraction <= 1.0:
             raise InvalidInputError(f"suboptimal_fraction must be in [0, 1], got {self.suboptimal_fraction}")
+        if self.kinds is not None:
+            if not self.kinds or (unknown := [k for k in self.kinds if k not in KINDS + EXPLORATORY_KINDS]):
+                raise InvalidInputError(
+                    f"kinds must name plan kinds among {list(KINDS + EXPLORATORY_KINDS)}, got {self.kinds}"
+                )
+            if set(self.kinds) & set(EXPLORATORY_KINDS) and set(self.kinds) & set(KINDS):
+                raise InvalidInputError(
+                    f"kinds={self.kinds} mixes exploratory kinds with demonstrations: exploratory episodes go in a "
+                    "dataset of their own (SFT and lerobot-train's statistics must not see them)"
+                )
         if self.episodes_per_scene < 1:
             raise InvalidInputError(f"episodes_per_scene must be >= 1, got {self.episodes_per_scene}")
         if self.image_size < 16:
@@ -92,9 +108,12 @@ def make_jobs(cfg: CollectConfig) -> list[EpisodeJob]:
     # Kinds are dealt over all episodes of a family, not per scene: a few episodes per scene would round a small
     # failed_fraction down to no failure at all.
     n = len(scenes) * cfg.episodes_per_scene
-    n_failed = round(n * cfg.failed_fraction)
-    n_sub = round((n - n_failed) * cfg.suboptimal_fraction)
-    deck = ["failed"] * n_failed + ["suboptimal"] * n_sub + ["optimal"] * (n - n_failed - n_sub)
+    if cfg.kinds:
+        deck = [cfg.kinds[i % len(cfg.kinds)] for i in range(n)]
+    else:
+        n_failed = round(n * cfg.failed_fraction)
+        n_sub = round((n - n_failed) * cfg.suboptimal_fraction)
+        deck = ["failed"] * n_failed + ["suboptimal"] * n_sub + ["optimal"] * (n - n_failed - n_sub)
     jobs = []
     for family in cfg.families:
         kinds = iter(rng.permutation(deck))

@@ -50,7 +50,7 @@ class ControllabilityConfig:
     max_scenes: int | None = 8
     starts_per_scene: int = 2
     sequences: int = 4
-    steps: int = 18
+    steps: int = 49  # the reports' longest horizon (48 control steps) after the first frame
     offset: float = 0.6
     seed: int = 70_000
     image_size: int = 64

@@ -8,6 +8,7 @@ import numpy as np
 
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.segmentation import label_image
+from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS, explore_episode
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
 from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
 from lerobot_roboscape.tasks.make import make_task_env
@@ -22,7 +23,7 @@ class EpisodeJob:
     family: str
     scene_id: str
     seed: int
-    kind: str  # of the plan, one of planner.KINDS: "optimal", "suboptimal" or "failed"
+    kind: str  # of the plan: one of planner.KINDS (demonstrations) or exploration.EXPLORATORY_KINDS
     image_size: int
     light_wrist_camera: bool = True  # render the wrist camera's body with the light mesh (tasks/wrist_camera_mesh.py)
     segmentation: bool = False  # also record the object's and the container's masks (dataset/segmentation.py)
@@ -93,7 +94,10 @@ def run_planned_episode(
     obs, _ = env.reset(seed=job.seed, options={"scene_id": job.scene_id})
     task_env: RoboscapeTabletopEnv = env.unwrapped
     rng = np.random.default_rng(job.seed)
-    follower = plan_episode(task_env, job.kind, rng, suboptimal, failure)
+    if job.kind in EXPLORATORY_KINDS:
+        follower = explore_episode(task_env, job.kind, rng)
+    else:
+        follower = plan_episode(task_env, job.kind, rng, suboptimal, failure)
     recorder = EpisodeRecorder(task_env, job.segmentation)
     settle = SETTLE_STEPS
     while True:
@@ -113,6 +117,7 @@ def run_planned_episode(
             "kind": job.kind,
             "seed": job.seed,
             "skipped_waypoints": follower.skipped,
+            **({"departures": follower.departures} if job.kind in EXPLORATORY_KINDS else {}),
         }
     )
 

@@ -25,6 +25,8 @@ SCALES = {
         families=["push"],
         scenes=1,
         episodes_per_scene=1,
+        explore_episodes_per_scene=1,
+        exploration_share=0.5,
         heldout_scenes=0,
         report_episodes=4,
         image_size=64,
@@ -61,6 +63,8 @@ SCALES = {
         families=["pick_place", "push"],
         scenes=2,
         episodes_per_scene=2,
+        explore_episodes_per_scene=1,
+        exploration_share=0.5,
         heldout_scenes=0,
         report_episodes=8,
         image_size=64,
@@ -99,6 +103,9 @@ SCALES = {
         # SFT success grew with the demonstrations per scene up to the 16 measured (docs/results/sft): 2048
         # planner episodes, about 50 min of collection on 2 cores.
         episodes_per_scene=16,
+        # exploratory episodes (noisy, excursion, random) for the action world model: 512, about 13 min
+        explore_episodes_per_scene=4,
+        exploration_share=0.5,
         heldout_scenes=8,
         report_episodes=64,
         image_size=64,
@@ -136,6 +143,8 @@ SCALES = {
         families=ALL,
         scenes=None,
         episodes_per_scene=25,
+        explore_episodes_per_scene=5,
+        exploration_share=0.5,
         heldout_scenes=16,
         report_episodes=64,
         image_size=128,
@@ -199,6 +208,9 @@ class PipelineConfig:
     families: task families to collect and evaluate.
     scenes: IND scenes per family (null: all).
     episodes_per_scene: planner episodes per (family, IND scene), a quarter of them deliberately failed.
+    explore_episodes_per_scene: exploratory episodes per (family, IND scene), noisy, excursion and random dealt
+        evenly (demos/exploration.py): a dataset of their own that only the action world model trains on.
+    exploration_share: share of the action world model's training clips drawn from the exploratory episodes.
     heldout_scenes: OOD scenes of the held-out collection (4 episodes per family and scene, half of them failed)
         that the fidelity, done and reward reports are measured on, and of the controllability set's starts; with
         them, a validation collection (one episode per IND scene, half failed) on which the done threshold is
@@ -250,6 +262,8 @@ class PipelineConfig:
     families: list[str] | None = None
     scenes: int | None = None
     episodes_per_scene: int | None = None
+    explore_episodes_per_scene: int | None = None
+    exploration_share: float | None = None
     heldout_scenes: int | None = None
     report_episodes: int | None = None
     image_size: int | None = None

@@ -22,6 +22,7 @@ from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
+from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
@@ -53,6 +54,7 @@ STAGE_FILE = "stage.json"
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
 VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
 CONTROL_SEED = 70_000  # and the starts of the controllability set
+EXPLORE_SEED = 80_000  # and the exploratory episodes
 SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
     "Supervised finetune",
     "RL w. ManiSkill (one scene)",
@@ -77,6 +79,7 @@ DEMOS_REPO_ID = "local/roboscape_demos"
 HELDOUT_DIR = "datasets/roboscape_heldout"
 VALIDATION_DIR = "datasets/roboscape_validation"
 CONTROL_DIR = "datasets/roboscape_controllability"
+EXPLORE_DIR = "datasets/roboscape_explore"
 DONE_REPORT_DIR = "done_report"
 CONVERTED_DIR = "datasets/maniskill_converted"
 TRAJECTORIES_DIR = "maniskill_trajectories"
@@ -180,13 +183,15 @@ class Datasets:
     validation: episodes the done threshold is chosen on (IND scenes, new initial states, half failed; the
     demonstrations themselves at the scales without held-out scenes). controllability: K action sequences from
     each of some OOD starts (demos/controllability.py), or None. trajectory_file: the recorded ManiSkill .h5 that
-    `roboscape-convert` read."""
+    `roboscape-convert` read. exploration: exploratory episodes in the IND scenes (demos/exploration.py) for the
+    action world model only, or None."""
 
     train: DatasetConfig
     heldout: DatasetConfig
     validation: DatasetConfig
     controllability: DatasetConfig | None
     trajectory_file: Path
+    exploration: DatasetConfig | None = None
 
 
 def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
@@ -280,7 +285,25 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
             collect_controllability(control)
             mark_done(folder, control)
         controllability = DatasetConfig(repo_id=control.repo_id, root=control.root)
-    return Datasets(train, heldout, validation, controllability, h5)
+    exploration = None
+    if cfg.explore_episodes_per_scene:
+        exploration = _collect(
+            CollectConfig(
+                repo_id="local/roboscape_explore",
+                root=str(out / EXPLORE_DIR),
+                families=cfg.families,
+                split="ind",
+                max_scenes=cfg.scenes,
+                episodes_per_scene=cfg.explore_episodes_per_scene,
+                kinds=list(EXPLORATORY_KINDS),
+                seed=EXPLORE_SEED,
+                image_size=cfg.image_size,
+                workers=cfg.workers,
+                keep_failed=True,
+            ),
+            cfg.fresh,
+        )
+    return Datasets(train, heldout, validation, controllability, h5, exploration)
 
 
 # ---- models ------------------------------------------------------------------------------------------------------
@@ -330,17 +353,28 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
 
 
 def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:
-    """Train the action and the text world models (each with its done head); returns {control: directory}."""
+    """Train the action and the text world models (each with its done head); returns {control: directory}. The
+    action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
+    controllability set as it trains."""
     models = {}
     for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps)):
         folder = out / world_model_dir(control)
+        action = control == "action"
         train = TrainWorldModelConfig(
             dataset=data.train,
             tokenizer=str(tokenizer_path),
             wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
-            train=WorldModelTrainingConfig(steps=steps, batch_size=cfg.wm_batch_size, save_freq=max(steps // 4, 1)),
+            train=WorldModelTrainingConfig(
+                steps=steps,
+                batch_size=cfg.wm_batch_size,
+                save_freq=max(steps // 4, 1),
+                eval_freq=max(steps // 10, 1),
+            ),
             output_dir=folder,
             cache_dir=out / TOKEN_CACHE_DIR,
+            exploration=data.exploration if action else None,
+            exploration_share=cfg.exploration_share,
+            heldout_control=data.controllability if action else None,
             device=cfg.device,
         )
         if not is_done(folder, train, cfg.fresh):

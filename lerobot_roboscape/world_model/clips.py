@@ -64,12 +64,11 @@ class ClipSampler:
 
     def __call__(self, step: int, process_index: int = 0) -> dict:
         rng = np.random.default_rng([self.seed, step, process_index])
-        picks = rng.choice(len(self.episodes), size=self.batch_size, p=self.weights)
-        clips = [self.clip(self.episodes[i], rng) for i in picks]
-        batch = {key: torch.from_numpy(np.stack([c[key] for c in clips])) for key in clips[0] if key != "task"}
-        batch["tokens"] = batch["tokens"].long()
-        batch["task"] = [c["task"] for c in clips]
-        return batch
+        return collate([self.random_clip(rng) for _ in range(self.batch_size)])
+
+    def random_clip(self, rng: np.random.Generator) -> dict:
+        """A clip from an episode drawn in proportion to its length."""
+        return self.clip(self.episodes[rng.choice(len(self.episodes), p=self.weights)], rng)
 
     def clip(self, row: dict, rng: np.random.Generator) -> dict:
         start, length, k = row["start"], row["length"], self.frame_skip
@@ -88,3 +87,25 @@ class ClipSampler:
             "reward": np.asarray(self.cache.rewards[start + frames], dtype=np.float32),
             "task": row["task"],
         }
+
+
+class ClipMixture:
+    """Batches of clips from several samplers (of their own token caches): each clip comes from sampler i with
+    probability shares[i]. A pure function of (step, process), as ClipSampler."""
+
+    def __init__(self, samplers: list[ClipSampler], shares: list[float], batch_size: int, seed: int = 0):
+        if len(samplers) != len(shares) or abs(sum(shares) - 1) > 1e-6 or min(shares) < 0:
+            raise InvalidInputError(f"shares {shares} must be one per sampler, >= 0, summing to 1")
+        self.samplers, self.shares, self.batch_size, self.seed = samplers, shares, batch_size, seed
+
+    def __call__(self, step: int, process_index: int = 0) -> dict:
+        rng = np.random.default_rng([self.seed, step, process_index])
+        sources = rng.choice(len(self.samplers), size=self.batch_size, p=self.shares)
+        return collate([self.samplers[i].random_clip(rng) for i in sources])
+
+
+def collate(clips: list[dict]) -> dict:
+    batch = {key: torch.from_numpy(np.stack([c[key] for c in clips])) for key in clips[0] if key != "task"}
+    batch["tokens"] = batch["tokens"].long()
+    batch["task"] = [c["task"] for c in clips]
+    return batch

@@ -8,6 +8,9 @@ as in image_fidelity.py).
 
 Beside it, the same model with every action replaced by its null action: a model that ignores the actions makes
 one rollout for all K sequences, so its retrieval is chance (1/K, ties shared) whatever the frames look like.
+
+The action gain is Genie's delta-PSNR: the PSNR of each rollout to its real future, minus the PSNR to that future
+of the rollout from the same start under another start's actions (the next start's sequence of the same index).
 """
 
 import json
@@ -79,6 +82,99 @@ def _groups(dataset) -> dict[int, list[int]]:
     return {start: [seqs[k] for k in sorted(seqs)] for start, seqs in sorted(groups.items())}
 
 
+@dataclass
+class ControlStart:
+    """One start of a controllability set, read for a model's frame skip k over a horizon of T model frames."""
+
+    start: int
+    episodes: list[int]
+    task: str
+    first: torch.Tensor  # (1, S) tokens of the frame every sequence starts from
+    actions: torch.Tensor  # (K, T * k, A) each sequence's actions
+    real: torch.Tensor  # (K, T, n, 3, H, W) uint8: the frames at control steps k, 2k, .., T * k
+    masks: torch.Tensor  # (K, T, n, H, W) labels of those frames
+
+
+def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horizon: int, device) -> list[ControlStart]:
+    """Every start of a controllability set, its real futures at the model frames of `horizon` control steps."""
+    cameras, k = camera_names(dataset), frame_skip
+    T = max(1, horizon // k)  # model frames over the horizon's control steps
+    future = k * np.arange(1, T + 1)  # the control steps those frames show
+    starts = []
+    for start, indices in _groups(dataset).items():
+        episodes = [read_episode(dataset, i) for i in indices]
+        if min(len(e.action) for e in episodes) < T * k + 1:
+            raise InvalidInputError(
+                f"{dataset.root} start {start}: its sequences need {T * k + 1} frames for horizon {horizon}, the "
+                f"shortest has {min(len(e.action) for e in episodes)}"
+            )
+        real = torch.stack([torch.stack([torch.from_numpy(e.images[c][future]) for c in cameras], 1) for e in episodes])
+        masks = [
+            np.stack(list(read_masks(dataset.root, i, cameras, len(e.action)).values()), 1)
+            for i, e in zip(indices, episodes, strict=True)
+        ]
+        first = tokenizer.encode_views(
+            [torch.from_numpy(episodes[0].images[c][:1]).permute(0, 3, 1, 2).to(device) for c in cameras]
+        )
+        starts.append(
+            ControlStart(
+                start,
+                indices,
+                episodes[0].task,
+                first,
+                torch.stack([torch.from_numpy(e.action[: T * k]) for e in episodes]).to(device),
+                real.permute(0, 1, 2, 5, 3, 4).to(device),  # (K, T, n, 3, H, W)
+                torch.from_numpy(np.stack(masks))[:, future].to(device),
+            )
+        )
+    if not starts:
+        raise InvalidInputError(f"{dataset.root} has no start to measure")
+    return starts
+
+
+@torch.no_grad()
+def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other: ControlStart, null: bool) -> dict:
+    """Rollouts of one start under its K sequences (and, for the action gain, under `other` start's sequences;
+    with `null`, under the null action), in one batch. Returns per rollout kind the (K, K) PSNR per region and the
+    decoded rollouts of its sequences, and the action gain (dB, mean over the K sequences)."""
+    K, T = start.real.shape[:2]
+    kinds = {"world_model": start.actions, "other_actions": other.actions[:K]}
+    if null:
+        kinds["ignoring_actions"] = torch.zeros_like(start.actions)
+    actions = torch.cat(list(kinds.values()))
+    no_action = torch.zeros(len(actions), T, dtype=torch.bool, device=actions.device)
+    if null:
+        no_action[-K:] = True
+    prompt = start.first[None].expand(len(actions), -1, -1)
+    tokens = model.generate(prompt, T, actions=actions, no_action=no_action)[0]
+    pred = tokenizer.decode_views(tokens.flatten(0, 1), model.config.n_cameras).unflatten(0, (len(actions), T))
+    real = start.real.float() / 255
+    out = {}
+    for i, name in enumerate(kinds):
+        rollouts = pred[i * K : (i + 1) * K]
+        out[name] = {"similarity": _similarities(rollouts, real, start.masks), "pred": rollouts}
+    own = out["world_model"]["similarity"]["whole_frame"].diagonal()
+    other_psnr = np.array([psnr(out["other_actions"]["pred"][j], real[j]).mean().item() for j in range(K)])
+    out["action_gain"] = float(np.mean(own - other_psnr))
+    return out
+
+
+def control_summary(model, tokenizer: VisualTokenizer, starts: list[ControlStart]) -> dict[str, float]:
+    """Retrieval (whole frame, object) and action gain over a controllability set: the held-out measures that
+    size the action model's training."""
+    retrieval, gain = defaultdict(list), []
+    for i, start in enumerate(starts):
+        measured = measure_start(model, tokenizer, start, starts[(i + 1) % len(starts)], null=False)
+        for region, sims in measured["world_model"]["similarity"].items():
+            if not np.isnan(sims).any():
+                retrieval[region].append(retrieval_accuracy(sims))
+        gain.append(measured["action_gain"])
+    return {
+        **{f"retrieval_{region}": float(np.mean(v)) for region, v in retrieval.items()},
+        "action_gain_db": float(np.mean(gain)),
+    }
+
+
 @torch.no_grad()
 def _similarities(pred, real, masks) -> dict[str, np.ndarray]:
     """pred: (K, T, n, 3, H, W) rollouts, real: (K, T, n, 3, H, W), masks: (K, T, n, H, W) labels -> per region
@@ -103,54 +199,29 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
     model = STWorldModel.from_pretrained(cfg.world_model).to(device).eval()
     if model.config.control != "action":
         raise InvalidInputError(f"{cfg.world_model} is a {model.config.control} world model, not an action one")
-    cameras, n, k = camera_names(dataset), model.config.n_cameras, model.config.frame_skip
-    T = max(1, cfg.horizon // k)  # model frames over the horizon's control steps
-    future = k * np.arange(1, T + 1)  # the control steps those frames show
-    per_start, pictures = [], []
-    for start, indices in _groups(dataset).items():
-        episodes = [read_episode(dataset, i) for i in indices]
-        if min(len(e.action) for e in episodes) < T * k + 1:
-            raise InvalidInputError(
-                f"{dataset.root} start {start}: its sequences need {T * k + 1} frames for horizon {cfg.horizon}, the "
-                f"shortest has {min(len(e.action) for e in episodes)}"
-            )
-        real = torch.stack(
-            [torch.stack([torch.from_numpy(e.images[c][future]) for c in cameras], 1) for e in episodes]
-        )  # (K, T, n, H, W, 3)
-        real = real.permute(0, 1, 2, 5, 3, 4).to(device).float() / 255
-        masks = torch.stack(
-            [
-                torch.from_numpy(np.stack(list(read_masks(dataset.root, i, cameras, len(e.action)).values()), 1))
-                for i, e in zip(indices, episodes, strict=True)
-            ]
-        )[:, future].to(device)
-        first = tokenizer.encode_views(
-            [torch.from_numpy(episodes[0].images[c][:1]).permute(0, 3, 1, 2).to(device) for c in cameras]
-        )  # (1, S): every sequence starts from this frame
-        K = len(episodes)
-        actions = torch.stack([torch.from_numpy(e.action[: T * k]) for e in episodes]).to(device)
-        prompt = first[None].expand(K, -1, -1)
-        rollouts = {
-            "world_model": model.generate(prompt, T, actions=actions)[0],
-            "ignoring_actions": model.generate(
-                prompt, T, actions=torch.zeros_like(actions), no_action=torch.ones(K, T, dtype=torch.bool)
-            )[0],
+    k = model.config.frame_skip
+    starts = read_control_set(dataset, tokenizer, k, cfg.horizon, device)
+    per_start, pictures, gains = [], [], []
+    for i, start in enumerate(starts):
+        measured = measure_start(model, tokenizer, start, starts[(i + 1) % len(starts)], null=True)
+        row = {
+            "start": start.start,
+            "episodes": start.episodes,
+            "task": start.task,
+            "action_gain": measured["action_gain"],
         }
-        row = {"start": start, "episodes": indices, "task": episodes[0].task}
-        for name, tokens in rollouts.items():
-            pred = tokenizer.decode_views(tokens.flatten(0, 1), n).unflatten(0, (K, T))
-            sims = _similarities(pred, real, masks)
+        gains.append(measured["action_gain"])
+        for name in ("world_model", "ignoring_actions"):
+            sims = measured[name]["similarity"]
             row[name] = {
                 region: {"psnr": sims[region].tolist(), "retrieval": retrieval_accuracy(sims[region])}
                 for region in REGIONS
                 if not np.isnan(sims[region]).any()
             }
-            if name == "world_model" and len(pictures) < cfg.picture_starts:
-                pictures.append((real, pred))
+        if len(pictures) < cfg.picture_starts:
+            pictures.append((start.real.float() / 255, measured["world_model"]["pred"]))
         per_start.append(row)
-        logger.info("start %d: retrieval %s", start, {r: v["retrieval"] for r, v in row["world_model"].items()})
-    if not per_start:
-        raise InvalidInputError(f"{dataset.root} has no start to measure")
+        logger.info("start %d: retrieval %s", start.start, {r: v["retrieval"] for r, v in row["world_model"].items()})
     summary = {}
     for name in ("world_model", "ignoring_actions"):
         summary[name] = {}
@@ -165,6 +236,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
                 "own_future_psnr": float(np.mean(own)),
                 "other_futures_psnr": float(np.mean(other)),
             }
+    summary["action_gain_db"] = float(np.mean(gains))
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "sequences_per_start": len(per_start[0]["episodes"]),

@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
+from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.utils.constants import ACTION
 
 from lerobot_roboscape.dataset.reader import open_dataset
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import (
     TokenCache,
@@ -19,8 +21,9 @@ from lerobot_roboscape.tokenizer.token_cache import (
     tokenizer_fingerprint,
 )
 from lerobot_roboscape.training import TrainingConfig, fit, resolve_device
-from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
+from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
+from lerobot_roboscape.world_model.controllability import control_summary, read_control_set
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 logger = logging.getLogger(__name__)
@@ -46,6 +49,12 @@ class TrainWorldModelConfig:
     token_cache: use this existing cache; it must match the dataset and tokenizer.
     only_optimal: train on optimal episodes only (default: yes for the text model, no for the action model).
     only_successful: train on successful episodes only (default: yes for the text model, no for the action model).
+    exploration: exploratory episodes for the action model (`roboscape-collect --kinds=[noisy,excursion,random]`),
+        a dataset of their own; null: none. Its actions join the demonstrations' in the normalisation statistics.
+    exploration_share: share of the action model's training clips drawn from `exploration`.
+    heldout_control: a controllability set (`roboscape-collect-control`, OOD starts) on which the action model's
+        retrieval and action gain are read every --train.eval_freq steps (output_dir/heldout_curve.jsonl).
+    heldout_horizon: control steps of those rollouts.
     device: where to tokenize ("auto": cuda when available).
     """
 
@@ -58,7 +67,22 @@ class TrainWorldModelConfig:
     token_cache: Path | None = None
     only_optimal: bool | None = None
     only_successful: bool | None = None
+    exploration: DatasetConfig | None = None
+    exploration_share: float = 0.5
+    heldout_control: DatasetConfig | None = None
+    heldout_horizon: int = 16
     device: str = "auto"
+
+    def __post_init__(self):
+        if self.exploration is not None and self.wm.control != "action":
+            raise InvalidInputError(
+                f"exploration={self.exploration.repo_id}: exploratory episodes train the action world model only, "
+                f"not the {self.wm.control} one"
+            )
+        if self.heldout_control is not None and self.wm.control != "action":
+            raise InvalidInputError("heldout_control measures the action world model; the text model has no actions")
+        if not 0.0 <= self.exploration_share <= 1.0:
+            raise InvalidInputError(f"exploration_share must be in [0, 1], got {self.exploration_share}")
 
 
 def prepare_token_cache(
@@ -78,6 +102,13 @@ def prepare_token_cache(
     else:
         cache = load_or_build_token_cache(dataset, tokenizer, cache_dir, device=resolve_device(device))
     return cache, stats
+
+
+def check_same_layout(cache: TokenCache, other: TokenCache) -> None:
+    """Two token caches one model trains on must share the frame layout and the action width."""
+    names = ("cameras", "tokens_per_side", "vocab_size", "action_dim")
+    if differ := {n: (getattr(cache, n), getattr(other, n)) for n in names if getattr(cache, n) != getattr(other, n)}:
+        raise InvalidInputError(f"token caches {cache.root} and {other.root} differ in {differ}")
 
 
 def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, action_stats: dict) -> WorldModelConfig:
@@ -114,12 +145,31 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         sum(row["length"] for row in episodes),
         cache.root,
     )
-    set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
-    model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
-    batches = ClipSampler(
+    sampler = ClipSampler(
         cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed, frame_skip=cfg.wm.frame_skip
     )
-    run_config = {**asdict(cfg), "token_cache": str(cache.root)}
+    batches, run_config = sampler, {**asdict(cfg), "token_cache": str(cache.root)}
+    if cfg.exploration is not None:
+        explore_cache, explore_stats = prepare_token_cache(
+            cfg.exploration, cfg.tokenizer, cfg.cache_dir, device=cfg.device
+        )
+        check_same_layout(cache, explore_cache)
+        explore_episodes = select_episodes(explore_cache, cfg.exploration.episodes)
+        logger.info(
+            "and on %d exploratory episodes of %s, %.0f%% of the clips",
+            len(explore_episodes),
+            explore_cache.root,
+            100 * cfg.exploration_share,
+        )
+        explore = ClipSampler(
+            explore_cache, explore_episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed, cfg.wm.frame_skip
+        )
+        share = cfg.exploration_share
+        batches = ClipMixture([sampler, explore], [1 - share, share], cfg.train.batch_size, cfg.train.seed)
+        action_stats = aggregate_feature_stats([action_stats, explore_stats])
+        run_config["exploration_token_cache"] = str(explore_cache.root)
+    set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
+    model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
     return fit(
         model,
         lambda m, batch: m(batch),
@@ -128,4 +178,14 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         cfg.output_dir,
         run_config,
         desc=f"{cfg.wm.control} world model",
+        evaluate=heldout_control(cfg) if cfg.heldout_control is not None else None,
     )
+
+
+def heldout_control(cfg: TrainWorldModelConfig):
+    """The held-out evaluation of the action model: retrieval and action gain on the controllability set."""
+    device = resolve_device(cfg.device)
+    dataset = open_dataset(cfg.heldout_control.repo_id, cfg.heldout_control.root, cfg.heldout_control.episodes)
+    tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
+    starts = read_control_set(dataset, tokenizer, cfg.wm.frame_skip, cfg.heldout_horizon, device)
+    return lambda model: control_summary(model, tokenizer, starts)

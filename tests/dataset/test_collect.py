@@ -72,6 +72,47 @@ def test_job_mix_follows_flags():
     assert [j.kind for j in few].count("failed") == 1
 
 
+def test_exploratory_kinds_are_dealt_evenly_and_never_mixed_with_demonstrations():
+    jobs = make_jobs(CollectConfig(families=["push"], max_scenes=2, episodes_per_scene=3, kinds=["noisy", "random"]))
+    assert Counter(j.kind for j in jobs) == {"noisy": 3, "random": 3}
+    with pytest.raises(ValueError, match="mixes exploratory kinds with demonstrations.*dataset of their own"):
+        CollectConfig(kinds=["optimal", "random"])
+    with pytest.raises(ValueError, match=r"kinds must name plan kinds.*'wander'"):
+        CollectConfig(kinds=["wander"])
+
+
+def test_exploratory_episodes_leave_the_plan(exploration_dataset, demo_dataset):
+    """Each kind is recorded with its episode, and each departs from the planner's actions its own way; the
+    demonstrations, which SFT and lerobot-train read, hold none of them."""
+    explore, root = exploration_dataset
+    info = read_episode_info(root)
+    kinds = [info[i]["kind"] for i in range(explore.meta.total_episodes)]
+    assert Counter(kinds) == {"noisy": 2, "excursion": 2, "random": 2}
+    assert not any(facts["optimal"] for facts in info)
+    actions = np.asarray(explore.hf_dataset["action"])
+    episode = np.asarray(explore.hf_dataset["episode_index"])
+    demo, demo_root = demo_dataset
+    demo_actions, demo_episode = np.asarray(demo.hf_dataset["action"]), np.asarray(demo.hf_dataset["episode_index"])
+
+    def turning(a):  # share of steps that turn hard about some axis
+        return (np.abs(a[:, 3:6]) > 0.5).any(1).mean()
+
+    def gripper_between(a):  # share of steps whose gripper command is neither open nor closed
+        return (np.abs(a[:, 6]) < 0.9).mean()
+
+    for i in range(demo.meta.total_episodes):  # the planner barely turns and only opens or closes
+        assert turning(demo_actions[demo_episode == i]) < 0.1 and gripper_between(demo_actions[demo_episode == i]) == 0
+    for i, kind in enumerate(kinds):
+        mine = actions[episode == i]
+        if kind == "random":  # stretches over the whole range, the gripper included
+            assert turning(mine) > 0.1 and gripper_between(mine) > 0.1
+        if kind == "noisy":  # noise on every action, the gripper's too
+            assert gripper_between(mine) > 0.2
+        if kind in ("excursion", "random"):
+            assert info[i]["departures"] >= 1
+    assert {facts["kind"] for facts in read_episode_info(demo_root)} <= {"optimal", "suboptimal", "failed"}
+
+
 @pytest.fixture(scope="module")
 def failed_collection(tmp_path_factory):
     """Only planned failures: a given-up pick and place and a missed push (the plan's first random draw picks the

@@ -21,7 +21,7 @@ def control_set(tmp_path_factory):
         root=str(root),
         families=["push"],
         max_scenes=1,
-        starts_per_scene=1,
+        starts_per_scene=2,
         sequences=SEQUENCES,
         steps=STEPS,
         image_size=IMAGE_SIZE,
@@ -68,9 +68,11 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
     )
     report = evaluate_controllability(cfg)
     assert (tmp_path / "controllability.json").is_file() and (tmp_path / "controllability.png").is_file()
-    (start,) = report["starts"]
-    for name in ("world_model", "ignoring_actions"):
-        assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
+    assert len(report["starts"]) == 2
+    for start in report["starts"]:
+        for name in ("world_model", "ignoring_actions"):
+            assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
+    assert np.isfinite(report["summary"]["action_gain_db"])
     # The null-action model makes one rollout for all sequences: retrieval is exactly chance.
     assert report["summary"]["ignoring_actions"]["whole_frame"]["retrieval"] == pytest.approx(1 / SEQUENCES)
     assert 0 <= report["summary"]["world_model"]["whole_frame"]["retrieval"] <= 1
@@ -78,3 +80,29 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
         evaluate_controllability(
             ControllabilityReportConfig(cfg.dataset, cfg.tokenizer, cfg.world_model, tmp_path, horizon=STEPS + 3)
         )
+
+
+def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_set(
+    control_set, demo_dataset, trained_tokenizer, token_cache, tmp_path
+):
+    """fit's held-out evaluation: every eval_freq steps, retrieval and action gain on the controllability set, on a
+    clock that counts training only."""
+    import draccus
+
+    from lerobot_roboscape.training import read_curve
+    from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+    from tests.world_model.test_training import train_args
+
+    _, root = control_set
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, steps=4) + [
+        "--heldout_control.repo_id=local/roboscape_controllability",
+        f"--heldout_control.root={root}",
+        "--heldout_horizon=4",
+        "--train.eval_freq=2",
+    ]
+    train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+    curve = read_curve(tmp_path)
+    assert [point["step"] for point in curve] == [2, 4]
+    for point in curve:
+        assert 0 <= point["retrieval_whole_frame"] <= 1 and np.isfinite(point["action_gain_db"])
+    assert curve[0]["seconds"] <= curve[1]["seconds"]

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import draccus
@@ -6,7 +7,7 @@ import pytest
 import torch
 
 from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
-from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
+from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
@@ -72,6 +73,45 @@ def test_clips_of_action_chunks(token_cache):
     assert np.array_equal(clip["actions"][2], token_cache.actions[start + 4 : start + 7])  # steps 4..6 lead to 7
     end = sampler.clip(row, rng=_FixedStart(row["length"] - 2))  # past the end: the last frame held, no actions
     assert (end["tokens"][1] == end["tokens"][2]).all() and (end["actions"][2] == 0).all()
+
+
+def test_clip_mixture_draws_each_source_at_its_share(token_cache):
+    episodes = select_episodes(token_cache)
+    pick, push = (ClipSampler(token_cache, [row], 4, 1) for row in (episodes[0], episodes[3]))
+    assert {row["task"] for row in (episodes[0], episodes[3])} == {pick.episodes[0]["task"], push.episodes[0]["task"]}
+    assert set(ClipMixture([pick, push], [0.0, 1.0], 16)(3)["task"]) == {push.episodes[0]["task"]}
+    batch = ClipMixture([pick, push], [0.25, 0.75], 200)(3)
+    assert 30 <= batch["task"].count(pick.episodes[0]["task"]) <= 70  # 50 expected
+    assert torch.equal(batch["tokens"], ClipMixture([pick, push], [0.25, 0.75], 200)(3)["tokens"])  # resumable
+    with pytest.raises(ValueError, match="summing to 1"):
+        ClipMixture([pick, push], [0.5, 0.6], 4)
+
+
+def test_action_model_trains_on_exploratory_episodes_too(
+    demo_dataset, exploration_dataset, trained_tokenizer, token_cache, tmp_path
+):
+    """The exploratory dataset joins the action model's clips at its share, and its actions join the normalisation
+    statistics; the text model refuses it."""
+    from lerobot.datasets.compute_stats import aggregate_feature_stats
+
+    explore, explore_root = exploration_dataset
+    extra = [
+        "--exploration.repo_id=test/explore",
+        f"--exploration.root={explore_root}",
+        "--exploration_share=0.5",
+        f"--cache_dir={tmp_path / 'caches'}",
+    ]
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "wm", steps=4) + extra
+    model = train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+    demo_stats = demo_dataset[0].meta.stats["action"]
+    both = aggregate_feature_stats([demo_stats, explore.meta.stats["action"]])
+    np.testing.assert_allclose(model.config.action_std, both["std"], rtol=1e-6)
+    assert (np.asarray(model.config.action_std)[3:6] > 1.5 * np.asarray(demo_stats["std"])[3:6]).all()
+    run = json.loads((tmp_path / "wm" / "train_config.json").read_text())
+    assert run["exploration_token_cache"].startswith(str(tmp_path / "caches")) and run["exploration_share"] == 0.5
+    cfg = draccus.parse(TrainWorldModelConfig, args=args)
+    with pytest.raises(ValueError, match="train the action world model only, not the text one"):
+        dataclasses.replace(cfg, wm=dataclasses.replace(cfg.wm, control="text"))
 
 
 class _FixedStart:
