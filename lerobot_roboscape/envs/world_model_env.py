@@ -417,7 +417,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._starts = starts
         self._frames = self._decode(first)
         self._goals = self._decode(goal_tokens)
-        start_parts = self.reward_fn(self._frames, self._goals, torch.zeros(self.num_envs, device=self.device))
+        with self._precision():
+            start_parts = self.reward_fn(self._frames, self._goals, torch.zeros(self.num_envs, device=self.device))
         self._distance = start_parts.distance.cpu().numpy()  # to the goal, of the frame shown
         self._book = EpisodeBook(
             np.array([s.horizon for s in starts]), self.config.terminate_on_success, self.reward_fn.max_step_reward
@@ -452,7 +453,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             frames = self._decode(tokens)
             done = self.done_of(tokens, done, frames)
             self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync
-            paid = self.reward_fn(frames, self._goals, done)
+            with self._precision():
+                paid = self.reward_fn(frames, self._goals, done)
             self._frames = torch.where(
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
             )
@@ -501,7 +503,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         per_step = []
         for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
             frames = self._decode(tokens_TS[chunk])
-            per_step.append(self.reward_fn(frames, goal.expand_as(frames), done_T[chunk]).reward.cpu().numpy())
+            with self._precision():
+                paid = self.reward_fn(frames, goal.expand_as(frames), done_T[chunk])
+            per_step.append(paid.reward.cpu().numpy())
         per_step, done = np.where(paid, np.concatenate(per_step), 0.0), done_T[shown].cpu().numpy()
         book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
         rewards = np.array(

@@ -50,7 +50,9 @@ class WorldModelReward(nn.Module):
     def forward(self, frames: torch.Tensor, goals: torch.Tensor, done: torch.Tensor) -> RewardParts:
         """frames, goals: (B, n_cameras, 3, H, W) in [0, 1]; done: (B,) done probability of the action model."""
         B, n = frames.shape[:2]
-        distance = self.distance(frames.flatten(0, 1) * 2 - 1, goals.flatten(0, 1) * 2 - 1).reshape(B, n).mean(1)
+        distance = (
+            self.distance(frames.flatten(0, 1) * 2 - 1, goals.flatten(0, 1) * 2 - 1).float().reshape(B, n).mean(1)
+        )
         dense = 1 - distance
         sparse = (done >= self.theta_sps).float() * self.sparse_value
         return RewardParts(self.alpha * sparse + self.beta * dense, sparse, dense, distance)

@@ -1,15 +1,18 @@
 """Training a world model (action- or text-conditioned) on a pre-tokenised LeRobot dataset."""
 
+import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.utils.constants import ACTION
 
+from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -20,10 +23,11 @@ from lerobot_roboscape.tokenizer.token_cache import (
     open_token_cache,
     tokenizer_fingerprint,
 )
-from lerobot_roboscape.training import TrainingConfig, fit, resolve_device
+from lerobot_roboscape.training import TrainingConfig, fit, resolve_device, save_atomically
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
 from lerobot_roboscape.world_model.controllability import control_summary, read_control_set
+from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 logger = logging.getLogger(__name__)
@@ -55,6 +59,10 @@ class TrainWorldModelConfig:
     heldout_control: a controllability set (`roboscape-collect-control`, OOD starts) on which the action model's
         retrieval and action gain are read every --train.eval_freq steps (output_dir/heldout_curve.jsonl).
     heldout_horizon: control steps of those rollouts.
+    done_tuning_steps: after training, fit the done head alone on the model's own open-loop frames of training
+        episodes and on their real frames, for this many full-batch steps, so that it fires where roboscape_wm
+        reads it (world_model/done_tuning.py); 0: off. The action model only.
+    done_tuning_episodes: training episodes generated open loop for it, spread over the episodes (null: all).
     device: where to tokenize ("auto": cuda when available).
     """
 
@@ -71,6 +79,8 @@ class TrainWorldModelConfig:
     exploration_share: float = 0.5
     heldout_control: DatasetConfig | None = None
     heldout_horizon: int = 16
+    done_tuning_steps: int = 300
+    done_tuning_episodes: int | None = 128
     device: str = "auto"
 
     def __post_init__(self):
@@ -170,7 +180,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         run_config["exploration_token_cache"] = str(explore_cache.root)
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
-    return fit(
+    model = fit(
         model,
         lambda m, batch: m(batch),
         batches,
@@ -180,6 +190,30 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         desc=f"{cfg.wm.control} world model",
         evaluate=heldout_control(cfg) if cfg.heldout_control is not None else None,
     )
+    if cfg.done_tuning_steps and cfg.wm.control == "action":
+        tune_done_on_open_loop(model, cache, episodes, cfg)
+    return model
+
+
+def tune_done_on_open_loop(model: STWorldModel, cache: TokenCache, episodes: list[dict], cfg: TrainWorldModelConfig):
+    """The done head refitted on open-loop and real frames of training episodes; the model saved again with it."""
+    n = cfg.done_tuning_episodes or len(episodes)
+    picked = [episodes[i] for i in np.linspace(0, len(episodes) - 1, min(n, len(episodes))).round().astype(int)]
+    model.eval()
+    features, labels, open_loop = done_features(model, cache, picked)
+    losses = tune_done_head(model, features, labels, cfg.done_tuning_steps)
+    with torch.no_grad():
+        after = torch.sigmoid(model.done_head(features.to(next(model.parameters()).device)).squeeze(-1)).cpu()
+    summary = {
+        "episodes": len(picked),
+        "frames": {"open_loop": int(open_loop.sum()), "real": int((~open_loop).sum())},
+        "loss": {"first": losses[0], "last": losses[-1]},
+        "mean_done_of_positive_open_loop_frames": float(after[open_loop & (labels > 0.5)].mean()),
+        "mean_done_of_negative_open_loop_frames": float(after[open_loop & (labels <= 0.5)].mean()),
+    }
+    logger.info("done head tuned on open-loop frames: %s", summary)
+    (Path(cfg.output_dir) / "done_tuning.json").write_text(json.dumps(summary, indent=2))
+    save_atomically(model, Path(cfg.output_dir) / FINAL)
 
 
 def heldout_control(cfg: TrainWorldModelConfig):

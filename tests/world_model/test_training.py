@@ -207,3 +207,21 @@ def test_fidelity_needs_the_action_model(demo_dataset, trained_tokenizer, tmp_pa
     cfg.dataset.root = str(root)
     with pytest.raises(ValueError, match="is a text world model"):
         evaluate_fidelity(cfg)
+
+
+def test_done_head_tuned_on_its_own_open_loop_frames(demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    """After training, the done head alone is refitted on the model's open-loop frames and the real ones: it
+    separates the open-loop frames of done from the others, and nothing but the head changes."""
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, steps=4)
+    model = train_world_model(
+        draccus.parse(TrainWorldModelConfig, args=[*args, "--done_tuning_steps=300", "--done_tuning_episodes=6"])
+    )
+    summary = json.loads((tmp_path / "done_tuning.json").read_text())
+    assert summary["episodes"] == 6 and summary["frames"]["open_loop"] == summary["frames"]["real"] > 0
+    assert summary["loss"]["last"] < summary["loss"]["first"]
+    assert summary["mean_done_of_positive_open_loop_frames"] > summary["mean_done_of_negative_open_loop_frames"]
+    saved = STWorldModel.from_pretrained(tmp_path / FINAL).state_dict()
+    trained = STWorldModel.from_pretrained(last_checkpoint(tmp_path) / FINAL).state_dict()
+    changed = {name for name, weight in saved.items() if not torch.equal(weight, trained[name])}
+    assert changed and all(name.startswith("done_head.") for name in changed)
+    assert all(torch.equal(model.state_dict()[name], weight) for name, weight in saved.items())

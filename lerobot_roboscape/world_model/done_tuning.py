@@ -1,0 +1,86 @@
+"""The done head trained where it is read: on the action model's own open-loop frames.
+
+Training teaches the done head on real frames, mostly masked ones. Inside `roboscape_wm` it reads frames the model
+generated, which drift from the real ones, and a head that never saw such frames need not fire on them. After the
+model is trained, this stage generates training episodes open loop from their first frames and recorded actions, and
+fits the done head alone (so generation is unchanged) on the final hidden states of those frames and of the real
+ones read teacher-forced, labelled with each real frame's done label. The pooled hidden states are what the head
+reads, so they are computed once and the head trains on them in seconds.
+"""
+
+import logging
+
+import numpy as np
+import torch
+
+from lerobot_roboscape.tokenizer.token_cache import TokenCache
+from lerobot_roboscape.world_model.clips import model_frames
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.rollout import Rollout
+
+logger = logging.getLogger(__name__)
+
+
+@torch.no_grad()
+def done_features(
+    model: STWorldModel, cache: TokenCache, episodes: list[dict], batch_size: int = 16
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The done head's inputs of every model frame after the prompt of `episodes`, open loop and teacher-forced:
+    features (N, C), done labels (N,), and whether each row is open loop (N,) bool."""
+    P, k = model.config.prompt_frames, model.config.frame_skip
+    device = next(model.parameters()).device
+    rows = [r for r in episodes if len(model_frames(r["length"], k)) > P]
+    rows.sort(key=lambda r: r["length"])  # batches of similar lengths pad less
+    features, labels, open_loop = [], [], []
+    for first in range(0, len(rows), batch_size):
+        batch = rows[first : first + batch_size]
+        frames = [r["start"] + model_frames(r["length"], k) for r in batch]
+        T = max(len(f) for f in frames)
+        # Shorter episodes hold their last frame and action: their padded frames are left out below.
+        held = [np.concatenate([f, np.repeat(f[-1:], T - len(f))]) for f in frames]
+        tokens = torch.from_numpy(np.stack([cache.tokens[f].reshape(T, -1) for f in held]).astype(np.int64))
+        steps = [r["start"] + np.minimum(np.arange((T - 1) * k), r["length"] - 1) for r in batch]
+        actions = torch.from_numpy(np.stack([cache.actions[s] for s in steps])).float()
+        tokens, actions = tokens.to(device), actions.to(device)
+        generated = _open_loop_features(model, tokens[:, :P], T - P, actions)
+        _, forced = model.teacher_forced(tokens, actions)
+        for i, f in enumerate(frames):
+            n = len(f) - P
+            done = torch.from_numpy(np.asarray(cache.done[f[P:]], dtype=np.float32))
+            features += [generated[i, :n].float().cpu(), forced[i, P : P + n].float().cpu()]
+            labels += [done, done]
+            open_loop += [torch.ones(n, dtype=torch.bool), torch.zeros(n, dtype=torch.bool)]
+        logger.info("done features: %d/%d episodes", min(first + batch_size, len(rows)), len(rows))
+    return torch.cat(features), torch.cat(labels), torch.cat(open_loop)
+
+
+def _open_loop_features(model: STWorldModel, prompt_BPS, n_frames: int, actions) -> torch.Tensor:
+    """(B, n_frames, C): the done head's input at each frame the model generates."""
+    P = prompt_BPS.shape[1]
+    control = model.episode_control(actions)
+    rollout = Rollout.start(model, prompt_BPS, control.frames(slice(0, P)), guided=True)
+    features = []
+    for t in range(P, P + n_frames):
+        rollout.predict_next_frame(control.frames(slice(t, t + 1)))
+        features.append(rollout.features)
+    return torch.stack(features, 1)
+
+
+def tune_done_head(
+    model: STWorldModel, features: torch.Tensor, labels: torch.Tensor, steps: int = 300, lr: float = 1e-3
+) -> list[float]:
+    """Fit the done head alone on (features, labels) with the model's done loss, full batch; returns the losses."""
+    head = model.done_head
+    device = next(head.parameters()).device
+    features, labels = features.to(device), labels.to(device)
+    optimizer = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=0.01)
+    losses = []
+    head.train()
+    for _ in range(steps):
+        loss = model.done_loss(head(features).squeeze(-1).float(), labels)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    head.eval()
+    return losses
