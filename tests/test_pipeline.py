@@ -81,6 +81,7 @@ def test_targets_compare_the_measured_values_with_the_goals():
             "reached_within_horizon": 0.95,
             "successful_starts": 10,
             "nearer_final_than_start": 0.8,
+            "final_nearer_own_goal_than_other_instructions": 0.85,
         },
         "similarity": "tokenizer",
         "done_source": "classifier",
@@ -105,6 +106,7 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert not met["done: failed episodes called done at the threshold, open loop (classifier)"]  # 3 of 10
     assert met["goal: text model reaches done within the family's horizon (share of held-out starts)"]
     assert not met["goal frame nearer the real final frame than the start (tokenizer similarity)"]
+    assert met["goal made under its own instruction nearer the real success than another family's goal"]
     assert not met["world-model reward: ROC-AUC of the return, held-out OOD episodes"]  # the embedding beats it
     assert not met["roboscape_mlp SFT IND success, push"]  # 0.4 is below push's 0.6
     assert met["roboscape_mlp PPO in WM vs Supervised finetune, IND (all families)"]

@@ -3,6 +3,9 @@
     roboscape-train-wm --dataset.repo_id=local/roboscape --dataset.root=outputs/datasets/roboscape \
         --tokenizer=outputs/tokenizer/pretrained_model --wm.control=action --output_dir=outputs/wm_action
     roboscape-train-wm ... --wm.control=text --output_dir=outputs/wm_text
+    # the action model also on exploratory episodes, its retrieval and action gain read on a controllability set
+    roboscape-train-wm ... --exploration.repo_id=local/roboscape_explore --exploration.root=outputs/datasets/explore \
+        --exploration_share=0.5 --heldout_control.root=outputs/datasets/roboscape_controllability --train.eval_freq=150
     roboscape-train-wm ... --train.resume=true      # continue a killed run from its last checkpoint
 """
 

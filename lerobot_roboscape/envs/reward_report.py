@@ -12,6 +12,7 @@ for the successful episodes, whether the goal is nearer the episode's real final
 the similarity in use (a grid shows start, goal and real final frame).
 """
 
+import dataclasses
 import json
 import logging
 from collections.abc import Sequence
@@ -26,7 +27,7 @@ from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import open_dataset, read_episode
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, load_reward_model
+from lerobot_roboscape.envs.world_model_env import EpisodeStart, Goal, RoboscapeWorldModelEnv, load_reward_model
 from lerobot_roboscape.world_model.clips import model_frames
 
 matplotlib.use("Agg")
@@ -86,14 +87,19 @@ def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[
 
 
 @torch.no_grad()
-def goal_check(env: RoboscapeWorldModelEnv, episode) -> tuple[dict, torch.Tensor]:
-    """The goal of the episode's start, judged against its real start and final frames; and the three images
-    (3, n, 3, H, W): start, goal, real final frame, as the env decodes them."""
+def goal_check(env: RoboscapeWorldModelEnv, episode, other: Goal | None = None) -> tuple[dict, torch.Tensor]:
+    """The goal of the episode's start, judged against its real start and final frames, and (`other`: the goal made
+    from the same start under another family's instruction) whether the real final frame is nearer its own goal
+    than that one; and the three images (3, n, 3, H, W): start, goal, real final frame, as the env decodes them."""
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal = env.goal_of(start)
     images = env._decode(torch.stack([start.first_tokens, goal.tokens, start.last_tokens]))
     goal_image = images[1:2].expand(2, -1, -1, -1, -1)
     to_start, to_final = env.reward_fn(images[[0, 2]], goal_image, torch.zeros(2, device=env.device)).distance.tolist()
+    to_other = None
+    if other is not None:
+        other_image = env._decode(other.tokens[None])
+        to_other = env.reward_fn(images[2:3], other_image, torch.zeros(1, device=env.device)).distance.item()
     check = {
         "reached": goal.reached,
         "steps": goal.steps,
@@ -102,8 +108,24 @@ def goal_check(env: RoboscapeWorldModelEnv, episode) -> tuple[dict, torch.Tensor
         "distance_to_start": to_start,
         "distance_to_final": to_final,
         "nearer_final_than_start": to_final < to_start,
+        "distance_of_final_to_other_instructions_goal": to_other,
+        "final_nearer_own_goal_than_other_instructions": None if other is None else to_final < to_other,
     }
     return check, images
+
+
+def other_family_starts(env: RoboscapeWorldModelEnv, indices: list[int]) -> dict[int, EpisodeStart]:
+    """Each start of `indices` given the instruction of a start of another task family (the first of that family
+    in the dataset; none when the env holds one family)."""
+    by_family = {}
+    for s in env.starts:
+        by_family.setdefault(s.facts.get("task_family"), s)
+    out = {}
+    for s in (s for s in env.starts if s.episode_index in indices):
+        other = next((o for family, o in by_family.items() if family != s.facts.get("task_family")), None)
+        if other is not None:
+            out[s.episode_index] = dataclasses.replace(s, task=other.task)
+    return out
 
 
 def write_reward_report(cfg: RewardReportConfig) -> dict:
@@ -119,11 +141,13 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         s.episode_index for s in env.starts if cfg.dataset.episodes is None or s.episode_index in cfg.dataset.episodes
     ][: cfg.max_episodes]
     env.goals_for([s for s in env.starts if s.episode_index in selected])  # in full batches, not one by one
+    swapped = other_family_starts(env, selected)
+    other_goals = dict(zip(swapped, env.generate_goals(list(swapped.values())), strict=True))
     episodes, grid = [], []
     for index in selected:
         episode = read_episode(dataset, index)
         rewards = episode_rewards(env, episode, models)
-        goal, images = goal_check(env, episode)
+        goal, images = goal_check(env, episode, other_goals.get(index))
         success = bool(episode.done_label.max() > 0.5)
         episodes.append(
             {
@@ -159,6 +183,11 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         "successful_starts": len(successful),
         "nearer_final_than_start": float(np.mean([g["nearer_final_than_start"] for g in successful]))
         if successful
+        else None,
+        "final_nearer_own_goal_than_other_instructions": _mean(
+            np.array([g["final_nearer_own_goal_than_other_instructions"] for g in successful], dtype=float)
+        )
+        if successful and all(g["final_nearer_own_goal_than_other_instructions"] is not None for g in successful)
         else None,
     }
     report = {
@@ -224,7 +253,9 @@ def _markdown(report: dict, n: int, n_success: int) -> str:
         "",
         f"Goals: the text model reached done within the family's horizon from {fmt(g['reached_within_horizon'])} of "
         f"{g['starts']} starts; the goal is nearer the real final frame than the start frame in "
-        f"{fmt(g['nearer_final_than_start'])} of {g['successful_starts']} successful episodes.",
+        f"{fmt(g['nearer_final_than_start'])} of {g['successful_starts']} successful episodes, and the real final "
+        "frame is nearer the goal made under its own instruction than the goal made from the same start under "
+        f"another family's instruction in {fmt(g.get('final_nearer_own_goal_than_other_instructions'))} of them.",
     ]
     return "\n".join(lines) + "\n"
 

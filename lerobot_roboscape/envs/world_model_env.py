@@ -353,11 +353,20 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         os.replace(tmp, path)
 
     def _generate_goals(self, starts: list[EpisodeStart]) -> None:
+        for s, goal in zip(starts, self.generate_goals(starts), strict=True):
+            self._goal_cache[s.episode_index] = goal
+
+    @torch.no_grad()
+    def generate_goals(self, starts: list[EpisodeStart]) -> list[Goal]:
+        """The text model's goal of each start under its `task`, generated now (not cached: a start given another
+        instruction gets the goal of that instruction)."""
+        goals = []
         with self._precision():
             for chunk in range(0, len(starts), GOAL_BATCH):
-                self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
+                goals += self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
+        return goals
 
-    def _generate_goal_batch(self, starts: list[EpisodeStart]) -> None:
+    def _generate_goal_batch(self, starts: list[EpisodeStart]) -> list[Goal]:
         model, theta = self.text_model, self.config.theta
         padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
         prompt = torch.stack([s.first_tokens for s in padded])[:, None]
@@ -387,7 +396,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     s.episode_index,
                     s.task,
                 )
-            self._goal_cache[s.episode_index] = Goal(goal[i], bool(reached[i]), int(steps[i]))
+        return [Goal(goal[i], bool(reached[i]), int(steps[i])) for i in range(len(starts))]
 
     # ---- gymnasium API -------------------------------------------------------------------------------------
 
@@ -504,8 +513,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
             frames = self._decode(tokens_TS[chunk])
             with self._precision():
-                paid = self.reward_fn(frames, goal.expand_as(frames), done_T[chunk])
-            per_step.append(paid.reward.cpu().numpy())
+                parts = self.reward_fn(frames, goal.expand_as(frames), done_T[chunk])
+            per_step.append(parts.reward.cpu().numpy())
         per_step, done = np.where(paid, np.concatenate(per_step), 0.0), done_T[shown].cpu().numpy()
         book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
         rewards = np.array(

@@ -195,6 +195,10 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
     for name in ("reward_report.json", "reward_report.md", "reward_curves.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert set(report["summary"]) == {"world_model", "world_model_dense", "rule_based", "embedding", "proxy"}
+    # Two families: each start's goal is also made under the other family's instruction, and judged against it.
+    for episode in report["episodes"]:
+        assert isinstance(episode["goal"]["final_nearer_own_goal_than_other_instructions"], bool)
+    assert 0 <= report["goals"]["final_nearer_own_goal_than_other_instructions"] <= 1
     # Returns are summed over each family's fixed horizon (its longest successful episode), the last frame holding.
     facts = {row["episode_index"]: row for row in read_episode_info(root)}
     rows = {row["episode_index"]: row for row in token_cache.episodes}
