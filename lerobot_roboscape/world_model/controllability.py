@@ -135,8 +135,8 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
 @torch.no_grad()
 def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other: ControlStart, null: bool) -> dict:
     """Rollouts of one start under its K sequences (and, for the action gain, under `other` start's sequences;
-    with `null`, under the null action), in one batch. Returns per rollout kind the (K, K) PSNR per region and the
-    decoded rollouts of its sequences, and the action gain (dB, mean over the K sequences)."""
+    with `null`, under the null action), in one batch. Returns for "world_model" (and "ignoring_actions") the (K, K)
+    PSNR per region and the decoded rollouts, and the action gain (dB, mean over the K sequences)."""
     K, T = start.real.shape[:2]
     kinds = {"world_model": start.actions, "other_actions": other.actions[:K]}
     if null:
@@ -152,9 +152,10 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
     out = {}
     for i, name in enumerate(kinds):
         rollouts = pred[i * K : (i + 1) * K]
-        out[name] = {"similarity": _similarities(rollouts, real, start.masks), "pred": rollouts}
+        if name != "other_actions":  # that one is only read against its own sequence's future, below
+            out[name] = {"similarity": _similarities(rollouts, real, start.masks), "pred": rollouts}
     own = out["world_model"]["similarity"]["whole_frame"].diagonal()
-    other_psnr = np.array([psnr(out["other_actions"]["pred"][j], real[j]).mean().item() for j in range(K)])
+    other_psnr = np.array([psnr(pred[K + j], real[j]).mean().item() for j in range(K)])
     out["action_gain"] = float(np.mean(own - other_psnr))
     return out
 
