@@ -11,7 +11,8 @@ import shutil
 from pathlib import Path
 
 from lerobot_roboscape.pipeline.report import machine, world_model_figure, world_model_results, world_model_targets
-from lerobot_roboscape.pipeline.stages import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR
+from lerobot_roboscape.pipeline.stages import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
+from lerobot_roboscape.training import read_curve
 
 FIGURES = {
     FIDELITY_DIR: ("fidelity.png", "controllability.png"),
@@ -35,7 +36,7 @@ def main():
     fidelity = json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())
     done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
-    targets = world_model_targets(fidelity, done, rewards)
+    targets = world_model_targets(fidelity, done, rewards, read_curve(run / world_model_dir("action")))
     results = {"machine": machine(), "targets": targets, **world_model_results(fidelity, done, rewards)}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     for folder, names in (FIGURES | {k: FIGURES[k] + REPORTS[k] for k in REPORTS}).items():

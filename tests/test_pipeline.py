@@ -44,11 +44,17 @@ def cell(rate: float, n: int = 10) -> dict:
 def test_targets_compare_the_measured_values_with_the_goals():
     retrieval = lambda value, starts=32: {"retrieval": value, "starts": starts}  # noqa: E731
     fidelity = {
+        "config": {"horizon": 16, "long_horizon": 48},
         "mean": {"reconstruction_psnr": 27.0},
-        "per_step": {"prediction_psnr": [25.0] * 8 + [10.0] * 8, "reconstruction_psnr": [27.0] * 16},
+        "per_step": {"prediction_psnr": [26.0, 25.0, 24.0, 25.0], "reconstruction_psnr": [27.0] * 4},
         "controllability": {
             "world_model": {"whole_frame": retrieval(0.95), "object": retrieval(0.6)},
             "ignoring_actions": {"whole_frame": retrieval(0.25), "object": retrieval(0.25)},
+            "action_gain_db": 2.5,
+        },
+        "controllability_long": {
+            "world_model": {"whole_frame": retrieval(0.7), "object": retrieval(0.5)},
+            "action_gain_db": 1.5,
         },
     }
     confusion = lambda failed_called: {  # noqa: E731
@@ -95,15 +101,21 @@ def test_targets_compare_the_measured_values_with_the_goals():
             stages.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)},
         }
     }
-    met = {name: t["met"] for name, t in measure_targets(fidelity, done, rewards, table, ["push"]).items()}
-    assert met["action WM open-loop PSNR, first 8 steps (dB; tokenizer 27.00)"]  # 25 is within 3 dB of 27
-    assert met["action WM retrieval of its own future among 4 action sequences, whole frame"]
-    assert not met["action WM retrieval of its own future among 4 action sequences, object"]
+    targets = measure_targets(fidelity, done, rewards, table, ["push"])
+    met = {name: t["met"] for name, t in targets.items()}
+    assert met["action WM open-loop PSNR, first 16 control steps (dB; tokenizer 27.00)"]  # 25 is within 3 dB of 27
+    whole = "action WM retrieval of its own future among 4 action sequences, whole frame, first 16 control steps"
+    assert met[whole]
+    assert targets[whole]["detail"].endswith("over 48 control steps: 0.700")
+    assert not met["action WM retrieval of its own future among 4 action sequences, object, first 16 control steps"]
+    assert not met["action WM action gain (dB), first 16 control steps"]  # 2.5 < 3
+    assert "bench action WM training minutes on this machine" not in met  # no curve given
     # The chosen source is judged (the classifier), not the better one on the held-out episodes.
     assert met["done ROC-AUC, teacher forced, frames of held-out OOD episodes (classifier)"]
     assert not met["done ROC-AUC, open loop, frames of held-out OOD episodes (classifier)"]  # 0.85 < 0.9
     assert met["done: failed episodes called done at the threshold, teacher forced (classifier)"]  # 1 of 10
     assert not met["done: failed episodes called done at the threshold, open loop (classifier)"]  # 3 of 10
+    assert met["done: successful episodes called done at the threshold, open loop (classifier)"]  # 9 of 10
     assert met["goal: text model reaches done within the family's horizon (share of held-out starts)"]
     assert not met["goal frame nearer the real final frame than the start (tokenizer similarity)"]
     assert met["goal made under its own instruction nearer the real success than another family's goal"]
@@ -112,6 +124,29 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met["roboscape_mlp PPO in WM vs Supervised finetune, IND (all families)"]
     assert not met["roboscape_mlp PPO in WM vs Supervised finetune, OOD (all families)"]  # equal is not higher
     assert met["roboscape_mlp PPO in WM vs RL w. ManiSkill, OOD (all families)"]
+
+
+def test_the_action_model_training_minutes_are_read_from_its_curve():
+    from lerobot_roboscape.pipeline.report import world_model_targets
+
+    fidelity = {"config": {"horizon": 16}, "per_step": {"prediction_psnr": [20.0], "reconstruction_psnr": [27.0]}}
+    done = {"chosen": {"source": "world_model", "theta": 0.5}, "sources": {"world_model": {}}}
+    done["sources"]["world_model"] = {"teacher_forced": None, "open_loop": None}
+    rewards = {
+        "goals": {
+            "starts": 1,
+            "reached_within_horizon": 0.0,
+            "successful_starts": 0,
+            "nearer_final_than_start": None,
+        },
+        "summary": {"world_model": {"roc_auc_of_return": None}},
+        "similarity": "tokenizer",
+        "done_source": "world_model",
+        "theta": 0.5,
+    }
+    curve = [{"step": 150, "seconds": 600.0}, {"step": 3000, "seconds": 3900.0}]
+    minutes = world_model_targets(fidelity, done, rewards, curve)["bench action WM training minutes on this machine"]
+    assert minutes["value"] == 65.0 and not minutes["met"] and minutes["detail"].startswith("3000 steps")
 
 
 def test_sft_targets_are_per_family_with_the_interval_and_ood_beside():

@@ -43,6 +43,7 @@ from lerobot_roboscape.pipeline.stages import (
     world_model_dir,
 )
 from lerobot_roboscape.rl.ppo import read_history
+from lerobot_roboscape.training import read_curve
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -53,12 +54,15 @@ TOKENIZER_OBJECT_SURVIVAL = 0.95
 TOKENIZER_OBJECT_PSNR_DB = 20.0
 TOKENIZER_PSNR_DB = 27.0
 # The world models', done and reward, on held-out OOD episodes with failures (issue 28).
-WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the first WM_STEPS steps, below the tokenizer's reconstruction
-WM_STEPS = 8
+WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the fidelity report's horizon (16 control steps), below the tokenizer's
+WM_FIGURE_FRAMES = 8  # open-loop frames shown in the report's picture
 RETRIEVAL = 0.9  # rollouts nearer their own real future than the K - 1 others' (world_model/controllability.py)
+ACTION_GAIN_DB = 3.0  # Genie's delta-PSNR: true actions against another episode's
 DONE_ROC_AUC_TEACHER_FORCED = 0.95
 DONE_ROC_AUC_OPEN_LOOP = 0.9
 DONE_FAILED_CALLED_DONE = 0.1  # share of failed episodes the done signal calls done, at the chosen threshold
+DONE_SUCCESS_CALLED_DONE = 0.7  # share of successful episodes it calls done, open loop
+ACTION_WM_TRAIN_MINUTES = 60  # the bench action model on 2 CPU cores
 GOAL_REACHED = 0.7  # issue 37: from held-out starts, within the family's horizon
 GOAL_NEARER_FINAL = 0.9
 GOAL_OWN_INSTRUCTION = 0.8  # the real success nearer its own instruction's goal than another family's (issue 37)
@@ -98,7 +102,8 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     done = json.loads((out / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((out / REWARD_REPORT_DIR / "reward_report.json").read_text())
     table = json.loads((out / TABLES_DIR / "tables.json").read_text())
-    targets = tokenizer_targets(tokenizer) | measure_targets(fidelity, done, rewards, table, cfg.families)
+    curve = read_curve(out / world_model_dir("action"))
+    targets = tokenizer_targets(tokenizer) | measure_targets(fidelity, done, rewards, table, cfg.families, curve)
     times = stage_times(cfg, out)
     results = {
         "scale": cfg.scale,
@@ -172,29 +177,48 @@ def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
     }
 
 
-def world_model_targets(fidelity: dict, done: dict, rewards: dict) -> dict:
+def world_model_targets(fidelity: dict, done: dict, rewards: dict, action_curve: list[dict] | None = None) -> dict:
     """The world models' targets: controllability, open-loop fidelity, the done signal, the goals and the reward,
-    from the fidelity, done and reward reports on held-out OOD episodes."""
-    per_step = fidelity["per_step"]
-    steps = min(WM_STEPS, len(per_step["prediction_psnr"]))
-    prediction = float(np.mean(per_step["prediction_psnr"][:steps]))
-    reconstruction = float(np.mean(per_step["reconstruction_psnr"][:steps]))
+    from the fidelity, done and reward reports on held-out OOD episodes; with the action model's held-out curve
+    (world_model/train.py's heldout_curve.jsonl), its training minutes."""
+    horizon = fidelity["config"]["horizon"]
+    prediction = float(np.mean([v for v in fidelity["per_step"]["prediction_psnr"] if v is not None]))
+    reconstruction = float(np.mean([v for v in fidelity["per_step"]["reconstruction_psnr"] if v is not None]))
     targets = {}
-    for region, measures in fidelity.get("controllability", {}).get("world_model", {}).items():
-        ignoring = fidelity["controllability"]["ignoring_actions"][region]["retrieval"]
-        targets[f"action WM retrieval of its own future among 4 action sequences, {region.replace('_', ' ')}"] = (
-            _target(
-                measures["retrieval"],
-                f">= {RETRIEVAL}",
-                measures["retrieval"] >= RETRIEVAL,
-                f"{measures['starts']} starts; a model ignoring the actions: {ignoring:.3f}",
-            )
+    control = fidelity.get("controllability", {})
+    longer = fidelity.get("controllability_long", {})
+    for region, measures in control.get("world_model", {}).items():
+        ignoring = control["ignoring_actions"][region]["retrieval"]
+        detail = f"{measures['starts']} starts; a model ignoring the actions: {ignoring:.3f}"
+        if region in longer.get("world_model", {}):
+            detail += f"; over {fidelity['config']['long_horizon']} control steps: "
+            detail += f"{longer['world_model'][region]['retrieval']:.3f}"
+        name = f"action WM retrieval of its own future among 4 action sequences, {region.replace('_', ' ')}"
+        targets[f"{name}, first {horizon} control steps"] = _target(
+            measures["retrieval"], f">= {RETRIEVAL}", measures["retrieval"] >= RETRIEVAL, detail
         )
-    targets[f"action WM open-loop PSNR, first {steps} steps (dB; tokenizer {reconstruction:.2f})"] = _target(
+    if "action_gain_db" in control:
+        gain = control["action_gain_db"]
+        targets[f"action WM action gain (dB), first {horizon} control steps"] = _target(
+            gain,
+            f">= {ACTION_GAIN_DB:g}",
+            gain >= ACTION_GAIN_DB,
+            "Genie's delta-PSNR: true actions against the next start's"
+            + (f"; over {fidelity['config']['long_horizon']} steps: {longer['action_gain_db']:.2f}" if longer else ""),
+        )
+    targets[f"action WM open-loop PSNR, first {horizon} control steps (dB; tokenizer {reconstruction:.2f})"] = _target(
         prediction,
         f">= {reconstruction - WM_PSNR_GAP_DB:.2f} (tokenizer - {WM_PSNR_GAP_DB:g})",
         prediction >= reconstruction - WM_PSNR_GAP_DB,
     )
+    if action_curve:
+        minutes = action_curve[-1]["seconds"] / 60
+        targets["bench action WM training minutes on this machine"] = _target(
+            minutes,
+            f"<= {ACTION_WM_TRAIN_MINUTES}",
+            minutes <= ACTION_WM_TRAIN_MINUTES,
+            f"{action_curve[-1]['step']} steps; evaluations excluded",
+        )
     source, theta = done["chosen"]["source"], done["chosen"]["theta"]
     chosen = done["sources"][source]
     for mode, goal in (("teacher_forced", DONE_ROC_AUC_TEACHER_FORCED), ("open_loop", DONE_ROC_AUC_OPEN_LOOP)):
@@ -205,6 +229,15 @@ def world_model_targets(fidelity: dict, done: dict, rewards: dict) -> dict:
             auc, f">= {goal}", auc is not None and auc >= goal, f"episodes: {_fmt(chosen[mode]['episode_roc_auc'])}"
         )
         c = chosen[mode]["confusion"]
+        successful = c["success_called_done"] + c["success_missed"]
+        if mode == "open_loop" and successful:
+            called = c["success_called_done"] / successful
+            targets[f"done: successful episodes called done at the threshold, open loop ({source})"] = _target(
+                called,
+                f">= {DONE_SUCCESS_CALLED_DONE}",
+                called >= DONE_SUCCESS_CALLED_DONE,
+                f"{c['success_called_done']} of {successful}",
+            )
         rate = c["failed_called_done_rate"]
         targets[f"done: failed episodes called done at the threshold, {mode.replace('_', ' ')} ({source})"] = _target(
             rate,
@@ -248,9 +281,11 @@ def world_model_targets(fidelity: dict, done: dict, rewards: dict) -> dict:
     return targets
 
 
-def measure_targets(fidelity: dict, done: dict, rewards: dict, table: dict, families: list[str]) -> dict:
+def measure_targets(
+    fidelity: dict, done: dict, rewards: dict, table: dict, families: list[str], action_curve: list[dict] | None = None
+) -> dict:
     """{target: {"value", "goal", "met"}} for each target of the bench experiment."""
-    targets = world_model_targets(fidelity, done, rewards)
+    targets = world_model_targets(fidelity, done, rewards, action_curve)
     targets |= sft_targets(table, families)
     for policy, methods in table.items():
         wm = methods.get(RL_WORLD_MODEL)
@@ -397,7 +432,7 @@ def machine() -> str:
     return f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()}), {gpu}"
 
 
-def world_model_figure(video: Path, prompt: int, path: Path, steps: int = WM_STEPS) -> None:
+def world_model_figure(video: Path, prompt: int, path: Path, steps: int = WM_FIGURE_FRAMES) -> None:
     """Frames of the fidelity video's first episode (real | predicted, every view), one column per open-loop step."""
     frames = iio.imread(video, plugin="pyav")[prompt : prompt + steps]
     iio.imwrite(path, np.kron(np.concatenate(list(frames), 1), np.ones((2, 2, 1), np.uint8)))
@@ -476,8 +511,8 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         "",
         "## Action world model",
         "",
-        f"Open loop from {WM_STEPS} held-out steps' recorded actions (each column: real | predicted, both "
-        "views), and PSNR/SSIM per step against the tokenizer's own reconstruction:",
+        f"Open loop from {WM_FIGURE_FRAMES} model frames of held-out recorded actions (each column: real | "
+        "predicted, both views), and PSNR/SSIM per step against the tokenizer's own reconstruction:",
         "",
         "![open loop](world_model_open_loop.png)",
         "",

@@ -63,6 +63,7 @@ class FidelityConfig:
     video_episodes: episodes shown in the side-by-side video.
     controllability: a controllability set (`roboscape-collect-control`); when given, the report also says whether
         the model follows its actions (world_model/controllability.py, controllability.json).
+    long_horizon: control steps of a second, longer controllability reading (output_dir/long_horizon); null: none.
     lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
     allow_random_lpips: report LPIPS from a random trunk when no weights are found (marked in the report).
     device: "auto", "cpu" or "cuda".
@@ -77,6 +78,7 @@ class FidelityConfig:
     max_episodes: int = 8
     video_episodes: int = 2
     controllability: DatasetConfig | None = None
+    long_horizon: int | None = 48
     lpips_weights: Path | None = None
     allow_random_lpips: bool = False
     device: str = "auto"
@@ -186,11 +188,15 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "episodes": episodes_out,
     }
     if cfg.controllability is not None:
-        report["controllability"] = evaluate_controllability(
-            ControllabilityReportConfig(
-                cfg.controllability, cfg.tokenizer, cfg.world_model, cfg.output_dir, cfg.horizon, device=cfg.device
-            )
-        )["summary"]
+        readings = {"controllability": (cfg.horizon, cfg.output_dir)}
+        if cfg.long_horizon:
+            readings["controllability_long"] = (cfg.long_horizon, Path(cfg.output_dir) / "long_horizon")
+        for name, (horizon, folder) in readings.items():
+            report[name] = evaluate_controllability(
+                ControllabilityReportConfig(
+                    cfg.controllability, cfg.tokenizer, cfg.world_model, folder, horizon, device=cfg.device
+                )
+            )["summary"]
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
     return report
 

@@ -111,7 +111,8 @@ class STWorldModel(
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
         """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, k, A) + no_action (B, T) or task (B
         strings). Frames after the first are masked at a MaskGIT ratio each, left clean with clean_frame_prob, or
-        masked whole with full_mask_prob; controls are replaced by the null control with control_dropout."""
+        masked whole with full_mask_prob; controls are replaced by the null control with control_dropout. Masked
+        tokens that changed since the previous frame weigh changed_weight in the token loss."""
         tokens, done = batch["tokens"], batch["done"]
         B, T, S = tokens.shape
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
@@ -128,15 +129,23 @@ class STWorldModel(
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
         token_loss = logits.sum() * 0
+        changed = torch.zeros_like(mask)
+        changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
         if mask.any():
-            token_loss = F.cross_entropy(logits[mask].float(), tokens[mask])
+            token_ce = F.cross_entropy(logits[mask].float(), tokens[mask], reduction="none")
+            weight = torch.where(changed[mask], self.config.changed_weight, 1.0)
+            token_loss = (weight * token_ce).sum() / weight.sum()
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + self.config.done_weight * done_loss
-        accuracy = (logits[mask].argmax(-1) == tokens[mask]).float().mean() if mask.any() else torch.tensor(0.0)
+        hits = logits[mask].argmax(-1) == tokens[mask]
+        accuracy = hits.float().mean() if mask.any() else torch.tensor(0.0)
+        # the accuracy on the changed tokens: copying the previous frame scores 0 there
+        changed_accuracy = hits[changed[mask]].float().mean() if mask.any() and changed[mask].any() else accuracy
         return loss, {
             "loss": loss.item(),
             "token_ce": token_loss.item(),
             "token_acc": accuracy.item(),
+            "changed_acc": changed_accuracy.item(),
             "done_loss": done_loss.item(),
         }
 

@@ -202,6 +202,30 @@ def test_full_masked_frames_show_only_the_first_frame():
     assert ((seen[0][:, 1:] == model.config.mask_token_id).all(-1) | clean).all()
 
 
+@pytest.mark.parametrize("changed_weight", [1.0, 7.0])
+def test_changed_tokens_weigh_changed_weight_in_the_token_loss(changed_weight):
+    model = make_model(changed_weight=changed_weight, clean_frame_prob=0.0, done_weight=0.0).train()
+    batch = random_batch()
+    batch["tokens"][:, 2] = batch["tokens"][:, 1]  # frame 2 copies frame 1: none of its tokens changed
+    seen = []
+    compute = model.compute_logits
+    model.compute_logits = lambda tokens, *a, **k: (
+        seen.append((tokens, compute(tokens, *a, **k)[0])) or compute(tokens, *a, **k)
+    )
+    loss, metrics = model(batch)
+    inputs, logits = seen[0]
+    tokens = batch["tokens"]
+    mask = inputs == model.config.mask_token_id
+    changed = torch.zeros_like(mask)
+    changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
+    assert (mask & changed).any() and (mask & ~changed).any()
+    ce = torch.nn.functional.cross_entropy(logits[mask], tokens[mask], reduction="none")
+    weight = 1.0 + (changed_weight - 1.0) * changed[mask].float()
+    torch.testing.assert_close(loss, (weight * ce).sum() / weight.sum())
+    hits = logits[mask].argmax(-1) == tokens[mask]
+    assert metrics["changed_acc"] == pytest.approx(hits[changed[mask]].float().mean().item())
+
+
 @pytest.mark.parametrize("order", ["confidence", "annealed", "random"])
 def test_decoding_orders_are_reproducible_from_their_generator(order):
     model = make_model(maskgit_order=order, maskgit_steps=3)
