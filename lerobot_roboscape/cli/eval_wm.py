@@ -25,8 +25,15 @@ def main(argv: list[str] | None = None):
         f"PSNR {mean['prediction_psnr']:.2f} (tokenizer {mean['reconstruction_psnr']:.2f}), "
         f"SSIM {mean['prediction_ssim']:.3f}, LPIPS {mean['prediction_lpips']:.3f}"
     )
-    for name, regions in report.get("controllability", {}).items():
-        print(f"retrieval ({name}): " + ", ".join(f"{r} {v['retrieval']:.3f}" for r, v in regions.items()))
+    for reading in ("controllability", "controllability_long"):
+        if reading not in report:
+            continue
+        horizon = cfg.horizon if reading == "controllability" else cfg.long_horizon
+        summary = report[reading]
+        for name in ("world_model", "ignoring_actions"):
+            retrieval = ", ".join(f"{r} {v['retrieval']:.3f}" for r, v in summary[name].items())
+            print(f"retrieval over {horizon} control steps ({name}): {retrieval}")
+        print(f"action gain over {horizon} control steps: {summary['action_gain_db']:.2f} dB")
     print(f"Report in {cfg.output_dir.resolve()}: fidelity.md, fidelity.json, fidelity.png, side_by_side.mp4")
 
 

@@ -169,7 +169,9 @@ def tokenizer_targets(report: dict) -> dict:
 def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
     """What results.json keeps of the fidelity, done and reward reports."""
     return {
-        "fidelity": {k: fidelity[k] for k in ("mean", "per_step", "controllability") if k in fidelity},
+        "fidelity": {
+            k: fidelity[k] for k in ("mean", "per_step", "controllability", "controllability_long") if k in fidelity
+        },
         "done": {k: done[k] for k in ("chosen", "sources")},
         "reward": rewards["summary"],
         "goals": rewards["goals"],
@@ -190,6 +192,8 @@ def world_model_targets(fidelity: dict, done: dict, rewards: dict, action_curve:
     for region, measures in control.get("world_model", {}).items():
         ignoring = control["ignoring_actions"][region]["retrieval"]
         detail = f"{measures['starts']} starts; a model ignoring the actions: {ignoring:.3f}"
+        if "likelihood_retrieval" in control:
+            detail += f"; from the likelihood of each real future: {control['likelihood_retrieval']:.3f}"
         if region in longer.get("world_model", {}):
             detail += f"; over {fidelity['config']['long_horizon']} control steps: "
             detail += f"{longer['world_model'][region]['retrieval']:.3f}"

@@ -9,6 +9,11 @@ as in image_fidelity.py).
 Beside it, the same model with every action replaced by its null action: a model that ignores the actions makes
 one rollout for all K sequences, so its retrieval is chance (1/K, ties shared) whatever the frames look like.
 
+The likelihood retrieval reads the same question from the model's likelihood instead of its rollouts: each real
+future, frame by frame after its real past and fully masked as a rollout's first decoding step sees it, is scored
+under each of the K sequences; it is retrieved when its own sequence explains it best. A model that knows what the
+actions do but whose decoding hides it scores here and not in the rollouts; a model that ignores them scores chance.
+
 The action gain is Genie's delta-PSNR: the PSNR of each rollout to its real future, minus the PSNR to that future
 of the rollout from the same start under another start's actions (the next start's sequence of the same index).
 """
@@ -22,6 +27,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import torch
+import torch.nn.functional as F
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
@@ -160,19 +166,42 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
     return out
 
 
+@torch.no_grad()
+def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart) -> float:
+    """Share of the start's K real futures that their own action sequence explains best: the mean cross-entropy of
+    the future's tokens, each frame predicted fully masked from the real frames before it (at most a window)."""
+    K, T = start.real.shape[:2]
+    n, window = model.config.n_cameras, model.config.window
+    real = torch.stack([tokenizer.encode_views([start.real[j, :, c] for c in range(n)]) for j in range(K)])
+    futures = torch.cat([start.first[None].expand(K, -1, -1), real], 1)  # (K, T + 1, S)
+    actions_of, future_of = (i.flatten() for i in torch.meshgrid(torch.arange(K), torch.arange(K), indexing="ij"))
+    control = model.episode_control(start.actions[actions_of.to(start.actions.device)])
+    tokens = futures[future_of.to(futures.device)]  # (K * K, T + 1, S): pair (actions i, future j) at i * K + j
+    nll = torch.zeros(K * K, device=tokens.device)
+    for t in range(1, T + 1):
+        seen = slice(max(0, t + 1 - window), t + 1)
+        inputs = tokens[:, seen].clone()
+        inputs[:, -1] = model.config.mask_token_id
+        logits = model.compute_logits(inputs, control.frames(seen))[0][:, -1]  # (K * K, S, V)
+        nll += F.cross_entropy(logits.transpose(1, 2).float(), tokens[:, t], reduction="none").mean(1)
+    return retrieval_accuracy(-nll.view(K, K).T.cpu().numpy())  # row j: future j under each sequence
+
+
 def control_summary(model, tokenizer: VisualTokenizer, starts: list[ControlStart]) -> dict[str, float]:
     """Retrieval (whole frame, object) and action gain over a controllability set: the held-out measures that
     size the action model's training."""
-    retrieval, gain = defaultdict(list), []
+    retrieval, gain, likelihood = defaultdict(list), [], []
     for i, start in enumerate(starts):
         measured = measure_start(model, tokenizer, start, starts[(i + 1) % len(starts)], null=False)
         for region, sims in measured["world_model"]["similarity"].items():
             if not np.isnan(sims).any():
                 retrieval[region].append(retrieval_accuracy(sims))
         gain.append(measured["action_gain"])
+        likelihood.append(likelihood_retrieval(model, tokenizer, start))
     return {
         **{f"retrieval_{region}": float(np.mean(v)) for region, v in retrieval.items()},
         "action_gain_db": float(np.mean(gain)),
+        "likelihood_retrieval": float(np.mean(likelihood)),
     }
 
 
@@ -210,6 +239,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
             "episodes": start.episodes,
             "task": start.task,
             "action_gain": measured["action_gain"],
+            "likelihood_retrieval": likelihood_retrieval(model, tokenizer, start),
         }
         gains.append(measured["action_gain"])
         for name in ("world_model", "ignoring_actions"):
@@ -238,6 +268,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
                 "other_futures_psnr": float(np.mean(other)),
             }
     summary["action_gain_db"] = float(np.mean(gains))
+    summary["likelihood_retrieval"] = float(np.mean([r["likelihood_retrieval"] for r in per_start]))
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "sequences_per_start": len(per_start[0]["episodes"]),

@@ -1,14 +1,20 @@
+import json
+
 import numpy as np
 import pytest
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.dataset.reader import episode_facts, read_episode
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability, offsets
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.controllability import (
     ControllabilityReportConfig,
     evaluate_controllability,
+    likelihood_retrieval,
+    read_control_set,
     retrieval_accuracy,
 )
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE
 
 SEQUENCES, STEPS = 3, 5
@@ -73,6 +79,9 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
         for name in ("world_model", "ignoring_actions"):
             assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
     assert np.isfinite(report["summary"]["action_gain_db"])
+    assert report["summary"]["likelihood_retrieval"] == pytest.approx(
+        np.mean([start["likelihood_retrieval"] for start in report["starts"]])
+    )
     # The null-action model makes one rollout for all sequences: retrieval is exactly chance.
     assert report["summary"]["ignoring_actions"]["whole_frame"]["retrieval"] == pytest.approx(1 / SEQUENCES)
     assert 0 <= report["summary"]["world_model"]["whole_frame"]["retrieval"] <= 1
@@ -106,3 +115,36 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
     for point in curve:
         assert 0 <= point["retrieval_whole_frame"] <= 1 and np.isfinite(point["action_gain_db"])
     assert curve[0]["seconds"] <= curve[1]["seconds"]
+
+
+def test_a_model_deaf_to_its_actions_retrieves_by_likelihood_at_chance(control_set, trained_tokenizer, world_models):
+    _, root = control_set
+    dataset = open_dataset("local/roboscape_controllability", root)
+    tokenizer = VisualTokenizer.from_pretrained(trained_tokenizer).eval()
+    model = STWorldModel.from_pretrained(world_models["action"]).eval()
+    start = read_control_set(dataset, tokenizer, model.config.frame_skip, STEPS - 1, "cpu")[0]
+    episode_control = model.episode_control
+    model.episode_control = lambda *a, **k: model.null_control(episode_control(*a, **k))
+    # The same likelihood under every sequence: each future's own is tied with all others, 1/K.
+    assert likelihood_retrieval(model, tokenizer, start) == pytest.approx(1 / SEQUENCES)
+
+
+def test_eval_wm_reads_controllability_over_both_horizons(
+    control_set, trained_tokenizer, world_models, tmp_path, capsys
+):
+    from lerobot_roboscape.cli.eval_wm import main
+
+    _, root = control_set
+    dataset = ["--dataset.repo_id=local/roboscape_controllability", f"--dataset.root={root}"]
+    control = ["--controllability.repo_id=local/roboscape_controllability", f"--controllability.root={root}"]
+    args = [f"--tokenizer={trained_tokenizer}", f"--world_model={world_models['action']}", f"--output_dir={tmp_path}"]
+    main(
+        [*dataset, *control, *args, "--prompt_frames=1", "--horizon=4", "--long_horizon=4", "--allow_random_lpips=true"]
+    )
+    printed = capsys.readouterr().out
+    assert "retrieval over 4 control steps (world_model)" in printed and "action gain over 4 control steps" in printed
+    report = json.loads((tmp_path / "fidelity.json").read_text())
+    assert report["controllability_long"]["action_gain_db"] == pytest.approx(
+        report["controllability"]["action_gain_db"]
+    )
+    assert (tmp_path / "long_horizon" / "controllability.json").is_file()
