@@ -174,9 +174,9 @@ def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart)
     n, window = model.config.n_cameras, model.config.window
     real = torch.stack([tokenizer.encode_views([start.real[j, :, c] for c in range(n)]) for j in range(K)])
     futures = torch.cat([start.first[None].expand(K, -1, -1), real], 1)  # (K, T + 1, S)
-    actions_of, future_of = (i.flatten() for i in torch.meshgrid(torch.arange(K), torch.arange(K), indexing="ij"))
-    control = model.episode_control(start.actions[actions_of.to(start.actions.device)])
-    tokens = futures[future_of.to(futures.device)]  # (K * K, T + 1, S): pair (actions i, future j) at i * K + j
+    index = torch.arange(K, device=futures.device)
+    control = model.episode_control(start.actions[index.repeat_interleave(K)])
+    tokens = futures[index.repeat(K)]  # (K * K, T + 1, S): pair (actions i, future j) at i * K + j
     nll = torch.zeros(K * K, device=tokens.device)
     for t in range(1, T + 1):
         seen = slice(max(0, t + 1 - window), t + 1)

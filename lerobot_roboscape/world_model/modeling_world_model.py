@@ -131,16 +131,17 @@ class STWorldModel(
         token_loss = logits.sum() * 0
         changed = torch.zeros_like(mask)
         changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
+        changed = changed[mask]  # of the masked tokens
         if mask.any():
             token_ce = F.cross_entropy(logits[mask].float(), tokens[mask], reduction="none")
-            weight = torch.where(changed[mask], self.config.changed_weight, 1.0)
+            weight = torch.where(changed, self.config.changed_weight, 1.0)
             token_loss = (weight * token_ce).sum() / weight.sum()
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + self.config.done_weight * done_loss
         hits = logits[mask].argmax(-1) == tokens[mask]
         accuracy = hits.float().mean() if mask.any() else torch.tensor(0.0)
         # the accuracy on the changed tokens: copying the previous frame scores 0 there
-        changed_accuracy = hits[changed[mask]].float().mean() if mask.any() and changed[mask].any() else accuracy
+        changed_accuracy = hits[changed].float().mean() if changed.any() else accuracy
         return loss, {
             "loss": loss.item(),
             "token_ce": token_loss.item(),
