@@ -1,7 +1,8 @@
 """Reward report (the paper's Fig. 3 and its comparison of rewards): every reward type of `roboscape_wm` along
 recorded trajectories, and how well each one's episode return separates successful from failed episodes.
 
-Frames are the dataset's own, read through the tokenizer (as the env's frames are); the world-model reward uses
+Frames are the dataset's own, read through the tokenizer (as the env's frames are), or (`--frames=open_loop`) those
+the action model generates from each episode's first frame under its recorded actions; the world-model reward uses
 the goal the text model generates for the episode's first frame, and the env's done source (the action model's
 head or the success classifier) reads the real frames (teacher forcing); the action model gives the embedding
 features. As in the env (Algorithm 1), an episode is scored over its family's fixed horizon: past the recording's
@@ -28,12 +29,14 @@ from torchmetrics.functional.classification import binary_auroc
 from lerobot_roboscape.dataset.reader import open_dataset, read_episode
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import EpisodeStart, Goal, RoboscapeWorldModelEnv, load_reward_model
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.clips import model_frames
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 logger = logging.getLogger(__name__)
+FRAMES = ("real", "open_loop")
 
 
 @dataclass
@@ -47,6 +50,10 @@ class RewardReportConfig:
     max_episodes: episodes reported, at most.
     plot_episodes: successful episodes drawn in the figure.
     grid_episodes: successful episodes in the picture of goals (start, goal, real final frame).
+    frames: "real": the episodes' own frames through the tokenizer, the done head reading them (teacher forced);
+        "open_loop": frames the action model generates from each episode's first frame and its recorded actions,
+        as `roboscape_wm` would show them to a policy that took those actions (the rule-based reward stays the
+        recording's).
     """
 
     env: RoboscapeWorldModelEnvConfig = field(default_factory=RoboscapeWorldModelEnvConfig)
@@ -57,21 +64,33 @@ class RewardReportConfig:
     max_episodes: int = 16
     plot_episodes: int = 4
     grid_episodes: int = 8
+    frames: str = "real"
+
+    def __post_init__(self):
+        if self.frames not in FRAMES:
+            raise InvalidInputError(f"frames must be one of {FRAMES}, got {self.frames!r}")
 
 
 @torch.no_grad()
-def episode_rewards(env: RoboscapeWorldModelEnv, episode, models: dict) -> dict[str, np.ndarray]:
+def episode_rewards(
+    env: RoboscapeWorldModelEnv, episode, models: dict, open_loop: bool = False
+) -> dict[str, np.ndarray]:
     """Every reward type along one recorded episode, step by step over its horizon. The world model reads the
-    episode's model frames (every k-th step); its reward is what the env pays (at each chunk's last step), the
-    others are read at the model frame seen after each step (the last one holds)."""
+    episode's model frames (every k-th step; `open_loop`: the frames it generates from the first one under the
+    recorded actions instead); its reward is what the env pays (at each chunk's last step), the others are read at
+    the model frame seen after each step (the last one holds)."""
     indices = model_frames(len(episode.action), env.frame_skip)
     frames = {cam: episode.images[cam][indices] for cam in env.cameras}
     tokens = env._encode(frames)  # (T, S), T model frames
+    actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
+    if open_loop and len(tokens) > 1:
+        with env._precision():
+            generated, _ = env.action_model.generate(tokens[None, :1], len(tokens) - 1, actions=actions[None])
+        tokens = torch.cat([tokens[:1], generated[0]])
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal_tokens, _ = env.goals_for([start])
     decoded = env._decode(tokens)  # (T, n, 3, H, W)
     goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
-    actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
     done, features = env.teacher_forced_done(tokens, actions)
     world_model, _ = env.replay(episode.index, tokens, done)
     per_frame = {
@@ -146,7 +165,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     episodes, grid = [], []
     for index in selected:
         episode = read_episode(dataset, index)
-        rewards = episode_rewards(env, episode, models)
+        rewards = episode_rewards(env, episode, models, open_loop=cfg.frames == "open_loop")
         goal, images = goal_check(env, episode, other_goals.get(index))
         success = bool(episode.done_label.max() > 0.5)
         episodes.append(
@@ -235,7 +254,13 @@ def _markdown(report: dict, n: int, n_success: int) -> str:
     lines = [
         f"# Reward report ({n} episodes, {n_success} successful)",
         "",
-        f"Dense reward's similarity: {report['similarity']}. Done: {report['done_source']} at threshold "
+        "Frames: "
+        + (
+            "generated open loop by the action model from each episode's first frame and recorded actions. "
+            if report["config"]["frames"] == "open_loop"
+            else "the episodes' own, through the tokenizer. "
+        )
+        + f"Dense reward's similarity: {report['similarity']}. Done: {report['done_source']} at threshold "
         f"{report['theta']:.3f}. Returns are summed over each family's fixed "
         "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
         "one kind is present).",

@@ -57,6 +57,8 @@ GOAL_SOURCES = ("text_model", "dataset_last_frame")
 # Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
 # starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.
 GOAL_BATCH = 8
+# The episode index of a start made from given frames (`reset(options={"frames": ...})`), not from the dataset.
+FROM_FRAMES = -1
 
 
 def goal_generation_seconds(path: Path) -> float | None:
@@ -256,6 +258,32 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             )
         return starts, cameras, action_range(dataset)
 
+    def _starts_from_frames(self, frames: dict, tasks, horizons) -> list[EpisodeStart]:
+        """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions and
+        horizons in control steps (default: the longest of this env's starts), e.g. the simulator's initial states
+        for a paired evaluation."""
+        if self.config.goal_source != "text_model":
+            raise InvalidInputError(
+                f"a start from given frames has no recorded last frame: goal_source must be text_model, not "
+                f"{self.config.goal_source!r}"
+            )
+        if set(frames) != set(self.cameras):
+            raise InvalidInputError(f"frames have cameras {sorted(frames)}, this env {self.cameras}")
+        if tasks is None or len(tasks) != self.num_envs:
+            raise InvalidInputError(f"frames need an instruction per episode ({self.num_envs}), got {tasks!r}")
+        size = self.tokenizer.config.image_size
+        for cam, images in frames.items():
+            if np.shape(images) != (self.num_envs, size, size, 3):
+                raise InvalidInputError(
+                    f"frames[{cam!r}] has shape {np.shape(images)}, expected {(self.num_envs, size, size, 3)}"
+                )
+        tokens = self._encode({cam: np.asarray(frames[cam], np.uint8) for cam in self.cameras})  # (B, S)
+        horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
+        return [
+            EpisodeStart(FROM_FRAMES, str(task), tokens[i], tokens[i], {}, int(horizons[i]))
+            for i, task in enumerate(tasks)
+        ]
+
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
         return self.tokenizer.encode_views(
@@ -405,15 +433,20 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
             self._generator = torch.Generator(self.device).manual_seed(seed)  # world-model sampling
-        if "episode_index" in options:
-            wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))
-            by_index = {s.episode_index: s for s in self.starts}
-            if missing := sorted(set(int(i) for i in wanted) - set(by_index)):
-                raise ValueError(f"episodes {missing} are not among this env's starts")
-            starts = [by_index[int(i)] for i in wanted]
+        if "frames" in options:  # new starts: their goals are made now, not cached
+            starts = self._starts_from_frames(options["frames"], options.get("task"), options.get("horizon"))
+            goals = self.generate_goals(starts)
+            goal_tokens, reached = torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
         else:
-            starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
-        goal_tokens, reached = self.goals_for(starts)
+            if "episode_index" in options:
+                wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))
+                by_index = {s.episode_index: s for s in self.starts}
+                if missing := sorted(set(int(i) for i in wanted) - set(by_index)):
+                    raise ValueError(f"episodes {missing} are not among this env's starts")
+                starts = [by_index[int(i)] for i in wanted]
+            else:
+                starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
+            goal_tokens, reached = self.goals_for(starts)
         first = torch.stack([s.first_tokens for s in starts])
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)

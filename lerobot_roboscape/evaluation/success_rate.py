@@ -93,22 +93,32 @@ def difference_interval(a: dict, b: dict) -> tuple[float, float, float]:
 @torch.no_grad()
 def run_episodes(env, policy, io: PolicyIO, seed: int, record: bool = False) -> tuple[np.ndarray, list]:
     """One batch of episodes with the deterministic policy: (success per env, rendered frames if recorded)."""
-    policy.reset()
     observation, _ = env.reset(seed=seed)
+    success, _, frames = play(env, policy, io, observation, record)
+    return success, frames
+
+
+@torch.no_grad()
+def play(env, policy, io: PolicyIO, observation: dict, record: bool = False) -> tuple[np.ndarray, np.ndarray, list]:
+    """Play one batch of episodes from the observation of a reset to their horizon (or end), the policy acting on
+    the env's own observations: (success per env, return per env, rendered frames if recorded)."""
+    policy.reset()
     tasks = list(env.call("task"))
     success = np.zeros(env.num_envs, dtype=bool)
     ended = np.zeros(env.num_envs, dtype=bool)
+    returns = np.zeros(env.num_envs)
     frames = [np.concatenate(env.render(), axis=1)] if record else []
     for _ in range(env.call("_max_episode_steps")[0]):
         action = policy.select_action(io.batch(observation["pixels"], tasks))
-        observation, _, terminated, truncated, info = env.step(io.env_action(action))
+        observation, reward, terminated, truncated, info = env.step(io.env_action(action))
         success |= np.asarray(info["is_success"], dtype=bool)
+        returns += reward
         ended |= terminated | truncated
         if record:
             frames.append(np.concatenate(env.render(), axis=1))
         if ended.all():
             break
-    return success, frames
+    return success, returns, frames
 
 
 def eval_env_config(cfg: EvalConfig, split: str, image_size: int) -> RoboscapeManiSkillEnvConfig:

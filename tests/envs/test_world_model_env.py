@@ -238,3 +238,36 @@ def test_soak_at_batch_64_is_finite_with_flat_memory(env_config):
         if step in (1, 100, 200, 300):
             rss[step] = process.memory_info().rss / 2**20
     assert rss[300] - rss[100] < 0.05 * rss[100], f"RSS (MiB) at steps 1, 100, 200, 300: {rss}"
+
+
+def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_config, demo_dataset):
+    """Another env's first observation (the simulator's) becomes the start: the frame shown is those pixels through
+    the tokenizer, the goal is the text model's from them under the given instruction, and the horizon is as given."""
+    _, root = demo_dataset
+    env = RoboscapeWorldModelEnv(env_config(), num_envs=2)
+    frames = read_episode(open_dataset("test/demos", root), 4).images  # a push episode's frames
+    first = {cam: np.stack([images[0], images[-1]]) for cam, images in frames.items()}
+    obs, info = env.reset(options={"frames": first, "task": ["push the cube", "push the cube"], "horizon": [5, 9]})
+    expected = env._pixels(env._decode(env._encode(first)))
+    for cam in env.cameras:
+        assert np.array_equal(obs["pixels"][cam], expected[cam])
+    assert not np.array_equal(obs["pixels"]["third_view"][0], obs["pixels"]["third_view"][1])
+    goals = env.generate_goals(env._starts)
+    for cam in env.cameras:  # the goal of each start is the one made from its own frame
+        assert np.array_equal(info["goal"][cam], env._pixels(env._decode(torch.stack([g.tokens for g in goals])))[cam])
+    assert (info["episode_index"] == -1).all() and info["task"] == ["push the cube"] * 2
+    ended = [env.step(np.zeros((2, 7), np.float32))[3] for _ in range(9)]
+    assert [t[0] for t in ended].index(True) == 4 and [t[1] for t in ended].index(True) == 8  # horizons 5 and 9
+
+
+def test_reset_from_frames_refuses_a_wrong_camera_or_shape(env_config):
+    env = RoboscapeWorldModelEnv(env_config(), num_envs=1)
+    good = np.zeros((1, IMAGE_SIZE, IMAGE_SIZE, 3), np.uint8)
+    with pytest.raises(InvalidInputError, match="cameras"):
+        env.reset(options={"frames": {"third_view": good}, "task": ["push"]})
+    with pytest.raises(InvalidInputError, match=r"frames\['wrist'\] has shape"):
+        env.reset(options={"frames": {"third_view": good, "wrist": good[:, :8]}, "task": ["push"]})
+    with pytest.raises(InvalidInputError, match="goal_source"):
+        RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame"), num_envs=1).reset(
+            options={"frames": {"third_view": good, "wrist": good}, "task": ["push"]}
+        )

@@ -220,3 +220,25 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
         recorded = token_cache.rewards[row["start"] + seen]
         np.testing.assert_allclose(episode["rewards"]["rule_based"], recorded)
         assert (np.asarray(episode["rewards"]["world_model"])[np.arange(steps) % k != k - 1] == 0).all()
+
+
+def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_actions(env_config, demo_dataset):
+    from lerobot_roboscape.dataset.reader import open_dataset, read_episode
+    from lerobot_roboscape.envs.reward_report import RewardReportConfig, episode_rewards
+    from lerobot_roboscape.errors import InvalidInputError
+
+    _, root = demo_dataset
+    env = RoboscapeWorldModelEnv(env_config(episode_length=None), num_envs=1)
+    episode = read_episode(open_dataset("test/demos", root), 0)
+    open_loop, real = episode_rewards(env, episode, {}, open_loop=True), episode_rewards(env, episode, {})
+    k, indices = env.frame_skip, model_frames(len(episode.action), env.frame_skip)
+    first = env._encode({cam: episode.images[cam][:1] for cam in env.cameras})
+    actions = torch.from_numpy(episode.action[: (len(indices) - 1) * k])
+    generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
+    frames = torch.cat([first, generated[0]])
+    done, _ = env.teacher_forced_done(frames, actions)
+    expected, _ = env.replay(episode.index, frames, done)
+    np.testing.assert_allclose(open_loop["world_model"], expected, rtol=1e-5)
+    np.testing.assert_allclose(open_loop["rule_based"], real["rule_based"])  # the recording's own
+    with pytest.raises(InvalidInputError, match="frames must be one of"):
+        RewardReportConfig(frames="imagined")

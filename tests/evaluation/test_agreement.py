@@ -1,0 +1,115 @@
+import json
+
+import numpy as np
+import pytest
+
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.evaluation import agreement
+from lerobot_roboscape.evaluation.agreement import (
+    AgreementConfig,
+    agreement_summary,
+    balanced_accuracy,
+    evaluate_agreement,
+    ladder_summary,
+)
+
+
+def test_balanced_accuracy_is_the_mean_of_both_recalls():
+    sim = [True, True, True, True, False, False]
+    wm = [True, True, True, False, False, True]  # 3/4 successes and 1/2 failures recalled
+    assert balanced_accuracy(sim, wm) == pytest.approx(0.5 * (3 / 4 + 1 / 2))
+    assert balanced_accuracy(sim, [True] * 6) == pytest.approx(0.5)  # calling everything a success: chance
+    assert balanced_accuracy([False] * 3, [False] * 3) is None  # no success to recall
+
+
+def episode(sim, wm, sim_return=0.0, wm_return=0.0):
+    return {
+        "sim_success": sim,
+        "wm_success": wm,
+        "sim_return": sim_return,
+        "wm_return": wm_return,
+        "goal_reached": True,
+    }
+
+
+def test_agreement_summary_counts_the_confusion_table():
+    s = agreement_summary([episode(True, True), episode(True, False), episode(False, False), episode(False, False)])
+    assert s["confusion"] == {
+        "sim_success_wm_success": 1,
+        "sim_success_wm_failure": 1,
+        "sim_failure_wm_success": 0,
+        "sim_failure_wm_failure": 2,
+    }
+    assert s["agreement"] == 0.75 and s["balanced_accuracy"] == 0.75
+    assert s["simulator"]["successes"] == 2 and s["world_model"]["successes"] == 1
+
+
+def test_ladder_ranks_by_the_world_models_mean_return():
+    def rung(name, sim_rate, wm_return):
+        eps = [episode(i < 10 * sim_rate, False, wm_return=wm_return) for i in range(10)]
+        return {"policy": name, "episodes": eps, "summary": agreement_summary(eps)}
+
+    agreeing = ladder_summary([rung("a", 0.0, 1.0), rung("b", 0.3, 2.0), rung("c", 0.6, 5.0)])
+    assert agreeing["spearman_return_vs_success"] == pytest.approx(1.0)
+    reversed_ = ladder_summary([rung("a", 0.0, 5.0), rung("b", 0.3, 2.0), rung("c", 0.6, 1.0)])
+    assert reversed_["spearman_return_vs_success"] == pytest.approx(-1.0)
+    assert ladder_summary([rung("a", 0.0, 1.0), rung("b", 0.3, 2.0)])["spearman_return_vs_success"] is None
+
+
+def test_config_refuses_goals_the_simulator_cannot_give():
+    with pytest.raises(InvalidInputError, match="policy_paths"):
+        AgreementConfig()
+    with pytest.raises(InvalidInputError, match="goal_source"):
+        AgreementConfig(policy_paths=["x"], env=RoboscapeWorldModelEnvConfig(goal_source="dataset_last_frame"))
+
+
+def test_paired_episodes_share_starts_and_horizons_and_resume(env_config, mlp_checkpoint, tmp_path, monkeypatch):
+    """The policy runs from the simulator's starts in both envs; each record holds both outcomes; the summary is
+    those records'; videos are written; a rerun reads the finished policy instead of running it again."""
+    seen = []
+    paired_batch = agreement.paired_batch
+
+    def spy(sim, wm, policy, io, seed, record=False):
+        result = paired_batch(sim, wm, policy, io, seed, record)
+        first = sim.reset(seed=seed)[0]["pixels"]  # the same seed gives the same starts
+        seen.append((first, [s.horizon for s in wm._starts], sim.horizons.tolist(), wm.tokenizer, wm._starts))
+        return result
+
+    monkeypatch.setattr(agreement, "paired_batch", spy)
+    cfg = AgreementConfig(
+        policy_paths=[str(mlp_checkpoint)],
+        env=env_config(episode_length=None),
+        families=["push"],
+        split="ood",
+        episodes=3,
+        batch_size=2,
+        episode_length=8,
+        videos=1,
+        workers=1,
+        output_dir=tmp_path / "agreement",
+        device="cpu",
+    )
+    ladder = evaluate_agreement(cfg)
+    assert len(seen) == 2  # 3 episodes at 2 per batch
+    first, wm_horizons, sim_horizons, tokenizer, starts = seen[0]
+    assert wm_horizons == sim_horizons == [8, 8]
+    import torch
+
+    tokens = tokenizer.encode_views([torch.from_numpy(first[c]).permute(0, 3, 1, 2) for c in ("third_view", "wrist")])
+    assert torch.equal(torch.stack([s.first_tokens for s in starts]), tokens)  # the world model starts there
+    out = tmp_path / "agreement" / "policy_0"
+    records = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert len(records) == 3 and {r["family"] for r in records} == {"push"}
+    summary = json.loads((out / "agreement.json").read_text())["summary"]
+    assert summary["simulator"]["successes"] == sum(r["sim_success"] for r in records)
+    assert summary["mean_return"]["world_model"] == pytest.approx(np.mean([r["wm_return"] for r in records]))
+    assert ladder["policies"] == [str(mlp_checkpoint)]
+    assert len(list((out / "videos").glob("00_push_sim_*_wm_*.mp4"))) == 1
+    assert (tmp_path / "agreement" / "ladder.md").is_file() and (tmp_path / "agreement" / "ladder.png").is_file()
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("the finished policy ran again")
+
+    monkeypatch.setattr(agreement, "paired_batch", must_not_run)
+    assert evaluate_agreement(cfg)["pooled"] == ladder["pooled"]
