@@ -3,6 +3,9 @@
 results.json, a targets table on stdout, and the figures copied beside them.
 
     python scripts/world_model_report.py --run-dir outputs/bench --out docs/results/world_model
+
+With --gpu-run-dir, the same reports of models trained on a GPU (BENCH_ON_GPU) and evaluated here join results.json
+under "bench_on_gpu", and the table gains their column.
 """
 
 import argparse
@@ -30,26 +33,53 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-dir", type=Path, default=Path("outputs/bench"))
     parser.add_argument("--out", type=Path, default=Path("docs/results/world_model"))
+    parser.add_argument("--gpu-run-dir", type=Path, default=None)
     args = parser.parse_args()
     run, out = args.run_dir, args.out
     out.mkdir(parents=True, exist_ok=True)
-    fidelity = json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())
-    done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
-    rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
-    targets = world_model_targets(fidelity, done, rewards, read_curve(run / world_model_dir("action")))
-    results = {"machine": machine(), "targets": targets, **world_model_results(fidelity, done, rewards)}
+    targets, measured = read_run(run)
+    results = {"machine": machine(), "targets": targets, **measured}
+    gpu_targets = None
+    if args.gpu_run_dir is not None:
+        gpu_targets, gpu_measured = read_run(args.gpu_run_dir)
+        results["bench_on_gpu"] = {"targets": gpu_targets, **gpu_measured}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     for folder, names in (FIGURES | {k: FIGURES[k] + REPORTS[k] for k in REPORTS}).items():
         for name in names:
             if (run / folder / name).is_file():
                 shutil.copy2(run / folder / name, out / name)
     world_model_figure(
-        run / FIDELITY_DIR / "side_by_side.mp4", fidelity["prompt_frames"], out / "world_model_open_loop.png"
+        run / FIDELITY_DIR / "side_by_side.mp4",
+        json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())["prompt_frames"],
+        out / "world_model_open_loop.png",
     )
-    print("| target | measured | goal | met | detail |\n|---|---:|---|:---:|---|")
+    if gpu_targets is None:
+        print("| target | measured | goal | met | detail |\n|---|---:|---|:---:|---|")
+        for name, t in targets.items():
+            print(f"| {name} | {_value(t)} | {t['goal']} | {_met(t)} | {t.get('detail', '')} |")
+        return
+    print("| target | 2 cores | met | trained on the GPU | met | goal |\n|---|---:|:---:|---:|:---:|---|")
     for name, t in targets.items():
-        value = "-" if t["value"] is None else f"{t['value']:.3f}"
-        print(f"| {name} | {value} | {t['goal']} | {'yes' if t['met'] else '**no**'} | {t.get('detail', '')} |")
+        g = gpu_targets.get(name)
+        gpu = (_value(g), _met(g)) if g else ("-", "")
+        print(f"| {name} | {_value(t)} | {_met(t)} | {gpu[0]} | {gpu[1]} | {t['goal']} |")
+
+
+def read_run(run: Path) -> tuple[dict, dict]:
+    """The targets and the measured results of the fidelity, done and reward reports under `run`."""
+    fidelity = json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())
+    done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
+    rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
+    targets = world_model_targets(fidelity, done, rewards, read_curve(run / world_model_dir("action")))
+    return targets, world_model_results(fidelity, done, rewards)
+
+
+def _value(t: dict) -> str:
+    return "-" if t["value"] is None else f"{t['value']:.3f}"
+
+
+def _met(t: dict) -> str:
+    return "yes" if t["met"] else "**no**"
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 
 - **reset** draws each episode's initial frame and instruction from the episodes of a LeRobot dataset, across
   the scenes and task families selected, so one env covers many scenes at once. The goal frame of each start is
-  generated once by the text world model (the first frame whose done >= theta) and cached.
+  generated once by the text world model (the first frame whose done >= theta) and cached. A reset can also start
+  from given frames (`options={"frames": ..., "task": ..., "horizon": ...}`, another env's first observation, as
+  the paired evaluation does with the simulator's), their goals made then (or given as `goal_frames`).
 - **step** takes one action, as LeRobot steps every env. The action world model steps once per k = `frame_skip`
   actions (a model frame per executed action chunk, k saved with the model): the k-th action of a chunk predicts
   the next frame and done from the chunk, and is paid the reward of that frame, `WorldModelReward` (sparse done
@@ -261,28 +263,33 @@ class RoboscapeWorldModelEnv(BatchedEnv):
     def _starts_from_frames(self, frames: dict, tasks, horizons) -> list[EpisodeStart]:
         """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions and
         horizons in control steps (default: the longest of this env's starts), e.g. the simulator's initial states
-        for a paired evaluation."""
+        for a paired evaluation. Their goals are the text model's from these frames, or `goal_frames` when the
+        reset gives them (a real success of the same scene, say)."""
         if self.config.goal_source != "text_model":
             raise InvalidInputError(
                 f"a start from given frames has no recorded last frame: goal_source must be text_model, not "
                 f"{self.config.goal_source!r}"
             )
-        if set(frames) != set(self.cameras):
-            raise InvalidInputError(f"frames have cameras {sorted(frames)}, this env {self.cameras}")
         if tasks is None or len(tasks) != self.num_envs:
             raise InvalidInputError(f"frames need an instruction per episode ({self.num_envs}), got {tasks!r}")
+        tokens = self._encode(self._checked_frames(frames))  # (B, S)
+        horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
+        return [
+            EpisodeStart(FROM_FRAMES, str(task), tokens[i], tokens[i], {}, int(horizons[i]))
+            for i, task in enumerate(tasks)
+        ]
+
+    def _checked_frames(self, frames: dict) -> dict[str, np.ndarray]:
+        """A batch of given frames (camera -> (B, H, W, 3) uint8) in this env's camera order, checked."""
+        if set(frames) != set(self.cameras):
+            raise InvalidInputError(f"frames have cameras {sorted(frames)}, this env {self.cameras}")
         size = self.tokenizer.config.image_size
         for cam, images in frames.items():
             if np.shape(images) != (self.num_envs, size, size, 3):
                 raise InvalidInputError(
                     f"frames[{cam!r}] has shape {np.shape(images)}, expected {(self.num_envs, size, size, 3)}"
                 )
-        tokens = self._encode({cam: np.asarray(frames[cam], np.uint8) for cam in self.cameras})  # (B, S)
-        horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
-        return [
-            EpisodeStart(FROM_FRAMES, str(task), tokens[i], tokens[i], {}, int(horizons[i]))
-            for i, task in enumerate(tasks)
-        ]
+        return {cam: np.asarray(frames[cam], np.uint8) for cam in self.cameras}
 
     def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
@@ -433,10 +440,13 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
             self._generator = torch.Generator(self.device).manual_seed(seed)  # world-model sampling
-        if "frames" in options:  # new starts: their goals are made now, not cached
+        if "frames" in options:  # new starts: their goals are made now (or given), not cached
             starts = self._starts_from_frames(options["frames"], options.get("task"), options.get("horizon"))
-            goals = self.generate_goals(starts)
-            goal_tokens, reached = torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
+            if options.get("goal_frames") is not None:
+                goal_tokens, reached = self._encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
+            else:
+                goals = self.generate_goals(starts)
+                goal_tokens, reached = torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
         else:
             if "episode_index" in options:
                 wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))

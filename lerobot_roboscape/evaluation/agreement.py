@@ -20,10 +20,12 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+from lerobot.configs.default import DatasetConfig
 from scipy.stats import spearmanr
 from tqdm import tqdm
 
 from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_frames, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
@@ -56,6 +58,8 @@ class AgreementConfig:
     seed: seed of the simulator's initial states (the same for every policy, so the rungs share their starts).
     videos: paired episodes recorded per policy (the first batch's).
     workers: simulator processes (null: one per CPU core).
+    goal_dataset: instead of the text model's goals, the last frame of a successful episode of this dataset in
+        the same scene and family (an upper bound on what generated goals can give); null: the text model's.
     output_dir: <policy k>/{episodes.jsonl, agreement.json, videos/}, and ladder.json, ladder.md, ladder.png.
     device: "auto", "cpu" or "cuda".
     """
@@ -71,6 +75,7 @@ class AgreementConfig:
     seed: int = 200_000
     videos: int = 2
     workers: int | None = None
+    goal_dataset: DatasetConfig | None = None
     output_dir: Path = Path("outputs/agreement")
     device: str = "auto"
 
@@ -88,13 +93,20 @@ class AgreementConfig:
         self.output_dir = Path(self.output_dir)
 
 
-def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False) -> dict:
+def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False, goals: dict | None = None) -> dict:
     """One batch of paired episodes: the simulator's starts, replayed as the world model's; per episode, each env's
-    success and return, and the rendered frames (simulator | world model) when recorded."""
+    success and return, and the rendered frames (simulator | world model) when recorded. goals: (family, scene) ->
+    a goal frame (camera -> (H, W, 3)) to use instead of the text model's."""
     observation, info = sim.reset(seed=seed)
     tasks = list(info["task"])
+    goal_frames = None
+    if goals is not None:
+        keys = list(zip(sim.slot_families, (str(s) for s in info["scene_id"]), strict=True))
+        if missing := sorted({k for k in keys if k not in goals}):
+            raise InvalidInputError(f"the goal dataset has no successful episode of (family, scene) {missing}")
+        goal_frames = {cam: np.stack([goals[k][cam] for k in keys]) for cam in wm.cameras}
     wm_observation, wm_info = wm.reset(
-        options={"frames": observation["pixels"], "task": tasks, "horizon": sim.horizons}
+        options={"frames": observation["pixels"], "task": tasks, "horizon": sim.horizons, "goal_frames": goal_frames}
     )
     sim_success, sim_return, sim_frames = play(sim, policy, io, observation, record)
     wm_success, wm_return, wm_frames = play(wm, policy, io, wm_observation, record)
@@ -109,6 +121,19 @@ def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False)
         "goal_reached": [bool(r) for r in wm_info["goal_from_text_model"]],
         "frames": side_by_side(sim_frames, wm_frames) if record else [],
     }
+
+
+def success_goals(dataset_cfg: DatasetConfig) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+    """(family, scene) -> the last frame (camera -> (H, W, 3) uint8) of the dataset's first successful episode of
+    that family and scene."""
+    dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root, dataset_cfg.episodes)
+    goals = {}
+    for index in successful_episodes(dataset):
+        facts = episode_facts(dataset, index)
+        key = (facts.get("task_family"), facts.get("scene"))
+        if key not in goals:
+            goals[key] = {cam: frames[0] for cam, frames in read_frames(dataset, index, [-1]).items()}
+    return goals
 
 
 def side_by_side(left: list[np.ndarray], right: list[np.ndarray]) -> list[np.ndarray]:
@@ -201,12 +226,13 @@ def evaluate_agreement(cfg: AgreementConfig) -> dict:
     sim_cfg.scenes = list(cfg.scenes)
     batch = min(cfg.batch_size, cfg.episodes * len(families))
     slots = build_slots(sim_cfg, batch)
+    goals = success_goals(cfg.goal_dataset) if cfg.goal_dataset is not None else None
     rungs = []
     try:
         sim = RoboscapeManiSkillEnv(sim_cfg, num_envs=batch, slots=slots)
         wm = RoboscapeWorldModelEnv(cfg.env, num_envs=batch)
         for k, path in enumerate(cfg.policy_paths):
-            rungs.append(evaluate_policy(cfg, k, path, sim, wm, device))
+            rungs.append(evaluate_policy(cfg, k, path, sim, wm, device, goals))
     finally:
         slots.close()
     ladder = ladder_summary(rungs)
@@ -221,7 +247,7 @@ def settings_of(cfg: AgreementConfig, path: str) -> dict:
     return json.loads(json.dumps({**kept, "policy": path}, default=str))
 
 
-def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: str) -> dict:
+def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: str, goals: dict | None) -> dict:
     from lerobot_roboscape.rl.policy_loading import check_policy_fits_frame_skip
     from lerobot_roboscape.rl.ppo import write_video
 
@@ -241,7 +267,7 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
     per_family = {f: [] for f in sim.slot_families}
     for b in tqdm(range(math.ceil(cfg.episodes * len(per_family) / sim.num_envs)), desc=f"policy {k}", leave=False):
         record = b == 0 and cfg.videos > 0
-        result = paired_batch(sim, wm, policy, io, seed=cfg.seed + 7919 * b, record=record)
+        result = paired_batch(sim, wm, policy, io, seed=cfg.seed + 7919 * b, record=record, goals=goals)
         frames = result.pop("frames")
         for i, family in enumerate(result["family"]):
             if len(per_family[family]) < cfg.episodes:

@@ -258,6 +258,11 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     assert (info["episode_index"] == -1).all() and info["task"] == ["push the cube"] * 2
     ended = [env.step(np.zeros((2, 7), np.float32))[3] for _ in range(9)]
     assert [t[0] for t in ended].index(True) == 4 and [t[1] for t in ended].index(True) == 8  # horizons 5 and 9
+    last = {cam: np.stack([images[-1], images[-1]]) for cam, images in frames.items()}  # a goal given instead
+    _, info = env.reset(options={"frames": first, "task": ["push the cube"] * 2, "goal_frames": last})
+    for cam in env.cameras:
+        assert np.array_equal(info["goal"][cam], env._pixels(env._decode(env._encode(last)))[cam])
+    assert info["goal_from_text_model"].all()
 
 
 def test_reset_from_frames_refuses_a_wrong_camera_or_shape(env_config):

@@ -70,8 +70,8 @@ def test_paired_episodes_share_starts_and_horizons_and_resume(env_config, mlp_ch
     seen = []
     paired_batch = agreement.paired_batch
 
-    def spy(sim, wm, policy, io, seed, record=False):
-        result = paired_batch(sim, wm, policy, io, seed, record)
+    def spy(sim, wm, policy, io, seed, record=False, goals=None):
+        result = paired_batch(sim, wm, policy, io, seed, record, goals)
         first = sim.reset(seed=seed)[0]["pixels"]  # the same seed gives the same starts
         seen.append((first, [s.horizon for s in wm._starts], sim.horizons.tolist(), wm.tokenizer, wm._starts))
         return result
@@ -113,3 +113,19 @@ def test_paired_episodes_share_starts_and_horizons_and_resume(env_config, mlp_ch
 
     monkeypatch.setattr(agreement, "paired_batch", must_not_run)
     assert evaluate_agreement(cfg)["pooled"] == ladder["pooled"]
+
+
+def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dataset):
+    from lerobot.configs.default import DatasetConfig
+
+    from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
+
+    _, root = demo_dataset
+    goals = agreement.success_goals(DatasetConfig(repo_id="test/demos", root=str(root)))
+    dataset = open_dataset("test/demos", root)
+    scene = episode_facts(dataset, 0)["scene"]
+    assert set(goals) == {("pick_place", scene), ("push", scene)}
+    first_push_success = 4  # episodes 3-5 are push, 3 failed
+    last = read_episode(dataset, first_push_success).images
+    for cam, image in goals[("push", scene)].items():
+        assert np.array_equal(image, last[cam][-1])
