@@ -46,7 +46,8 @@ def check_actor_critic(policy, path) -> None:
     if not isinstance(policy, ActorCritic):
         raise InvalidInputError(
             f"The {policy.name!r} policy at {path} cannot be trained by PPO: it lacks sample_action, "
-            f"evaluate_actions or predict_value (lerobot_roboscape.rl.ActorCritic). Use roboscape_mlp or openvla."
+            "evaluate_actions or predict_value (lerobot_roboscape.actor_critic.ActorCritic). Use roboscape_mlp or "
+            "openvla."
         )
 
 

@@ -1,0 +1,210 @@
+"""The README against the code: its commands, console scripts, flags, paths and figures that the code fixes.
+
+Runs the cheap commands only: the syntax of the set-up script, `--help` of every console script (in this process,
+as the console scripts call the same `main`, and once through `.venv/bin`), and the scene listing.
+"""
+
+import ast
+import contextlib
+import dataclasses
+import importlib
+import io
+import re
+import subprocess
+import sys
+import tomllib
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+MAX_LINES = 260
+QUICK_START_LINES = 40
+# Top-level folders of the repository whose paths the README may name (outputs/ is made by the commands).
+TRACKED_ROOTS = ("docs", "scripts", "lerobot_roboscape", "policies", "plugins", "hub_cards", "tests", ".ci")
+
+
+def console_scripts() -> dict[str, str]:
+    """{name: "module:function"} from pyproject.toml's [project.scripts]."""
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+def shell_blocks(text: str) -> list[str]:
+    """The contents of the fenced ```bash blocks."""
+    return re.findall(r"^```(?:bash|sh|shell)\n(.*?)^```", text, re.S | re.M)
+
+
+def shell_commands(text: str) -> list[str]:
+    """Each command of the shell blocks: continuation lines joined, comments dropped, split at && ; and |."""
+    commands = []
+    for block in shell_blocks(text):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = " ".join(re.sub(r"(^|\s)#.*$", "", line).split())
+            commands += [part.strip() for part in re.split(r"&&|;|\|(?![^\[]*\])", line) if part.strip()]
+    return commands
+
+
+def inline_commands(text: str) -> list[str]:
+    """Inline code spans that start with a console script (`roboscape-collect --kinds=...`)."""
+    return [span for span in re.findall(r"`([^`\n]+)`", text) if re.match(r"(\.venv/bin/)?roboscape-\w", span)]
+
+
+def script_of(command: str, names) -> tuple[str, str] | None:
+    """(console script, the rest of the command) when the command runs one of `names`."""
+    for i, word in enumerate(command.split()):
+        name = word.removeprefix(".venv/bin/")
+        if name in names:
+            return name, " ".join(command.split()[i + 1 :])
+    return None
+
+
+def mentioned_scripts(text: str) -> set[str]:
+    return set(re.findall(r"(?<![\w-])(roboscape-[a-z]+(?:-[a-z]+)*)", text))
+
+
+@cache
+def help_text(name: str) -> str:
+    """What `name --help` prints, from its entry point in this process; its exit status must be 0."""
+    module, function = console_scripts()[name].split(":")
+    main = getattr(importlib.import_module(module), function)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code in (0, None), f"{name} --help exited with {exit_info.value.code}"
+    return out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def readme() -> str:
+    return README.read_text()
+
+
+def test_shell_commands_are_parsed():
+    text = "```bash\nbash a.sh && .venv/bin/roboscape-x --a=1 \\\n    --b.c=[1,2] # note\n```\n"
+    assert shell_commands(text) == ["bash a.sh", ".venv/bin/roboscape-x --a=1 --b.c=[1,2]"]
+
+
+def test_length_and_quick_start_first(readme):
+    lines = readme.splitlines()
+    assert len(lines) <= MAX_LINES, f"README.md has {len(lines)} lines, at most {MAX_LINES}"
+    first = shell_commands("\n".join(lines[:QUICK_START_LINES]))
+    assert "bash scripts/setup.sh" in first and ".venv/bin/roboscape-demo" in first, first
+    assert any(c.startswith(".venv/bin/python -m pytest") for c in first), "the test command is not in the first lines"
+
+
+def test_test_command_is_ci_command(readme):
+    """The README's test command is the one `.ci/run` runs."""
+    readme_tests = [c for c in shell_commands(readme) if " -m pytest" in c]
+    ci = [line.strip() for line in (ROOT / ".ci/run").read_text().splitlines() if " -m pytest" in line]
+    assert readme_tests and ci and readme_tests[0] == ci[0], (readme_tests, ci)
+
+
+def test_setup_commands_exist_and_parse(readme):
+    setups = [c.split()[1] for c in shell_commands(readme) if c.startswith("bash ")]
+    assert "scripts/setup.sh" in setups
+    for script in setups:
+        assert (ROOT / script).is_file(), script
+        result = subprocess.run(["bash", "-n", str(ROOT / script)], capture_output=True, text=True)
+        assert result.returncode == 0, f"bash -n {script}: {result.stderr}"
+
+
+def test_console_scripts_named_both_ways(readme):
+    declared = set(console_scripts())
+    in_code = {
+        name for command in shell_commands(readme) + inline_commands(readme) for name in mentioned_scripts(command)
+    }
+    assert in_code - declared == set(), "the README runs console scripts that pyproject.toml does not declare"
+    assert declared - mentioned_scripts(readme) == set(), "console scripts the README does not mention"
+
+
+@pytest.mark.parametrize("name", sorted(console_scripts()))
+def test_help_of_every_console_script(name):
+    assert help_text(name).startswith("usage:"), help_text(name)[:200]
+
+
+@pytest.mark.slow
+def test_console_script_runs_from_the_environment():
+    """One console script through its installed wrapper, as the README runs them."""
+    executable = Path(sys.executable).parent / "roboscape-demo"
+    assert executable.is_file(), f"{executable} is missing: run bash scripts/setup.sh"
+    result = subprocess.run([str(executable), "--help"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and "--scale" in result.stdout, result.stderr[-2000:]
+
+
+def test_readme_flags_exist(readme):
+    """Every --flag the README gives a console script is in that script's --help."""
+    unknown = []
+    for command in shell_commands(readme) + inline_commands(readme):
+        found = script_of(command, console_scripts())
+        if found is None:
+            continue
+        name, rest = found
+        for flag in re.findall(r"(?<![\w-])(--[A-Za-z_][\w.]*)", rest):
+            if not re.search(re.escape(flag) + r"(?![\w.])", help_text(name)):
+                unknown.append(f"{name} {flag}")
+    assert unknown == []
+
+
+def test_paths_exist(readme):
+    """Every repository path the README names, in links or in text, exists."""
+    links = [t for t in re.findall(r"\]\(([^)\s]+)\)", readme) if not re.match(r"[a-z]+://|#", t)]
+    roots = "|".join(re.escape(r) for r in TRACKED_ROOTS)
+    named = re.findall(rf"(?<![\w/.-])((?:{roots})/[\w./*-]*[\w*/])", readme)
+    missing = [p for p in {*links, *named} if not (list(ROOT.glob(p)) if "*" in p else (ROOT / p).exists())]
+    assert named and missing == []
+
+
+def test_stage_count_is_the_pipeline_s(readme):
+    """The README counts the demo's stages as the pipeline does."""
+    run = (ROOT / "lerobot_roboscape/pipeline/run.py").read_text()
+    (total,) = re.findall(r"StageClock\((\d+)\)", run)
+    stated = re.findall(r"(\d+) numbered stages", readme)
+    assert stated and set(stated) == {total}, (stated, total)
+
+
+def test_results_block_for_the_experiment(readme):
+    """`roboscape-experiment` rewrites the README's results block: its markers are there, once each."""
+    assert readme.count(README_BEGIN) == 1 and readme.count(README_END) == 1
+    assert readme.index(README_BEGIN) < readme.index(README_END)
+
+
+def test_scene_listing(readme):
+    """`roboscape-collect --list_scenes=true`: as many scenes and held-out scenes as the README says."""
+    assert "roboscape-collect --list_scenes=true" in readme
+    scenes = re.search(r"in (\d+) scenes:\s.*?(\d+) scenes held out", readme, re.S)
+    module, function = console_scripts()["roboscape-collect"].split(":")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        getattr(importlib.import_module(module), function)(["--list_scenes=true"])
+    splits = [line.split()[-1] for line in out.getvalue().splitlines()]
+    assert scenes and (len(splits), splits.count("ood")) == (int(scenes[1]), int(scenes[2]))
+
+
+def test_scripts_readme():
+    """scripts/README.md describes every script beside it, and its links resolve."""
+    text = (ROOT / "scripts/README.md").read_text()
+    scripts = sorted(p.name for p in (ROOT / "scripts").glob("*.py"))
+    assert [name for name in scripts if f"`{name}`" not in text] == []
+    links = [t for t in re.findall(r"\]\(([^)\s]+)\)", text) if not re.match(r"[a-z]+://|#", t)]
+    assert links and [t for t in links if not (ROOT / "scripts" / t).exists()] == []
+
+
+def test_python_blocks(readme):
+    """The README's Python compiles, its imports resolve, and the classes it calls take the keywords it gives."""
+    blocks = re.findall(r"^```python\n(.*?)^```", readme, re.S | re.M)
+    assert blocks
+    for block in blocks:
+        tree = ast.parse(block)
+        names = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                module = importlib.import_module(node.module)
+                names |= {alias.asname or alias.name: getattr(module, alias.name) for alias in node.names}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in names:
+                fields = {f.name for f in dataclasses.fields(names[node.func.id])}
+                assert {k.arg for k in node.keywords} - fields == set(), node.func.id
