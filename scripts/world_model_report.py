@@ -4,6 +4,10 @@ results.json, a targets table on stdout, and the figures copied beside them.
 
     python scripts/world_model_report.py --run-dir outputs/bench --out docs/results/world_model
 
+With --agreement (a `roboscape-eval-agreement` output folder, OOD) and --open-loop-rewards (a reward_report.json of
+`roboscape-reward-report --frames=open_loop`), the rows of whether the world model judges policies as the
+simulator does join the targets.
+
 With --gpu-run-dir, the same reports of models trained on a GPU (BENCH_ON_GPU) and evaluated here join results.json
 under "bench_on_gpu", and the table gains their column.
 """
@@ -13,7 +17,13 @@ import json
 import shutil
 from pathlib import Path
 
-from lerobot_roboscape.pipeline.report import machine, world_model_figure, world_model_results, world_model_targets
+from lerobot_roboscape.pipeline.report import (
+    agreement_targets,
+    machine,
+    world_model_figure,
+    world_model_results,
+    world_model_targets,
+)
 from lerobot_roboscape.pipeline.stages import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
 from lerobot_roboscape.training import read_curve
 
@@ -34,10 +44,16 @@ def main():
     parser.add_argument("--run-dir", type=Path, default=Path("outputs/bench"))
     parser.add_argument("--out", type=Path, default=Path("docs/results/world_model"))
     parser.add_argument("--gpu-run-dir", type=Path, default=None)
+    parser.add_argument("--agreement", type=Path, default=None)
+    parser.add_argument("--open-loop-rewards", type=Path, default=None)
     args = parser.parse_args()
     run, out = args.run_dir, args.out
     out.mkdir(parents=True, exist_ok=True)
     targets, measured = read_run(run)
+    if args.agreement is not None:
+        ladder = json.loads((args.agreement / "ladder.json").read_text())
+        open_loop = json.loads(args.open_loop_rewards.read_text()) if args.open_loop_rewards else None
+        targets |= agreement_targets(ladder, open_loop)
     results = {"machine": machine(), "targets": targets, **measured}
     gpu_targets = None
     if args.gpu_run_dir is not None:

@@ -67,6 +67,9 @@ GOAL_REACHED = 0.7  # issue 37: from held-out starts, within the family's horizo
 GOAL_NEARER_FINAL = 0.9
 GOAL_OWN_INSTRUCTION = 0.8  # the real success nearer its own instruction's goal than another family's (issue 37)
 REWARD_ROC_AUC = 0.9
+AGREEMENT_BALANCED_ACCURACY = 0.8  # per-episode success, world model against simulator, OOD
+LADDER_SPEARMAN = 0.9  # the world model's mean return ranking the policies as the simulator's success does
+REWARD_DENSE_ROC_AUC = 0.75  # the dense term alone, on frames generated open loop
 # SFT, in domain, per family (issue 27): a policy PPO can improve must already succeed sometimes.
 SFT_IND_SUCCESS = {"push": 0.6, "pick_place": 0.15}
 
@@ -282,6 +285,53 @@ def world_model_targets(fidelity: dict, done: dict, rewards: dict, action_curve:
         ours is not None and ours >= REWARD_ROC_AUC and beats,
         f"similarity: {rewards['similarity']}; done: {rewards['done_source']} at {rewards['theta']:.3f}",
     )
+    return targets
+
+
+def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split: str = "ood") -> dict:
+    """Whether the world model judges policies as the simulator does: per-episode agreement and the ladder's ranking
+    (`evaluation/agreement.py`'s ladder.json), and the world-model return of held-out episodes generated open loop
+    from their recorded actions (`roboscape-reward-report --frames=open_loop`)."""
+    pooled = ladder["pooled"]
+    c, n = pooled["confusion"], len(ladder["policies"])
+    balanced, rho = pooled["balanced_accuracy"], ladder["spearman_return_vs_success"]
+    targets = {
+        f"agreement: balanced accuracy of world-model success against the simulator's, per episode, {split.upper()}": (
+            _target(
+                balanced,
+                f">= {AGREEMENT_BALANCED_ACCURACY}",
+                balanced is not None and balanced >= AGREEMENT_BALANCED_ACCURACY,
+                f"{pooled['episodes']} paired episodes of {n} policies; simulator successes called success "
+                f"{c['sim_success_wm_success']}/{c['sim_success_wm_success'] + c['sim_success_wm_failure']}, "
+                f"failures called success {c['sim_failure_wm_success']}/"
+                f"{c['sim_failure_wm_success'] + c['sim_failure_wm_failure']}",
+            )
+        ),
+        f"ladder: Spearman of the world model's mean return against simulator success, {split.upper()}": _target(
+            rho,
+            f">= {LADDER_SPEARMAN}",
+            rho is not None and rho >= LADDER_SPEARMAN,
+            f"{n} policies; simulator success "
+            + ", ".join(f"{r:.2f}" for r in ladder["simulator_success_rate"])
+            + "; world-model mean return "
+            + ", ".join(f"{r:.1f}" for r in ladder["world_model_mean_return"]),
+        ),
+    }
+    if open_loop_rewards is not None:
+        summary = open_loop_rewards["summary"]
+        ours, dense = summary["world_model"]["roc_auc_of_return"], summary["world_model_dense"]["roc_auc_of_return"]
+        baselines = {k: summary[k]["roc_auc_of_return"] for k in REWARD_BASELINES if k in summary}
+        beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
+        targets["reward: ROC-AUC of the world-model return, held-out OOD episodes generated open loop"] = _target(
+            ours,
+            f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({_fmt(v)})" for k, v in baselines.items()),
+            ours is not None and ours >= REWARD_ROC_AUC and beats,
+            f"similarity: {open_loop_rewards['similarity']}; done: {open_loop_rewards['done_source']} at "
+            f"{open_loop_rewards['theta']:.3f}",
+        )
+        targets["reward: ROC-AUC of the dense term alone, held-out OOD episodes generated open loop"] = _target(
+            dense, f">= {REWARD_DENSE_ROC_AUC}", dense is not None and dense >= REWARD_DENSE_ROC_AUC
+        )
     return targets
 
 

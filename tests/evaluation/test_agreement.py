@@ -129,3 +129,42 @@ def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dat
     last = read_episode(dataset, first_push_success).images
     for cam, image in goals[("push", scene)].items():
         assert np.array_equal(image, last[cam][-1])
+
+
+def test_agreement_targets_are_met_or_missed_by_the_measured_values():
+    from lerobot_roboscape.pipeline.report import agreement_targets
+
+    def rung(name, sim, wm, wm_return):
+        eps = [episode(s, w, wm_return=wm_return) for s, w in zip(sim, wm, strict=True)]
+        return {"policy": name, "episodes": eps, "summary": agreement_summary(eps)}
+
+    good = ladder_summary(
+        [
+            rung("a", [False] * 4, [False] * 4, 1.0),
+            rung("b", [True, False] * 2, [True, False] * 2, 2.0),
+            rung("c", [True] * 4, [True, True, True, False], 3.0),
+        ]
+    )
+    bad = ladder_summary(
+        [
+            rung("a", [False] * 4, [True] * 4, 3.0),
+            rung("b", [True, False] * 2, [True] * 4, 2.0),
+            rung("c", [True] * 4, [True] * 4, 1.0),
+        ]
+    )
+    rewards = {
+        "summary": {
+            "world_model": {"roc_auc_of_return": 0.95},
+            "world_model_dense": {"roc_auc_of_return": 0.6},
+            "embedding": {"roc_auc_of_return": 0.97},
+        },
+        "similarity": "tokenizer",
+        "done_source": "world_model",
+        "theta": 0.9,
+    }
+    met = {name: t["met"] for name, t in agreement_targets(good, rewards).items()}
+    assert [met[n] for n in met if n.startswith(("agreement", "ladder"))] == [True, True]
+    assert not any(met[n] for n in met if n.startswith("reward"))  # below the embedding baseline; dense 0.6 < 0.75
+    missed = agreement_targets(bad)
+    assert len(missed) == 2 and not any(t["met"] for t in missed.values())
+    assert missed[next(n for n in missed if n.startswith("agreement"))]["value"] == 0.5  # all called success
