@@ -273,11 +273,12 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
             if len(per_family[family]) < cfg.episodes:
                 per_family[family].append({key: values[i] for key, values in result.items()} | {"batch": b})
         if record:
-            width = frames[0].shape[1] // sim.num_envs
-            for i in range(min(cfg.videos, sim.num_envs)):
+            width, shown = frames[0].shape[1] // sim.num_envs, min(cfg.videos, sim.num_envs)
+            for i in range(shown):
                 e = {key: values[i] for key, values in result.items()}
                 name = f"{i:02d}_{e['family']}_sim_{_word(e['sim_success'])}_wm_{_word(e['wm_success'])}.mp4"
                 write_video(out / "videos" / name, [f[:, i * width : (i + 1) * width] for f in frames], 20)
+            write_picture(out / "paired.png", [f[:, : shown * width] for f in frames], width)
     episodes = [e for family in per_family.values() for e in family]
     summary = agreement_summary(episodes) | {"families": {f: agreement_summary(e) for f, e in per_family.items()}}
     write_text_atomically(out / EPISODES, "".join(json.dumps(e) + "\n" for e in episodes))
@@ -290,6 +291,17 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
         summary["balanced_accuracy"],
     )
     return {"policy": path, "episodes": episodes, "summary": summary}
+
+
+def write_picture(path: Path, frames: list[np.ndarray], width: int, columns: int = 8) -> None:
+    """The recorded episodes at `columns` evenly spaced steps: a row per episode (simulator left, world model and
+    its goal right), a column per step."""
+    import imageio.v3 as iio
+
+    picked = [frames[i] for i in np.linspace(0, len(frames) - 1, columns).round().astype(int)]
+    rows = [np.concatenate([f[:, k : k + width] for f in picked], axis=1) for k in range(0, picked[0].shape[1], width)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, np.concatenate(rows, axis=0))
 
 
 def _word(success: bool) -> str:

@@ -105,7 +105,7 @@ def test_paired_episodes_share_starts_and_horizons_and_resume(env_config, mlp_ch
     assert summary["simulator"]["successes"] == sum(r["sim_success"] for r in records)
     assert summary["mean_return"]["world_model"] == pytest.approx(np.mean([r["wm_return"] for r in records]))
     assert ladder["policies"] == [str(mlp_checkpoint)]
-    assert len(list((out / "videos").glob("00_push_sim_*_wm_*.mp4"))) == 1
+    assert len(list((out / "videos").glob("00_push_sim_*_wm_*.mp4"))) == 1 and (out / "paired.png").is_file()
     assert (tmp_path / "agreement" / "ladder.md").is_file() and (tmp_path / "agreement" / "ladder.png").is_file()
 
     def must_not_run(*args, **kwargs):
