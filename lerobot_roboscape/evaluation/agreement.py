@@ -119,8 +119,19 @@ def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False,
         "sim_return": sim_return.tolist(),
         "wm_return": wm_return.tolist(),
         "goal_reached": [bool(r) for r in wm_info["goal_from_text_model"]],
-        "frames": side_by_side(sim_frames, wm_frames) if record else [],
+        "frames": [episode_clip(sim_frames, wm_frames, i, sim.num_envs) for i in range(sim.num_envs)] if record else [],
     }
+
+
+def episode_clip(sim_frames: list[np.ndarray], wm_frames: list[np.ndarray], i: int, n: int) -> list[np.ndarray]:
+    """Episode i of n from the two envs' recorded batches (each frame: the n episodes' renders side by side): its
+    simulator render beside its world-model render, frame by frame; the shorter holds its last frame."""
+    sim_width, wm_width = sim_frames[0].shape[1] // n, wm_frames[0].shape[1] // n
+    left = [f[:, i * sim_width : (i + 1) * sim_width] for f in sim_frames]
+    right = [f[:, i * wm_width : (i + 1) * wm_width] for f in wm_frames]
+    length = max(len(left), len(right))
+    pad = lambda frames: frames + [frames[-1]] * (length - len(frames))  # noqa: E731
+    return [np.concatenate([a, b], axis=1) for a, b in zip(pad(left), pad(right), strict=True)]
 
 
 def success_goals(dataset_cfg: DatasetConfig) -> dict[tuple[str, str], dict[str, np.ndarray]]:
@@ -134,13 +145,6 @@ def success_goals(dataset_cfg: DatasetConfig) -> dict[tuple[str, str], dict[str,
         if key not in goals:
             goals[key] = {cam: frames[0] for cam, frames in read_frames(dataset, index, [-1]).items()}
     return goals
-
-
-def side_by_side(left: list[np.ndarray], right: list[np.ndarray]) -> list[np.ndarray]:
-    """Two videos of the same batch, frame by frame side by side; the shorter holds its last frame."""
-    n = max(len(left), len(right))
-    pad = lambda frames: frames + [frames[-1]] * (n - len(frames))  # noqa: E731
-    return [np.concatenate([a, b], axis=1) for a, b in zip(pad(left), pad(right), strict=True)]
 
 
 def balanced_accuracy(truth: np.ndarray, said: np.ndarray) -> float | None:
@@ -268,17 +272,17 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
     for b in tqdm(range(math.ceil(cfg.episodes * len(per_family) / sim.num_envs)), desc=f"policy {k}", leave=False):
         record = b == 0 and cfg.videos > 0
         result = paired_batch(sim, wm, policy, io, seed=cfg.seed + 7919 * b, record=record, goals=goals)
-        frames = result.pop("frames")
+        clips = result.pop("frames")
         for i, family in enumerate(result["family"]):
             if len(per_family[family]) < cfg.episodes:
                 per_family[family].append({key: values[i] for key, values in result.items()} | {"batch": b})
         if record:
-            width, shown = frames[0].shape[1] // sim.num_envs, min(cfg.videos, sim.num_envs)
-            for i in range(shown):
+            shown = clips[: cfg.videos]
+            for i, clip in enumerate(shown):
                 e = {key: values[i] for key, values in result.items()}
                 name = f"{i:02d}_{e['family']}_sim_{_word(e['sim_success'])}_wm_{_word(e['wm_success'])}.mp4"
-                write_video(out / "videos" / name, [f[:, i * width : (i + 1) * width] for f in frames], 20)
-            write_picture(out / "paired.png", [f[:, : shown * width] for f in frames], width)
+                write_video(out / "videos" / name, clip, 20)
+            write_picture(out / "paired.png", shown)
     episodes = [e for family in per_family.values() for e in family]
     summary = agreement_summary(episodes) | {"families": {f: agreement_summary(e) for f, e in per_family.items()}}
     write_text_atomically(out / EPISODES, "".join(json.dumps(e) + "\n" for e in episodes))
@@ -293,13 +297,12 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
     return {"policy": path, "episodes": episodes, "summary": summary}
 
 
-def write_picture(path: Path, frames: list[np.ndarray], width: int, columns: int = 8) -> None:
-    """The recorded episodes at `columns` evenly spaced steps: a row per episode (simulator left, world model and
-    its goal right), a column per step."""
+def write_picture(path: Path, clips: list[list[np.ndarray]], columns: int = 8) -> None:
+    """Recorded episodes at `columns` evenly spaced steps: a row per episode (its clip from `episode_clip`: the
+    simulator left, the world model and its goal right), a column per step."""
     import imageio.v3 as iio
 
-    picked = [frames[i] for i in np.linspace(0, len(frames) - 1, columns).round().astype(int)]
-    rows = [np.concatenate([f[:, k : k + width] for f in picked], axis=1) for k in range(0, picked[0].shape[1], width)]
+    rows = [np.concatenate([c[i] for i in np.linspace(0, len(c) - 1, columns).round().astype(int)], 1) for c in clips]
     path.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(path, np.concatenate(rows, axis=0))
 

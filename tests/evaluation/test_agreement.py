@@ -168,3 +168,14 @@ def test_agreement_targets_are_met_or_missed_by_the_measured_values():
     missed = agreement_targets(bad)
     assert len(missed) == 2 and not any(t["met"] for t in missed.values())
     assert missed[next(n for n in missed if n.startswith("agreement"))]["value"] == 0.5  # all called success
+
+
+def test_episode_clip_pairs_each_episodes_own_renders():
+    """Batches of 3 episodes: simulator renders 2 px wide each, world-model renders 4 px wide, the world model's run
+    one frame longer. Episode 1's clip holds its own columns of each, the simulator's last frame held."""
+    sim = [np.stack([np.full((2, 2, 3), 10 * t + e) for e in range(3)], 1).reshape(2, 6, 3) for t in range(2)]
+    wm = [np.stack([np.full((2, 4, 3), 100 + 10 * t + e) for e in range(3)], 1).reshape(2, 12, 3) for t in range(3)]
+    clip = agreement.episode_clip(sim, wm, 1, 3)
+    assert len(clip) == 3 and clip[0].shape == (2, 6, 3)
+    assert [int(f[0, 0, 0]) for f in clip] == [1, 11, 11]  # the simulator's episode 1, its last frame held
+    assert [int(f[0, -1, 0]) for f in clip] == [101, 111, 121]  # the world model's episode 1
