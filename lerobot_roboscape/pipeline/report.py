@@ -275,17 +275,22 @@ def world_model_targets(fidelity: dict, done: dict, rewards: dict, action_curve:
         own is not None and own >= GOAL_OWN_INSTRUCTION,
         f"{goals['successful_starts']} successful episodes, the same start under another family's instruction",
     )
+    targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _reward_target(rewards)
+    return targets
+
+
+def _reward_target(rewards: dict) -> dict:
+    """The world-model return's ROC-AUC on held-out episodes (a reward report), above the baselines it holds."""
     summary = rewards["summary"]
     ours = summary["world_model"]["roc_auc_of_return"]
     baselines = {k: summary[k]["roc_auc_of_return"] for k in REWARD_BASELINES if k in summary}
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
-    targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = _target(
+    return _target(
         ours,
         f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({_fmt(v)})" for k, v in baselines.items()),
         ours is not None and ours >= REWARD_ROC_AUC and beats,
         f"similarity: {rewards['similarity']}; done: {rewards['done_source']} at {rewards['theta']:.3f}",
     )
-    return targets
 
 
 def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split: str = "ood") -> dict:
@@ -318,16 +323,9 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
         ),
     }
     if open_loop_rewards is not None:
-        summary = open_loop_rewards["summary"]
-        ours, dense = summary["world_model"]["roc_auc_of_return"], summary["world_model_dense"]["roc_auc_of_return"]
-        baselines = {k: summary[k]["roc_auc_of_return"] for k in REWARD_BASELINES if k in summary}
-        beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
-        targets["reward: ROC-AUC of the world-model return, held-out OOD episodes generated open loop"] = _target(
-            ours,
-            f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({_fmt(v)})" for k, v in baselines.items()),
-            ours is not None and ours >= REWARD_ROC_AUC and beats,
-            f"similarity: {open_loop_rewards['similarity']}; done: {open_loop_rewards['done_source']} at "
-            f"{open_loop_rewards['theta']:.3f}",
+        dense = open_loop_rewards["summary"]["world_model_dense"]["roc_auc_of_return"]
+        targets["reward: ROC-AUC of the world-model return, held-out OOD episodes generated open loop"] = (
+            _reward_target(open_loop_rewards)
         )
         targets["reward: ROC-AUC of the dense term alone, held-out OOD episodes generated open loop"] = _target(
             dense, f">= {REWARD_DENSE_ROC_AUC}", dense is not None and dense >= REWARD_DENSE_ROC_AUC
