@@ -3,6 +3,8 @@ interrupted training stage resumes only into a run of the same settings, and the
 
 from dataclasses import dataclass
 
+import pytest
+
 from lerobot_roboscape.pipeline import stages
 from lerobot_roboscape.pipeline.report import measure_targets, sft_targets, tokenizer_targets
 
@@ -13,14 +15,16 @@ class Settings:
     lr: float = 1e-3
 
 
-def test_a_stage_is_done_only_with_the_same_settings(tmp_path):
+def test_a_stage_is_done_only_with_the_same_settings(tmp_path, monkeypatch):
     folder = tmp_path / "tokenizer"
     assert not stages.is_done(folder, Settings(10), fresh=False)
+    clock = iter([1000.0, 1007.5, 1007.5])  # starts at 1,000 s; marked done at 1,007.5 s (read twice there)
+    monkeypatch.setattr(stages.time, "time", lambda: next(clock))
     stages.start(folder).mkdir()
     (folder / "weights").write_text("w")
     stages.mark_done(folder, Settings(10))
     assert stages.is_done(folder, Settings(10), fresh=False)
-    assert stages.stage_seconds(folder) >= 0
+    assert stages.stage_seconds(folder) == pytest.approx(7.5)
     assert not stages.is_done(folder, Settings(11), fresh=False)  # changed settings: the stage runs again
     assert not stages.is_done(folder, Settings(10), fresh=True)
 

@@ -4,7 +4,6 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.actor_critic import ActorCritic
 from tests.conftest import IMAGE_SIZE
 
 CAMERAS = ("observation.images.third_view", "observation.images.wrist")
@@ -40,7 +39,8 @@ def test_registered_with_lerobot_and_ignores_state():
     assert get_policy_class("roboscape_mlp") is RoboscapeMLPPolicy
     policy = make_policy()
     assert set(policy.config.input_features) == set(CAMERAS)  # proprioception dropped
-    assert isinstance(policy, ActorCritic)
+    batch = make_batch()  # PPO's critic: the value a sample reports is the value head's
+    torch.testing.assert_close(policy.sample_action(batch).value, policy.predict_value(batch))
 
 
 def test_sft_fits_demonstrations_that_depend_on_image_and_instruction():

@@ -90,7 +90,11 @@ def test_lpips_trunk_loads_from_a_file_and_is_refused_when_missing(tmp_path):
     assert torch.equal(getattr(metric.net.slice5, "10").weight, trunk.features[10].weight)
     with pytest.raises(LPIPSTrunkMissingError, match="not found"):
         load_lpips("alex", trunk_path=tmp_path / "missing.pth")
-    assert load_lpips("alex", trunk_path=None, allow_random_trunk=True) is not None
+    random_metric = load_lpips("alex", trunk_path=None, allow_random_trunk=True)  # tests only: said so by the flag
+    assert random_metric.random_trunk
+    image, other = torch.rand(2, 1, 3, 32, 32) * 2 - 1
+    assert random_metric(image, image).item() == pytest.approx(0.0, abs=1e-6)
+    assert random_metric(image, other).item() > 0
 
 
 def test_object_weight_adds_the_error_on_the_objects_pixels():

@@ -1,0 +1,52 @@
+"""The claim's targets (`claim_targets`), cell by cell, on hand-made tables: met, missed, and undecidable (an
+interval that straddles 0, a method not run)."""
+
+import pytest
+
+from lerobot_roboscape.evaluation.success_rate import summarise
+from lerobot_roboscape.pipeline.experiment_report import claim_targets
+from lerobot_roboscape.pipeline.stages import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
+
+
+def cell(successes: int, episodes: int = 50) -> dict:
+    return summarise([True] * successes + [False] * (episodes - successes))
+
+
+def table(wm_ood: int, sft_ood: int, wm_ind: int, sft_ind: int, one_scene_ood: int | None) -> dict:
+    def method(ood, ind):
+        return {"ood": {"push": cell(ood), "all": cell(ood)}, "ind": {"push": cell(ind), "all": cell(ind)}}
+
+    methods = {RL_WORLD_MODEL: method(wm_ood, wm_ind), SFT: method(sft_ood, sft_ind)}
+    if one_scene_ood is not None:
+        methods[RL_MANISKILL_ONE_SCENE] = method(one_scene_ood, 0)
+    return {"mlp": methods}
+
+
+# (PPO in WM OOD, SFT OOD, PPO in WM IND, SFT IND, PPO in one scene OOD) of 50 -> (vs SFT, vs one scene, IND)
+CASES = {
+    "all met": ((40, 10, 30, 25, 30), (True, True, True)),
+    "all missed": ((10, 25, 5, 30, 20), (False, False, False)),
+    "ahead of SFT, interval straddles 0": ((20, 15, 25, 25, 20), (False, True, True)),
+    # SFT's 22/50 in domain has the 95% lower bound 0.312: 16/50 (0.32) is within it, 15/50 (0.30) below
+    "IND just within SFT's interval": ((40, 10, 16, 22, 40), (True, True, True)),
+    "IND just below SFT's interval": ((40, 10, 15, 22, 40), (True, True, False)),
+}
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_claim_targets_cells(name):
+    counts, expected = CASES[name]
+    targets = claim_targets(table(*counts), ["push"])
+    met = (
+        targets["mlp, OOD Push: PPO in WM minus SFT"]["met"],
+        targets["mlp, OOD Push: PPO in WM minus PPO in ManiSkill (one scene)"]["met"],
+        targets["mlp, IND Push: PPO in WM, within SFT's interval or above"]["met"],
+    )
+    assert met == expected
+    assert targets["mlp, OOD Push: PPO in WM minus SFT"]["value"] == pytest.approx((counts[0] - counts[1]) / 50)
+
+
+def test_without_ppo_in_one_scene_its_rows_are_absent_not_missed():
+    targets = claim_targets(table(40, 10, 30, 25, None), ["push"])
+    assert not any("one scene" in name for name in targets)
+    assert len(targets) == 4  # push and all: against SFT OOD, within SFT IND
