@@ -29,7 +29,12 @@ from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_f
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
-from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
+from lerobot_roboscape.rl.policy_loading import (
+    PolicyIO,
+    check_policy_fits_env,
+    check_policy_fits_frame_skip,
+    load_policy,
+)
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training import resolve_device
 
@@ -252,7 +257,6 @@ def settings_of(cfg: AgreementConfig, path: str) -> dict:
 
 
 def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: str, goals: dict | None) -> dict:
-    from lerobot_roboscape.rl.policy_loading import check_policy_fits_frame_skip
     from lerobot_roboscape.rl.ppo import write_video
 
     out = cfg.output_dir / f"policy_{k}"
