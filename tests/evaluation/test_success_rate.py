@@ -1,10 +1,19 @@
+import numpy as np
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.evaluation.success_rate import EvalConfig, difference_interval, run_episodes, wilson_interval
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.evaluation.success_rate import (
+    EvalConfig,
+    difference_interval,
+    paired_difference_interval,
+    run_episodes,
+    summarise,
+    wilson_interval,
+)
 from lerobot_roboscape.rl.policy_loading import PolicyIO
 from tests.rl.reach_env import TARGET, ReachEnv
 
@@ -22,6 +31,58 @@ def test_difference_interval_matches_newcombe():
     assert difference_interval(a, b) == pytest.approx((0.2, 0.0524, 0.3339), abs=1e-4)
     d, low, high = difference_interval(b, a)
     assert (d, low, high) == pytest.approx((-0.2, -0.3339, -0.0524), abs=1e-4)  # swapped sides mirror it
+
+
+# (P(both succeed), P(only a), P(only b)) of a pair of episodes from one initial state
+PAIRED_WORLDS = {
+    "correlated, a ahead": (0.35, 0.15, 0.05),
+    "independent-like": (0.25, 0.25, 0.25),
+    "rare": (0.02, 0.06, 0.02),
+}
+
+
+@pytest.mark.parametrize("world", PAIRED_WORLDS)
+def test_paired_interval_covers_the_true_difference(world):
+    # 2,000 paired experiments of 50 episodes each: the 95% interval holds the true difference in about 95% of them
+    # (Newcombe reports his method 10 at or a little above nominal coverage).
+    both, only_a, only_b = PAIRED_WORLDS[world]
+    rng = np.random.default_rng(0)
+    kinds = rng.choice(4, size=(2000, 50), p=[both, only_a, only_b, 1 - both - only_a - only_b])
+    covered = 0
+    for row in kinds:
+        a, b = ((row == 0) | (row == 1)).tolist(), ((row == 0) | (row == 2)).tolist()
+        _, low, high = paired_difference_interval(a, b)
+        covered += low <= only_a - only_b <= high
+    assert 0.93 <= covered / 2000 <= 0.99
+
+
+def test_paired_interval_is_narrower_when_the_methods_fail_on_the_same_starts():
+    # 30 starts both solve, 5 only a, 0 only b, 15 neither: the unpaired interval ignores that the methods agree
+    # on 45 of the 50 starts, the paired one uses it.
+    a = [True] * 35 + [False] * 15
+    b = [True] * 30 + [False] * 20
+    d, low, high = paired_difference_interval(a, b)
+    _, u_low, u_high = difference_interval(summarise(a), summarise(b))
+    assert d == pytest.approx(0.1)
+    assert low > 0 > u_low  # paired: above 0; unpaired: straddles it
+    assert high - low < u_high - u_low
+    assert paired_difference_interval(b, a) == pytest.approx((-0.1, -high, -low))  # swapped sides mirror it
+
+
+def test_paired_interval_of_identical_outcomes_holds_zero():
+    outcomes = [True, False] * 25
+    d, low, high = paired_difference_interval(outcomes, outcomes)
+    assert d == 0 and low < 0 < high
+
+
+def test_paired_interval_refuses_unpaired_episodes():
+    with pytest.raises(InvalidInputError, match="50 and 49"):
+        paired_difference_interval([True] * 50, [True] * 49)
+
+
+def test_summarise_keeps_the_episodes_in_order():
+    cell = summarise([True, False, False, True])
+    assert cell["outcomes"] == [1, 0, 0, 1] and cell["successes"] == 2
 
 
 @pytest.mark.parametrize(("constant_action", "expected"), [(TARGET, True), (-TARGET, False)])
