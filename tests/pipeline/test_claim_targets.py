@@ -1,10 +1,13 @@
 """The claim's targets (`claim_targets`), cell by cell, on hand-made tables: met, missed, and undecidable (an
-interval that straddles 0, a method not run)."""
+interval that straddles 0, a method not run); the differences' intervals; the report's regenerate command."""
 
+import draccus
 import pytest
 
 from lerobot_roboscape.evaluation.success_rate import summarise
-from lerobot_roboscape.pipeline.experiment_report import claim_targets
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig
+from lerobot_roboscape.pipeline.experiment_report import claim_targets, command, differences
 from lerobot_roboscape.pipeline.stages import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
 
 
@@ -50,3 +53,36 @@ def test_without_ppo_in_one_scene_its_rows_are_absent_not_missed():
     targets = claim_targets(table(40, 10, 30, 25, None), ["push"])
     assert not any("one scene" in name for name in targets)
     assert len(targets) == 4  # push and all: against SFT OOD, within SFT IND
+
+
+def test_differences_give_the_paired_interval_beside_the_unpaired():
+    # PPO in the WM solves the 30 starts SFT solves and 5 more: unpaired the difference straddles 0, paired not.
+    wm = summarise([True] * 35 + [False] * 15)
+    sft = summarise([True] * 30 + [False] * 20)
+    cells = {"ood": {"push": wm, "all": wm}, "ind": {"push": wm, "all": wm}}
+    theirs = {"ood": {"push": sft, "all": sft}, "ind": {"push": sft, "all": sft}}
+    rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])
+    row = next(r for r in rows if (r["split"], r["family"]) == ("ood", "push"))
+    assert row["difference"] == pytest.approx(0.1)
+    assert row["ci95"][0] < 0 < row["paired_ci95"][0]
+    # Cells written before the episodes were kept have no paired interval, and the target still decides unpaired.
+    old = {k: v for k, v in sft.items() if k != "outcomes"}
+    rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: {s: {"push": old, "all": old} for s in theirs}}}, ["push"])
+    assert all(r["paired_ci95"] is None for r in rows)
+    targets = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])
+    target = targets["mlp, OOD Push: PPO in WM minus SFT"]
+    assert not target["met"] and "paired [+" in target["detail"]
+
+
+def test_regenerate_command_gives_back_the_same_settings():
+    cfg = ExperimentConfig(
+        pipeline=PipelineConfig(
+            scale="bench", output_dir="outputs/x", scenes=8, ppo_minutes=6, reward_ablation=False, device="cpu"
+        ),
+        sft_checkpoint="outputs/sft/pretrained_model",
+        report_dir="docs/results/x",
+        readme=None,
+    )
+    args = command(cfg).split()[1:]
+    assert "--pipeline.scenes=8" in args and "--pipeline.reward_ablation=false" in args
+    assert draccus.parse(ExperimentConfig, args=args) == cfg
