@@ -15,6 +15,7 @@ ladder's Spearman correlation between the world model's mean return and the simu
 import json
 import logging
 import math
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -44,6 +45,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 logger = logging.getLogger(__name__)
 EPISODES = "episodes.jsonl"
 SUMMARY = "agreement.json"
+PROGRESS = "progress.json"  # the settings of the batches episodes.jsonl holds, while they run
 
 
 @dataclass
@@ -111,7 +113,8 @@ def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False,
             raise InvalidInputError(f"the goal dataset has no successful episode of (family, scene) {missing}")
         goal_frames = {cam: np.stack([goals[k][cam] for k in keys]) for cam in wm.cameras}
     wm_observation, wm_info = wm.reset(
-        options={"frames": observation["pixels"], "task": tasks, "horizon": sim.horizons, "goal_frames": goal_frames}
+        seed=seed,  # each batch reproducible on its own, so that a run can resume or grow batch by batch
+        options={"frames": observation["pixels"], "task": tasks, "horizon": sim.horizons, "goal_frames": goal_frames},
     )
     sim_success, sim_return, sim_frames = play(sim, policy, io, observation, record)
     wm_success, wm_return, wm_frames = play(wm, policy, io, wm_observation, record)
@@ -273,13 +276,25 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
     check_policy_fits_frame_skip(policy, wm, path)
     io = PolicyIO(preprocessor, postprocessor)
     per_family = {f: [] for f in sim.slot_families}
-    for b in tqdm(range(math.ceil(cfg.episodes * len(per_family) / sim.num_envs)), desc=f"policy {k}", leave=False):
+    for e in completed_batches(out, settings, sim.slot_families):
+        if len(per_family[e["family"]]) < cfg.episodes:  # a smaller run than before keeps its first episodes
+            per_family[e["family"]].append(e)
+    kept = [e for family in per_family.values() for e in family]
+    first = 1 + max((e["batch"] for e in kept), default=-1)
+    if kept:
+        logger.info("%s: %d paired episodes of %d batches kept from %s", path, len(kept), first, out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomically(out / PROGRESS, json.dumps(settings, indent=2))
+    batches = math.ceil(cfg.episodes * len(per_family) / sim.num_envs)
+    for b in tqdm(range(first, batches), desc=f"policy {k}", leave=False):
         record = b == 0 and cfg.videos > 0
         result = paired_batch(sim, wm, policy, io, seed=cfg.seed + 7919 * b, record=record, goals=goals)
         clips = result.pop("frames")
         for i, family in enumerate(result["family"]):
             if len(per_family[family]) < cfg.episodes:
                 per_family[family].append({key: values[i] for key, values in result.items()} | {"batch": b})
+        in_batches = sorted((e for family in per_family.values() for e in family), key=lambda e: e["batch"])
+        write_text_atomically(out / EPISODES, "".join(json.dumps(e) + "\n" for e in in_batches))
         if record:
             shown = clips[: cfg.videos]
             for i, clip in enumerate(shown):
@@ -299,6 +314,26 @@ def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: st
         summary["balanced_accuracy"],
     )
     return {"policy": path, "episodes": episodes, "summary": summary}
+
+
+def completed_batches(out: Path, settings: dict, slot_families: list[str]) -> list[dict]:
+    """The episodes a run of this policy already holds in `out` from whole batches, when its settings are these but
+    for the number of episodes (a killed run, or a smaller one to grow): batch b's starts and, the world model
+    seeded per batch, its outcomes are the same whatever the number, so they need not run again. A batch cut
+    short (the last of a smaller run) runs again."""
+    written = out / (PROGRESS if (out / PROGRESS).is_file() else SUMMARY)
+    if not written.is_file() or not (out / EPISODES).is_file():
+        return []
+    earlier = json.loads(written.read_text())
+    earlier = earlier.get("settings", earlier)  # the summary holds them under "settings"
+    if {**earlier, "episodes": None} != {**settings, "episodes": None}:
+        return []
+    episodes = [json.loads(line) for line in (out / EPISODES).read_text().splitlines()]
+    held, slots = Counter((e["batch"], e["family"]) for e in episodes), Counter(slot_families)
+    whole = 0
+    while all(held[whole, family] == n for family, n in slots.items()):
+        whole += 1
+    return sorted((e for e in episodes if e["batch"] < whole), key=lambda e: e["batch"])
 
 
 def write_picture(path: Path, clips: list[list[np.ndarray]], columns: int = 8) -> None:

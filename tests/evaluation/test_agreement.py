@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import numpy as np
@@ -113,6 +114,26 @@ def test_paired_episodes_share_starts_and_horizons_and_resume(env_config, mlp_ch
 
     monkeypatch.setattr(agreement, "paired_batch", must_not_run)
     assert evaluate_agreement(cfg)["pooled"] == ladder["pooled"]
+
+    # Grown to 5 episodes, the run keeps its whole batch 0, runs again batch 1 (cut short at 3 episodes) and
+    # runs batch 2; its records are those of a fresh run of 5.
+    seeds = []
+
+    def counting(sim, wm, policy, io, seed, record=False, goals=None):
+        seeds.append(seed)
+        return paired_batch(sim, wm, policy, io, seed, record, goals)
+
+    monkeypatch.setattr(agreement, "paired_batch", counting)
+    cfg.episodes = 5
+    evaluate_agreement(cfg)
+    assert seeds == [cfg.seed + 7919, cfg.seed + 2 * 7919]
+    fresh = dataclasses.replace(cfg, output_dir=tmp_path / "fresh")
+    evaluate_agreement(fresh)
+    grown_records, fresh_records = (
+        [json.loads(line) for line in (d / "policy_0" / "episodes.jsonl").read_text().splitlines()]
+        for d in (tmp_path / "agreement", tmp_path / "fresh")
+    )
+    assert len(grown_records) == 5 and grown_records == fresh_records
 
 
 def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dataset):

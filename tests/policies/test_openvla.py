@@ -32,6 +32,7 @@ from safetensors import safe_open
 from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.evaluation.agreement import AgreementConfig, evaluate_agreement
 from lerobot_roboscape.hub.push import push_policy
 from tests.conftest import IMAGE_SIZE, lerobot_train, roboscape_wm_args
 
@@ -407,7 +408,7 @@ def test_lora_is_gaussian_initialised_and_leaves_the_lm_head():
     assert any(n.startswith("language_model.lm_head.lora_A") for n, _ in with_head.vla.named_parameters())
 
 
-def test_lerobot_train_then_lerobot_eval(demo_dataset, trained_tokenizer, world_models, tmp_path):
+def test_lerobot_train_then_lerobot_eval(demo_dataset, trained_tokenizer, world_models, env_config, tmp_path):
     assert get_policy_class("openvla") is OpenVLAPolicy
     _, root = demo_dataset
     checkpoint = lerobot_train(
@@ -450,3 +451,20 @@ def test_lerobot_train_then_lerobot_eval(demo_dataset, trained_tokenizer, world_
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert json.loads((tmp_path / "eval_wm" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+    # And paired with the simulator from the same start (roboscape-eval-agreement), read from the same folder.
+    agreement = AgreementConfig(
+        policy_paths=[repo],
+        env=env_config(episode_length=None),
+        families=["push"],
+        episodes=1,
+        batch_size=1,
+        episode_length=4,
+        videos=0,
+        workers=1,
+        output_dir=tmp_path / "agreement",
+        device="cpu",
+    )
+    ladder = evaluate_agreement(agreement)
+    (record,) = [json.loads(line) for line in (tmp_path / "agreement" / "policy_0" / "episodes.jsonl").open()]
+    assert record["family"] == "push" and {"sim_success", "wm_success", "sim_return", "wm_return"} <= set(record)
+    assert ladder["pooled"]["episodes"] == 1
