@@ -66,7 +66,8 @@ def run_name(variant: str, demos: int | None) -> str:
 def train(args, variant: str, demos: int | None) -> tuple[Path, float]:
     from lerobot.configs.default import DatasetConfig
 
-    from lerobot_roboscape.pipeline.stages import lerobot_sft, stage_seconds
+    from lerobot_roboscape.pipeline.lerobot_cli import lerobot_sft
+    from lerobot_roboscape.pipeline.resume import stage_seconds
 
     folder = Path(args.out) / "train" / run_name(TRAINED_AS.get(variant, variant), demos)
     lerobot_sft(

@@ -17,6 +17,7 @@ import json
 import shutil
 from pathlib import Path
 
+from lerobot_roboscape.pipeline.layout import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
 from lerobot_roboscape.pipeline.report import (
     agreement_targets,
     machine,
@@ -24,7 +25,6 @@ from lerobot_roboscape.pipeline.report import (
     world_model_results,
     world_model_targets,
 )
-from lerobot_roboscape.pipeline.stages import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
 from lerobot_roboscape.training import read_curve
 
 FIGURES = {

@@ -24,7 +24,7 @@ from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_e
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import MissingInputError
-from lerobot_roboscape.pipeline import stages
+from lerobot_roboscape.pipeline import layout, methods, resume, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
@@ -77,10 +77,10 @@ class TrainedStages:
 
 def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
     """The demonstrations, tokenizer, world models, done report and reward models of the run in `out`."""
-    train = DatasetConfig(repo_id=stages.DEMOS_REPO_ID, root=str(out / stages.DEMOS_DIR))
-    tokenizer = out / stages.TOKENIZER_DIR / FINAL
-    models = {control: out / stages.world_model_dir(control) / FINAL for control in ("action", "text")}
-    done = out / stages.DONE_REPORT_DIR / "done_report.json"
+    train = DatasetConfig(repo_id=layout.DEMOS_REPO_ID, root=str(out / layout.DEMOS_DIR))
+    tokenizer = out / layout.TOKENIZER_DIR / FINAL
+    models = {control: out / layout.world_model_dir(control) / FINAL for control in ("action", "text")}
+    done = out / layout.DONE_REPORT_DIR / "done_report.json"
     for path in (Path(train.root) / "meta" / "info.json", tokenizer, *models.values(), done):
         if not path.exists():
             raise MissingInputError(
@@ -88,9 +88,9 @@ def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
                 f"--scale={cfg.scale} --output_dir={out} first"
             )
     reward_models = {
-        kind: out / stages.reward_model_dir(kind) / FINAL
-        for kind in (*stages.REWARD_BASELINES, stages.SUCCESS_CLASSIFIER)
-        if (out / stages.reward_model_dir(kind) / FINAL).exists()
+        kind: out / layout.reward_model_dir(kind) / FINAL
+        for kind in (*methods.REWARD_BASELINES, methods.SUCCESS_CLASSIFIER)
+        if (out / layout.reward_model_dir(kind) / FINAL).exists()
     }
     data = stages.Datasets(train, train, train, None, Path())
     return TrainedStages(data, tokenizer, models, json.loads(done.read_text()), reward_models)
@@ -109,7 +109,7 @@ def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[
 def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, policy: str, sft: Path) -> list[dict]:
     """OOD simulator success of the SFT checkpoint (iteration 0) and of every checkpoint PPO in the world model
     saved, `curve_episodes` per family, on initial states apart from Table 1's: [{iteration, seconds, cell}]."""
-    run = out / stages.rl_dir(policy, stages.RL_WORLD_MODEL) / CHECKPOINTS
+    run = out / layout.rl_dir(policy, methods.RL_WORLD_MODEL) / CHECKPOINTS
     points = [(0, 0.0, sft)]
     for folder in sorted(f for f in run.iterdir() if f.name.isdigit()):
         seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
@@ -138,7 +138,6 @@ def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, po
     ]
 
 
-@torch.no_grad()
 def replay_in_simulator(
     cfg: ExperimentConfig, out: Path, env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path
 ) -> list[dict]:
@@ -146,11 +145,16 @@ def replay_in_simulator(
     over the starts, so over families and scenes), and its actions replayed open loop in the simulator from the
     same scene and initial state. Writes side-by-side videos (world model | its goal | simulator) and returns, per
     start, what each world said: the world model's return and success, the simulator's success."""
-    p, folder = cfg.pipeline, out / REPLAY_DIR
+    folder = out / REPLAY_DIR
     settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": cfg.replay_episodes}
-    if stages.is_done(folder, settings, p.fresh):
-        return json.loads((folder / "replay.json").read_text())
-    stages.start(folder).mkdir(parents=True)
+    resume.run_once(folder, settings, cfg.pipeline.fresh, lambda: _replay(cfg, folder, env_cfg, checkpoint))
+    return json.loads((folder / "replay.json").read_text())
+
+
+@torch.no_grad()
+def _replay(cfg: ExperimentConfig, folder: Path, env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path) -> None:
+    p = cfg.pipeline
+    folder.mkdir(parents=True)
     env = RoboscapeWorldModelEnv(env_cfg, num_envs=cfg.replay_episodes)
     chosen = [env.starts[int(i)] for i in np.linspace(0, len(env.starts) - 1, cfg.replay_episodes).round()]
     policy, preprocessor, postprocessor = load_policy(checkpoint, resolve_device(p.device))
@@ -195,8 +199,6 @@ def replay_in_simulator(
     iio.imwrite(folder / "replay.png", np.concatenate(strips[:REPLAY_STRIPS], axis=0))
     env.close()
     write_text_atomically(folder / "replay.json", json.dumps(rows, indent=2))
-    stages.mark_done(folder, settings)
-    return rows
 
 
 def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:
@@ -214,10 +216,10 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     )
     sft = sft_policy(cfg, out, trained.data)
     rl = stages.rl(p, out, trained.data, wm_env, sft)
-    checkpoints = {name: {stages.SFT: sft[name]} | runs for name, runs in rl.items()}
+    checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     results = stages.simulator_eval(p, out, trained.data, checkpoints)
     policy = next(iter(sft))
     curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
-    ppo_env = stages.rl_envs(p, out, trained.data, wm_env)[stages.RL_WORLD_MODEL]
-    replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][stages.RL_WORLD_MODEL])
+    ppo_env = stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
+    replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
     return write_experiment_report(cfg, out, results, curve, replays)

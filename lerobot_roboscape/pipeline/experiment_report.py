@@ -16,18 +16,16 @@ from lerobot_roboscape.envs.world_model_env import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval, paired_difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES
-from lerobot_roboscape.pipeline.report import _target, machine, ppo_curves, targets_table
-from lerobot_roboscape.pipeline.stages import (
-    EVAL_DIR,
-    GOAL_FILE,
+from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
+from lerobot_roboscape.pipeline.methods import (
     REWARD_ABLATION,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
     SFT,
-    rl_dir,
-    stage_seconds,
 )
+from lerobot_roboscape.pipeline.report import _target, machine, ppo_curves, targets_table
+from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.rl.ppo import read_history
 
 matplotlib.use("Agg")

@@ -15,7 +15,7 @@ import torch
 
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
-from lerobot_roboscape.pipeline.stages import (
+from lerobot_roboscape.pipeline.layout import (
     CONTROL_DIR,
     CONVERTED_DIR,
     DEMOS_DIR,
@@ -23,15 +23,7 @@ from lerobot_roboscape.pipeline.stages import (
     EVAL_DIR,
     FIDELITY_DIR,
     HELDOUT_DIR,
-    POLICIES,
-    REWARD_ABLATION,
-    REWARD_BASELINES,
     REWARD_REPORT_DIR,
-    RL_MANISKILL,
-    RL_MANISKILL_ONE_SCENE,
-    RL_WORLD_MODEL,
-    SFT,
-    SUCCESS_CLASSIFIER,
     TABLES_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
@@ -39,9 +31,19 @@ from lerobot_roboscape.pipeline.stages import (
     reward_model_dir,
     rl_dir,
     sft_dir,
-    stage_seconds,
     world_model_dir,
 )
+from lerobot_roboscape.pipeline.methods import (
+    POLICIES,
+    REWARD_ABLATION,
+    REWARD_BASELINES,
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    SFT,
+    SUCCESS_CLASSIFIER,
+)
+from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.rl.ppo import read_history
 from lerobot_roboscape.training import read_curve
 

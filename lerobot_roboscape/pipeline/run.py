@@ -7,7 +7,7 @@ from pathlib import Path
 
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
-from lerobot_roboscape.pipeline import stages
+from lerobot_roboscape.pipeline import layout, methods, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
@@ -61,7 +61,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
         )
     )
     artifacts["tokenizer report"] = Artifact(
-        ArtifactKind.MARKDOWN, out / stages.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
+        ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
     )
 
     clock(f"train the action and the text world models ({cfg.wm_preset} preset)")
@@ -81,18 +81,18 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
             for region, m in fidelity.get("controllability", {}).get("world_model", {}).items()
         )
     )
-    artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.FIDELITY_DIR / "fidelity.md")
-    artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / stages.FIDELITY_DIR / "side_by_side.mp4")
+    artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.FIDELITY_DIR / "fidelity.md")
+    artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
 
     clock("reward models, the done signal and the reward report (held-out episodes)")
     trained = stages.reward_models(cfg, out, data, tokenizer, models)
     done = stages.done_report(cfg, out, data, tokenizer, models, trained)
     print(f"done: {done['chosen']['source']} at threshold {done['chosen']['theta']:.3f}")
-    artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.DONE_REPORT_DIR / "done_report.md")
+    artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.DONE_REPORT_DIR / "done_report.md")
     wm_env = stages.world_model_env(cfg, data, tokenizer, models, done, trained)
     rewards = stages.reward_report(cfg, out, data, wm_env, trained)
     print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
-    artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / stages.REWARD_REPORT_DIR / "reward_report.md")
+    artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
 
     clock("random actions in the roboscape_wm environment (world-model reward)")
     rollout = stages.world_model_rollout(out, wm_env)
@@ -113,15 +113,15 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
         + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else "")
     )
     rl = stages.rl(cfg, out, data, wm_env, sft)
-    checkpoints = {name: {stages.SFT: sft[name]} | runs for name, runs in rl.items()}
+    checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
         artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 
     clock("success in the simulator, IND and OOD (Table 1)")
     table = stages.simulator_eval(cfg, out, data, checkpoints)
     # Table 1's methods; the reward ablation's OOD rows are roboscape-experiment's to report.
-    table = {n: {m: s for m, s in methods.items() if m not in stages.REWARD_ABLATION} for n, methods in table.items()}
-    tables = out / stages.TABLES_DIR
+    table = {n: {m: s for m, s in runs.items() if m not in methods.REWARD_ABLATION} for n, runs in table.items()}
+    tables = out / layout.TABLES_DIR
     write_table(table, cfg.families, tables)
     print((tables / "tables.md").read_text())
     artifacts["Table 1"] = Artifact(ArtifactKind.MARKDOWN, tables / "tables.md")
@@ -142,19 +142,19 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
             action_world_model=models["action"],
             text_world_model=models["text"],
             dataset_repo_id=dataset_repo,
-            fidelity_dir=out / stages.FIDELITY_DIR,
+            fidelity_dir=out / layout.FIDELITY_DIR,
         ),
     )
-    for name, methods in checkpoints.items():
-        for method, checkpoint in methods.items():
-            tag = stages.method_tag(method)
+    for name, runs in checkpoints.items():
+        for method, checkpoint in runs.items():
+            tag = methods.method_tag(method)
             pushed[f"{name} {tag} repo"] = (
                 ArtifactKind.POLICY,
                 push_policy(
                     f"{ns}/{name}_{tag}",
                     checkpoint,
                     local_dir,
-                    eval_dir=out / stages.eval_dir(name, method),
+                    eval_dir=out / layout.eval_dir(name, method),
                     dataset_repo_id=dataset_repo,
                 ),
             )

@@ -4,10 +4,6 @@ the settings it ran with; a rerun with the same settings skips it (so a killed r
 
 import json
 import logging
-import shutil
-import subprocess
-import sys
-import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -17,9 +13,9 @@ import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.atomic import write_text_atomically
-from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, LAST, last_checkpoint
+from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
-from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
+from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
@@ -28,7 +24,6 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, Roboscap
 from lerobot_roboscape.envs.maniskill_env import build_slots
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, plot_rollout_rewards, write_reward_report
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import (
     EvalConfig,
     eval_batch_size,
@@ -37,6 +32,41 @@ from lerobot_roboscape.evaluation.success_rate import (
     markdown_table,
 )
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.layout import (
+    CONTROL_DIR,
+    CONVERTED_DIR,
+    DEMOS_DIR,
+    DEMOS_REPO_ID,
+    DONE_REPORT_DIR,
+    EXPLORE_DIR,
+    FIDELITY_DIR,
+    GOAL_FILE,
+    HELDOUT_DIR,
+    REWARD_REPORT_DIR,
+    TOKEN_CACHE_DIR,
+    TOKENIZER_DIR,
+    TOKENIZER_REPORT_DIR,
+    TRAJECTORIES_DIR,
+    VALIDATION_DIR,
+    eval_dir,
+    lerobot_eval_dir,
+    reward_model_dir,
+    rl_dir,
+    sft_dir,
+    world_model_dir,
+)
+from lerobot_roboscape.pipeline.lerobot_cli import lerobot_eval, lerobot_sft
+from lerobot_roboscape.pipeline.methods import (
+    REWARD_ABLATION,
+    REWARD_BASELINES,
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    RL_WORLD_MODEL_DENSE,
+    RL_WORLD_MODEL_SPARSE,
+    SUCCESS_CLASSIFIER,
+)
+from lerobot_roboscape.pipeline.resume import STAGE_FILE, is_done, mark_done, run_once, start, train_once
 from lerobot_roboscape.reward.baselines import RewardModelConfig
 from lerobot_roboscape.reward.done_report import DoneReportConfig, evaluate_done
 from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConfig, train_reward_model
@@ -50,127 +80,10 @@ from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fide
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
 
 logger = logging.getLogger(__name__)
-STAGE_FILE = "stage.json"
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
 VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
 CONTROL_SEED = 70_000  # and the starts of the controllability set
 EXPLORE_SEED = 80_000  # and the exploratory episodes
-SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
-    "Supervised finetune",
-    "RL w. ManiSkill (one scene)",
-    "RL w. ManiSkill",
-    "RL w. World Model",
-)
-# The reward ablation (issue 29): PPO in the world model paid one of its two reward terms; evaluated OOD only.
-RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE = (
-    "RL w. World Model, sparse reward only",
-    "RL w. World Model, dense reward only",
-)
-REWARD_ABLATION = (RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE)
-POLICIES = ("roboscape_mlp", "openvla")
-REWARD_BASELINES = ("embedding", "proxy")
-SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classifier (a done source)
-
-
-# ---- where the stages write: folders under output_dir (the report and the run's summary read them here) ---------
-
-DEMOS_DIR = "datasets/roboscape_demos"
-DEMOS_REPO_ID = "local/roboscape_demos"
-HELDOUT_DIR = "datasets/roboscape_heldout"
-VALIDATION_DIR = "datasets/roboscape_validation"
-CONTROL_DIR = "datasets/roboscape_controllability"
-EXPLORE_DIR = "datasets/roboscape_explore"
-DONE_REPORT_DIR = "done_report"
-CONVERTED_DIR = "datasets/maniskill_converted"
-TRAJECTORIES_DIR = "maniskill_trajectories"
-TOKENIZER_DIR = "tokenizer"
-TOKENIZER_REPORT_DIR = "tokenizer_report"
-TOKEN_CACHE_DIR = "token_cache"
-FIDELITY_DIR = "fidelity"
-REWARD_REPORT_DIR = "reward_report"
-TABLES_DIR = "tables"
-GOAL_FILE = "rl/text_model_goals.safetensors"
-RL_DIR = "rl"
-EVAL_DIR = "eval"
-
-
-def world_model_dir(control: str) -> str:
-    return f"world_model_{control}"
-
-
-def reward_model_dir(kind: str) -> str:
-    return f"reward_{kind}"
-
-
-def sft_dir(policy: str) -> str:
-    return f"sft_{policy.removeprefix('roboscape_')}"
-
-
-def lerobot_eval_dir(policy: str) -> str:
-    return f"eval_{policy}_roboscape_wm"
-
-
-def rl_dir(policy: str, method: str) -> Path:
-    return Path(RL_DIR) / policy / method_tag(method)
-
-
-def eval_dir(policy: str, method: str) -> Path:
-    """The simulator evaluation of one checkpoint (a folder per split inside)."""
-    return Path(EVAL_DIR) / policy / method_tag(method)
-
-
-# ---- resuming ----------------------------------------------------------------------------------------------------
-
-
-def _jsonable(settings) -> dict:
-    return json.loads(
-        json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__") else str(v))
-    )
-
-
-_began: dict[Path, float] = {}  # when each stage folder's current run started
-
-
-def is_done(folder: Path, settings, fresh: bool) -> bool:
-    """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped)."""
-    marker = Path(folder) / STAGE_FILE
-    if fresh or not marker.is_file():
-        return False
-    return json.loads(marker.read_text())["settings"] == _jsonable(settings)
-
-
-def start(folder: Path) -> Path:
-    """Clear what an unfinished or differently-configured run of the stage left in `folder`."""
-    shutil.rmtree(folder, ignore_errors=True)
-    _began[Path(folder)] = time.time()
-    return Path(folder)
-
-
-def prepare(folder: Path, settings, fresh: bool) -> bool:
-    """Make `folder` ready for a training stage; True when it holds an interrupted run with the same settings to
-    resume from (its checkpoints), False when it was cleared for a new run."""
-    folder, started = Path(folder), Path(folder) / "stage.started.json"
-    if not fresh and started.is_file() and json.loads(started.read_text()) == _jsonable(settings):
-        _began[folder] = time.time()
-        return True
-    start(folder).mkdir(parents=True)
-    write_text_atomically(started, json.dumps(_jsonable(settings), indent=2))
-    return False
-
-
-def mark_done(folder: Path, settings) -> None:
-    """Record the stage's settings and the seconds its (last) run took."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    seconds = time.time() - _began.pop(folder, time.time())
-    write_text_atomically(
-        folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2)
-    )
-
-
-def stage_seconds(folder: Path) -> float | None:
-    marker = Path(folder) / STAGE_FILE
-    return json.loads(marker.read_text())["seconds"] if marker.is_file() else None
 
 
 # ---- data --------------------------------------------------------------------------------------------------------
@@ -196,10 +109,7 @@ class Datasets:
 
 def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
     folder = Path(cfg.root)
-    if not is_done(folder, cfg, fresh):
-        start(folder)
-        collect(replace(cfg, overwrite=True))
-        mark_done(folder, cfg)
+    run_once(folder, cfg, fresh, lambda: collect(replace(cfg, overwrite=True)))
     return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
 
 
@@ -280,10 +190,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
             overwrite=True,
         )
         folder = Path(control.root)
-        if not is_done(folder, control, cfg.fresh):
-            start(folder)
-            collect_controllability(control)
-            mark_done(folder, control)
+        run_once(folder, control, cfg.fresh, lambda: collect_controllability(control))
         controllability = DatasetConfig(repo_id=control.repo_id, root=control.root)
     exploration = None
     if cfg.explore_episodes_per_scene:
@@ -327,9 +234,12 @@ def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
         num_workers=min(cfg.workers, 2),
         allow_random_lpips=True,
     )
-    if not is_done(folder, train, cfg.fresh):
-        train_tokenizer(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
-        mark_done(folder, train)
+    train_once(
+        folder,
+        train,
+        cfg.fresh,
+        lambda resume: train_tokenizer(replace(train, train=replace(train.train, resume=resume))),
+    )
     return folder / FINAL
 
 
@@ -345,10 +255,7 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
     )
     # The tokenizer's own stage record (its settings and the seconds of its run) names the model measured.
     settings = {"report": report_cfg, "tokenizer": json.loads((out / TOKENIZER_DIR / STAGE_FILE).read_text())}
-    if not is_done(folder, settings, cfg.fresh):
-        start(folder)
-        evaluate_tokenizer(report_cfg)
-        mark_done(folder, settings)
+    run_once(folder, settings, cfg.fresh, lambda: evaluate_tokenizer(report_cfg))
     return json.loads((folder / "tokenizer_report.json").read_text())
 
 
@@ -377,9 +284,12 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
             heldout_control=data.controllability if action else None,
             device=cfg.device,
         )
-        if not is_done(folder, train, cfg.fresh):
-            train_world_model(replace(train, train=replace(train.train, resume=prepare(folder, train, cfg.fresh))))
-            mark_done(folder, train)
+        train_once(
+            folder,
+            train,
+            cfg.fresh,
+            lambda resume, t=train: train_world_model(replace(t, train=replace(t.train, resume=resume))),
+        )
         models[control] = folder / FINAL
     return models
 
@@ -403,10 +313,7 @@ def reward_models(
             cache_dir=out / TOKEN_CACHE_DIR,
             device=cfg.device,
         )
-        if not is_done(folder, train, cfg.fresh):
-            start(folder)
-            train_reward_model(train)
-            mark_done(folder, train)
+        run_once(folder, train, cfg.fresh, lambda t=train: train_reward_model(t))
         trained[kind] = folder / FINAL
     return trained
 
@@ -427,10 +334,7 @@ def done_report(
         output_dir=folder,
         device=cfg.device,
     )
-    if not is_done(folder, report_cfg, cfg.fresh):
-        start(folder)
-        evaluate_done(report_cfg)
-        mark_done(folder, report_cfg)
+    run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_done(report_cfg))
     return json.loads((folder / "done_report.json").read_text())
 
 
@@ -489,10 +393,7 @@ def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Pat
         allow_random_lpips=True,
         device=cfg.device,
     )
-    if not is_done(folder, report_cfg, cfg.fresh):
-        start(folder)
-        evaluate_fidelity(report_cfg)
-        mark_done(folder, report_cfg)
+    run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_fidelity(report_cfg))
     return json.loads((folder / "fidelity.json").read_text())
 
 
@@ -509,12 +410,11 @@ def reward_report(
         output_dir=folder,
         max_episodes=cfg.report_episodes,
     )
-    if not is_done(folder, report_cfg, cfg.fresh):
-        start(folder)
-        # The report points a copy of the env at the held-out data, every episode of it (a converted dataset
-        # records no task family to filter by).
-        write_reward_report(replace(report_cfg, env=replace(env, families=[])))
-        mark_done(folder, report_cfg)
+    # The report points a copy of the env at the held-out data, every episode of it (a converted dataset records
+    # no task family to filter by).
+    run_once(
+        folder, report_cfg, cfg.fresh, lambda: write_reward_report(replace(report_cfg, env=replace(env, families=[])))
+    )
     return json.loads((folder / "reward_report.json").read_text())
 
 
@@ -549,80 +449,6 @@ def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episod
 
 
 # ---- policies ----------------------------------------------------------------------------------------------------
-
-
-def run_lerobot(script: str, args: list[str]) -> None:
-    """A LeRobot command line (`lerobot_train`, `lerobot_eval`) in a subprocess with its own progress display."""
-    result = subprocess.run([sys.executable, "-m", f"lerobot.scripts.{script}", *args], stdout=subprocess.DEVNULL)
-    if result.returncode != 0:
-        raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
-
-
-def sft_episodes(dataset: DatasetConfig, per_scene: int | None = None) -> list[int]:
-    """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model), the
-    first `per_scene` of each family and scene (None: all)."""
-    episodes = demonstrations_per_scene(open_dataset(dataset.repo_id, dataset.root), per_scene)
-    if not episodes:
-        raise InvalidInputError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
-    return episodes
-
-
-def lerobot_sft(
-    output_dir: Path,
-    dataset: DatasetConfig,
-    policy_args: list[str],
-    steps: int,
-    batch_size: int,
-    num_workers: int = 2,
-    fresh: bool = False,
-    per_scene: int | None = None,
-    save_freq: int | None = None,
-) -> Path:
-    """SFT with `lerobot-train` on the dataset's successful episodes (the first `per_scene` of each family and
-    scene; None: all), a checkpoint every `save_freq` steps (None: at the end); returns the final
-    pretrained_model directory."""
-    episodes = sft_episodes(dataset, per_scene)
-    args = [
-        f"--dataset.repo_id={dataset.repo_id}",
-        *([f"--dataset.root={dataset.root}"] if dataset.root else []),
-        f"--dataset.episodes=[{','.join(map(str, episodes))}]",
-        *policy_args,
-        "--policy.push_to_hub=false",
-        f"--steps={steps}",
-        f"--batch_size={batch_size}",
-        f"--save_freq={save_freq or steps}",
-        f"--log_freq={max(steps // 5, 1)}",
-        f"--num_workers={num_workers}",
-        f"--output_dir={output_dir}",
-    ]
-    if not is_done(output_dir, args, fresh):
-        start(output_dir)
-        run_lerobot("lerobot_train", args)
-        mark_done(output_dir, args)
-    return output_dir / CHECKPOINTS / LAST / FINAL  # lerobot-train links `last` to its newest checkpoint
-
-
-def lerobot_eval(
-    output_dir: Path,
-    policy_path: Path,
-    env_args: list[str],
-    n_episodes: int,
-    batch_size: int,
-    fresh: bool = False,
-) -> Path:
-    """Evaluation with `lerobot-eval` of the policy in the env of `env_args`; returns its eval_info.json."""
-    args = [
-        f"--policy.path={policy_path}",
-        *env_args,
-        f"--eval.n_episodes={n_episodes}",
-        f"--eval.batch_size={batch_size}",
-        f"--output_dir={output_dir}",
-    ]
-    if not is_done(output_dir, args, fresh):
-        start(output_dir)
-        run_lerobot("lerobot_eval", args)
-        mark_done(output_dir, args)
-    return output_dir / "eval_info.json"
 
 
 def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
@@ -720,27 +546,16 @@ def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWor
     return envs
 
 
-def method_tag(method: str) -> str:
-    """The method's name in folders and Hub repos."""
-    return {
-        SFT: "sft",
-        RL_WORLD_MODEL: "ppo_world_model",
-        RL_MANISKILL: "ppo_maniskill",
-        RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene",
-        RL_WORLD_MODEL_SPARSE: "ppo_world_model_sparse",
-        RL_WORLD_MODEL_DENSE: "ppo_world_model_dense",
-    }[method]
-
-
 def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
     """One PPO run (resumed from its last checkpoint when interrupted); returns its final checkpoint."""
     folder = Path(cfg.output_dir)
-    if is_done(folder, cfg, fresh):
-        return last_checkpoint(folder) / FINAL
-    resume = prepare(folder, cfg, fresh) and last_checkpoint(folder) is not None
-    checkpoint = train_ppo(replace(cfg, resume=resume))
-    mark_done(folder, cfg)
-    return checkpoint
+    train_once(
+        folder,
+        cfg,
+        fresh,
+        lambda resume: train_ppo(replace(cfg, resume=resume and last_checkpoint(folder) is not None)),
+    )
+    return last_checkpoint(folder) / FINAL
 
 
 def rl(

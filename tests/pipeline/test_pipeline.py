@@ -1,42 +1,7 @@
-"""The pipeline's stage bookkeeping: a completed stage is skipped only when its settings are unchanged, an
-interrupted training stage resumes only into a run of the same settings, and the report measures each target."""
+"""The pipeline's report: each target measured against its goal."""
 
-from dataclasses import dataclass
-
-import pytest
-
-from lerobot_roboscape.pipeline import stages
+from lerobot_roboscape.pipeline import methods
 from lerobot_roboscape.pipeline.report import measure_targets, sft_targets, tokenizer_targets
-
-
-@dataclass
-class Settings:
-    steps: int
-    lr: float = 1e-3
-
-
-def test_a_stage_is_done_only_with_the_same_settings(tmp_path, monkeypatch):
-    folder = tmp_path / "tokenizer"
-    assert not stages.is_done(folder, Settings(10), fresh=False)
-    clock = iter([1000.0, 1007.5, 1007.5])  # starts at 1,000 s; marked done at 1,007.5 s (read twice there)
-    monkeypatch.setattr(stages.time, "time", lambda: next(clock))
-    stages.start(folder).mkdir()
-    (folder / "weights").write_text("w")
-    stages.mark_done(folder, Settings(10))
-    assert stages.is_done(folder, Settings(10), fresh=False)
-    assert stages.stage_seconds(folder) == pytest.approx(7.5)
-    assert not stages.is_done(folder, Settings(11), fresh=False)  # changed settings: the stage runs again
-    assert not stages.is_done(folder, Settings(10), fresh=True)
-
-
-def test_an_interrupted_stage_resumes_only_into_the_same_settings(tmp_path):
-    folder = tmp_path / "world_model"
-    assert stages.prepare(folder, Settings(10), fresh=False) is False  # nothing to resume: a new run
-    (folder / "checkpoints").mkdir()  # the run is killed after a checkpoint
-    assert stages.prepare(folder, Settings(10), fresh=False) is True
-    assert (folder / "checkpoints").is_dir()
-    assert stages.prepare(folder, Settings(10, lr=3e-4), fresh=False) is False  # other settings: cleared
-    assert not (folder / "checkpoints").exists()
 
 
 def cell(rate: float, n: int = 10) -> dict:
@@ -100,9 +65,9 @@ def test_targets_compare_the_measured_values_with_the_goals():
     split = lambda rate: {"push": cell(rate), "all": cell(rate)}  # noqa: E731
     table = {
         "roboscape_mlp": {
-            stages.SFT: {"ind": split(0.4), "ood": split(0.2)},
-            stages.RL_WORLD_MODEL: {"ind": split(0.5), "ood": split(0.2)},
-            stages.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)},
+            methods.SFT: {"ind": split(0.4), "ood": split(0.2)},
+            methods.RL_WORLD_MODEL: {"ind": split(0.5), "ood": split(0.2)},
+            methods.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)},
         }
     }
     targets = measure_targets(fidelity, done, rewards, table, ["push"])
@@ -156,7 +121,7 @@ def test_the_action_model_training_minutes_are_read_from_its_curve():
 def test_sft_targets_are_per_family_with_the_interval_and_ood_beside():
     table = {
         "roboscape_mlp": {
-            stages.SFT: {
+            methods.SFT: {
                 "ind": {"push": cell(0.62, 50), "pick_place": cell(0.14, 50)},
                 "ood": {"push": cell(0.1, 50), "pick_place": cell(0.0, 50)},
             }
@@ -196,7 +161,7 @@ def report_markdown(scale: str, **overrides) -> str:
     from lerobot_roboscape.pipeline.report import markdown
 
     cfg = PipelineConfig(scale=scale, families=["push"], **overrides)
-    table = {"roboscape_mlp": {stages.SFT: {s: {"push": cell(0.0, 50), "all": cell(0.0, 50)} for s in ("ind", "ood")}}}
+    table = {"roboscape_mlp": {methods.SFT: {s: {"push": cell(0.0, 50), "all": cell(0.0, 50)} for s in ("ind", "ood")}}}
     results = {
         "machine": "2 CPU cores",
         "date": "2026-11-24",

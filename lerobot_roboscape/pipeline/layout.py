@@ -1,0 +1,50 @@
+"""Where the stages of a run write: their folders under output_dir (the reports and the experiment read them
+there)."""
+
+from pathlib import Path
+
+from lerobot_roboscape.pipeline.methods import method_tag
+
+DEMOS_DIR = "datasets/roboscape_demos"
+DEMOS_REPO_ID = "local/roboscape_demos"
+HELDOUT_DIR = "datasets/roboscape_heldout"
+VALIDATION_DIR = "datasets/roboscape_validation"
+CONTROL_DIR = "datasets/roboscape_controllability"
+EXPLORE_DIR = "datasets/roboscape_explore"
+DONE_REPORT_DIR = "done_report"
+CONVERTED_DIR = "datasets/maniskill_converted"
+TRAJECTORIES_DIR = "maniskill_trajectories"
+TOKENIZER_DIR = "tokenizer"
+TOKENIZER_REPORT_DIR = "tokenizer_report"
+TOKEN_CACHE_DIR = "token_cache"
+FIDELITY_DIR = "fidelity"
+REWARD_REPORT_DIR = "reward_report"
+TABLES_DIR = "tables"
+GOAL_FILE = "rl/text_model_goals.safetensors"
+RL_DIR = "rl"
+EVAL_DIR = "eval"
+
+
+def world_model_dir(control: str) -> str:
+    return f"world_model_{control}"
+
+
+def reward_model_dir(kind: str) -> str:
+    return f"reward_{kind}"
+
+
+def sft_dir(policy: str) -> str:
+    return f"sft_{policy.removeprefix('roboscape_')}"
+
+
+def lerobot_eval_dir(policy: str) -> str:
+    return f"eval_{policy}_roboscape_wm"
+
+
+def rl_dir(policy: str, method: str) -> Path:
+    return Path(RL_DIR) / policy / method_tag(method)
+
+
+def eval_dir(policy: str, method: str) -> Path:
+    """The simulator evaluation of one checkpoint (a folder per split inside)."""
+    return Path(EVAL_DIR) / policy / method_tag(method)

@@ -1,0 +1,87 @@
+"""Resuming a run: a stage writes into its own folder and, once complete, a stage.json with the settings it ran
+with; a rerun with the same settings skips it, so a killed run resumes where it stopped. A training stage keeps
+its checkpoints across a kill (`prepare`) and resumes from the last one."""
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+
+from lerobot_roboscape.atomic import write_text_atomically
+
+STAGE_FILE = "stage.json"
+
+
+def _jsonable(settings) -> dict:
+    return json.loads(
+        json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__") else str(v))
+    )
+
+
+_began: dict[Path, float] = {}  # when each stage folder's current run started
+
+
+def is_done(folder: Path, settings, fresh: bool) -> bool:
+    """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped)."""
+    marker = Path(folder) / STAGE_FILE
+    if fresh or not marker.is_file():
+        return False
+    return json.loads(marker.read_text())["settings"] == _jsonable(settings)
+
+
+def start(folder: Path) -> Path:
+    """Clear what an unfinished or differently-configured run of the stage left in `folder`."""
+    shutil.rmtree(folder, ignore_errors=True)
+    _began[Path(folder)] = time.time()
+    return Path(folder)
+
+
+def prepare(folder: Path, settings, fresh: bool) -> bool:
+    """Make `folder` ready for a training stage; True when it holds an interrupted run with the same settings to
+    resume from (its checkpoints), False when it was cleared for a new run."""
+    folder, started = Path(folder), Path(folder) / "stage.started.json"
+    if not fresh and started.is_file() and json.loads(started.read_text()) == _jsonable(settings):
+        _began[folder] = time.time()
+        return True
+    start(folder).mkdir(parents=True)
+    write_text_atomically(started, json.dumps(_jsonable(settings), indent=2))
+    return False
+
+
+def mark_done(folder: Path, settings) -> None:
+    """Record the stage's settings and the seconds its (last) run took."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    seconds = time.time() - _began.pop(folder, time.time())
+    write_text_atomically(
+        folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2)
+    )
+
+
+def stage_seconds(folder: Path) -> float | None:
+    marker = Path(folder) / STAGE_FILE
+    return json.loads(marker.read_text())["seconds"] if marker.is_file() else None
+
+
+def run_once(folder: Path, settings, fresh: bool, work: Callable[[], object]) -> bool:
+    """Run `work` into a cleared `folder` and record it complete, unless it already completed with these
+    settings; True when it ran."""
+    if is_done(folder, settings, fresh):
+        return False
+    start(folder)
+    work()
+    mark_done(folder, settings)
+    return True
+
+
+def train_once(folder: Path, settings, fresh: bool, train: Callable[[bool], object]) -> bool:
+    """Run a training stage, `train(resume)`, unless it already completed with these settings: resume is True when
+    `folder` holds an interrupted run with the same settings (its checkpoints kept), False when it was cleared for
+    a new run. True when it ran."""
+    if is_done(folder, settings, fresh):
+        return False
+    train(prepare(folder, settings, fresh))
+    mark_done(folder, settings)
+    return True

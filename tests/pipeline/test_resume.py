@@ -1,0 +1,68 @@
+"""The pipeline's stage bookkeeping: a completed stage is skipped only when its settings are unchanged, and an
+interrupted training stage resumes only into a run of the same settings."""
+
+from dataclasses import dataclass
+
+import pytest
+
+from lerobot_roboscape.pipeline import resume
+
+
+@dataclass
+class Settings:
+    steps: int
+    lr: float = 1e-3
+
+
+def test_a_stage_is_done_only_with_the_same_settings(tmp_path, monkeypatch):
+    folder = tmp_path / "tokenizer"
+    assert not resume.is_done(folder, Settings(10), fresh=False)
+    clock = iter([1000.0, 1007.5, 1007.5])  # starts at 1,000 s; marked done at 1,007.5 s (read twice there)
+    monkeypatch.setattr(resume.time, "time", lambda: next(clock))
+    resume.start(folder).mkdir()
+    (folder / "weights").write_text("w")
+    resume.mark_done(folder, Settings(10))
+    assert resume.is_done(folder, Settings(10), fresh=False)
+    assert resume.stage_seconds(folder) == pytest.approx(7.5)
+    assert not resume.is_done(folder, Settings(11), fresh=False)  # changed settings: the stage runs again
+    assert not resume.is_done(folder, Settings(10), fresh=True)
+
+
+def test_an_interrupted_stage_resumes_only_into_the_same_settings(tmp_path):
+    folder = tmp_path / "world_model"
+    assert resume.prepare(folder, Settings(10), fresh=False) is False  # nothing to resume: a new run
+    (folder / "checkpoints").mkdir()  # the run is killed after a checkpoint
+    assert resume.prepare(folder, Settings(10), fresh=False) is True
+    assert (folder / "checkpoints").is_dir()
+    assert resume.prepare(folder, Settings(10, lr=3e-4), fresh=False) is False  # other settings: cleared
+    assert not (folder / "checkpoints").exists()
+
+
+def test_run_once_runs_a_stage_once_per_settings(tmp_path):
+    folder, runs = tmp_path / "report", []
+
+    def work():
+        runs.append(1)
+        folder.mkdir()
+        (folder / "report.json").write_text("{}")
+
+    assert resume.run_once(folder, Settings(1), False, work) is True
+    assert resume.run_once(folder, Settings(1), False, work) is False and len(runs) == 1
+    (folder / "stale").write_text("from the earlier run")
+    assert resume.run_once(folder, Settings(2), False, work) is True  # other settings: cleared, run again
+    assert not (folder / "stale").exists() and len(runs) == 2
+
+
+def test_train_once_resumes_a_killed_run_and_skips_a_finished_one(tmp_path):
+    folder, seen = tmp_path / "world_model", []
+
+    def killed(resume_from_checkpoint):
+        seen.append(resume_from_checkpoint)
+        (folder / "checkpoints").mkdir()
+        raise KeyboardInterrupt  # killed after its first checkpoint
+
+    with pytest.raises(KeyboardInterrupt):
+        resume.train_once(folder, Settings(10), False, killed)
+    assert resume.train_once(folder, Settings(10), False, seen.append) is True  # resumed, then marked done
+    assert seen == [False, True] and (folder / "checkpoints").is_dir()
+    assert resume.train_once(folder, Settings(10), False, seen.append) is False and seen == [False, True]
