@@ -211,8 +211,8 @@ def figure(rows: list[dict], path: Path) -> None:
 
 
 def write_targets(eval_json: Path, out: Path) -> None:
-    from lerobot_roboscape.pipeline.report import sft_targets
     from lerobot_roboscape.pipeline.stages import SFT
+    from lerobot_roboscape.pipeline.targets import sft_targets
 
     result = json.loads(eval_json.read_text())
     families = [family for family in result["splits"]["ind"] if family != "all"]

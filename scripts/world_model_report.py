@@ -17,14 +17,10 @@ import json
 import shutil
 from pathlib import Path
 
+from lerobot_roboscape.pipeline.figures import world_model_figure
 from lerobot_roboscape.pipeline.layout import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
-from lerobot_roboscape.pipeline.report import (
-    agreement_targets,
-    machine,
-    world_model_figure,
-    world_model_results,
-    world_model_targets,
-)
+from lerobot_roboscape.pipeline.report import machine, world_model_results
+from lerobot_roboscape.pipeline.targets import agreement_targets, world_model_targets
 from lerobot_roboscape.training import read_curve
 
 FIGURES = {

@@ -13,9 +13,10 @@ import matplotlib
 import numpy as np
 
 from lerobot_roboscape.envs.world_model_env import goal_generation_seconds
-from lerobot_roboscape.evaluation.success_rate import difference_interval, paired_difference_interval
+from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES
+from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
 from lerobot_roboscape.pipeline.methods import (
     REWARD_ABLATION,
@@ -24,12 +25,12 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     SFT,
 )
-from lerobot_roboscape.pipeline.report import _target, machine, ppo_curves, targets_table
+from lerobot_roboscape.pipeline.report import machine, targets_table
 from lerobot_roboscape.pipeline.resume import stage_seconds
+from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
 from lerobot_roboscape.rl.ppo import read_history
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 
 README_BEGIN, README_END = "<!-- bench-results:begin -->", "<!-- bench-results:end -->"
 UPSTREAM_REPORTS = {
@@ -38,32 +39,6 @@ UPSTREAM_REPORTS = {
     "SFT": "docs/results/sft/report.md",
     "simulator speed": "docs/results/simulator/report.md",
 }
-
-
-def claim_targets(table: dict, families: list[str]) -> dict:
-    """The claim's targets, per policy and family: PPO in the world model against SFT out of domain (the 95%
-    interval of the difference above 0), against PPO in ManiSkill in one scene out of domain (at least as well),
-    and in domain within SFT's interval or above. The unpaired interval decides, as it always has; the paired one
-    (where the cells hold their episodes) stands beside it."""
-    targets = {}
-    for policy, methods in table.items():
-        wm, sft, one_scene = methods[RL_WORLD_MODEL], methods[SFT], methods.get(RL_MANISKILL_ONE_SCENE)
-        for family in [*families, "all"]:
-            name = SHORT.get(family, family)
-            d, low, high = difference_interval(wm["ood"][family], sft["ood"][family])
-            targets[f"{policy}, OOD {name}: PPO in WM minus SFT"] = _target(
-                d, "95% interval above 0", low > 0, _intervals(wm["ood"][family], sft["ood"][family])
-            )
-            if one_scene is not None:
-                d, low, high = difference_interval(wm["ood"][family], one_scene["ood"][family])
-                targets[f"{policy}, OOD {name}: PPO in WM minus PPO in ManiSkill (one scene)"] = _target(
-                    d, ">= 0", d >= 0, _intervals(wm["ood"][family], one_scene["ood"][family])
-                )
-            rate, floor = wm["ind"][family]["success_rate"], sft["ind"][family]["ci95"][0]
-            targets[f"{policy}, IND {name}: PPO in WM, within SFT's interval or above"] = _target(
-                rate, f">= {floor:.2f} (SFT's 95% lower bound)", rate >= floor
-            )
-    return targets
 
 
 def differences(table: dict, families: list[str]) -> list[dict]:
@@ -85,22 +60,6 @@ def differences(table: dict, families: list[str]) -> list[dict]:
                         | {"paired_ci95": paired and [round(paired[1], 4), round(paired[2], 4)]}
                     )
     return rows
-
-
-def paired_interval(ours: dict, theirs: dict) -> tuple[float, float, float] | None:
-    """The paired difference of two cells run on the same initial states, from their episodes' outcomes; None
-    for cells written before outcomes were kept."""
-    if "outcomes" not in ours or "outcomes" not in theirs:
-        return None
-    return paired_difference_interval([bool(x) for x in ours["outcomes"]], [bool(x) for x in theirs["outcomes"]])
-
-
-def _intervals(ours: dict, theirs: dict) -> str:
-    """Both 95% intervals of a difference: unpaired (Newcombe's hybrid score) and paired (where known)."""
-    _, low, high = difference_interval(ours, theirs)
-    text = f"interval [{low:+.2f}, {high:+.2f}]"
-    paired = paired_interval(ours, theirs)
-    return text if paired is None else text + f"; paired [{paired[1]:+.2f}, {paired[2]:+.2f}]"
 
 
 def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
@@ -128,32 +87,6 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
                 }
             )
     return rows
-
-
-def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
-    """PPO in the world model over its iterations: its return in the world model (left axis), and the simulator
-    success of its checkpoints out of domain with 95% intervals (right axis)."""
-    history = read_history(out / rl_dir(policy, RL_WORLD_MODEL))
-    fig, left = plt.subplots(figsize=(7, 3.4))
-    left.plot(
-        [row["iteration"] for row in history],
-        [row["charts/episode_return"] for row in history],
-        color="tab:blue",
-        label="return in the world model (training episodes)",
-    )
-    left.set_xlabel("PPO iteration (0: the SFT checkpoint)")
-    left.set_ylabel("world-model return", color="tab:blue")
-    right = left.twinx()
-    x = [point["iteration"] for point in curve]
-    rate = np.array([100 * point["success_rate"] for point in curve])
-    ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
-    right.errorbar(x, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color="tab:red", capsize=3)
-    right.set_ylabel(f"simulator success, OOD (%, {curve[0]['episodes']} episodes)", color="tab:red")
-    right.set_ylim(0, 100)
-    left.legend(loc="upper left", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], replays: list[dict]) -> Path:

@@ -7,8 +7,9 @@ import pytest
 from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import claim_targets, command, differences
+from lerobot_roboscape.pipeline.experiment_report import command, differences
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
+from lerobot_roboscape.pipeline.targets import claim_targets
 
 
 def cell(successes: int, episodes: int = 50) -> dict:

@@ -1,7 +1,7 @@
 """The pipeline's report: each target measured against its goal."""
 
 from lerobot_roboscape.pipeline import methods
-from lerobot_roboscape.pipeline.report import measure_targets, sft_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tokenizer_targets
 
 
 def cell(rate: float, n: int = 10) -> dict:
@@ -96,7 +96,7 @@ def test_targets_compare_the_measured_values_with_the_goals():
 
 
 def test_the_action_model_training_minutes_are_read_from_its_curve():
-    from lerobot_roboscape.pipeline.report import world_model_targets
+    from lerobot_roboscape.pipeline.targets import world_model_targets
 
     fidelity = {"config": {"horizon": 16}, "per_step": {"prediction_psnr": [20.0], "reconstruction_psnr": [27.0]}}
     done = {"chosen": {"source": "world_model", "theta": 0.5}, "sources": {"world_model": {}}}

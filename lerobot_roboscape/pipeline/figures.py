@@ -1,0 +1,74 @@
+"""The figures of the reports: the world model's open-loop frames, PPO's curves, and the simulator success of
+PPO's checkpoints along its run."""
+
+from pathlib import Path
+
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
+
+from lerobot_roboscape.pipeline.layout import rl_dir
+from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL
+from lerobot_roboscape.rl.ppo import read_history
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+WM_FIGURE_FRAMES = 8  # open-loop frames shown in the report's picture
+
+
+def world_model_figure(video: Path, prompt: int, path: Path, steps: int = WM_FIGURE_FRAMES) -> None:
+    """Frames of the fidelity video's first episode (real | predicted, every view), one column per open-loop step."""
+    frames = iio.imread(video, plugin="pyav")[prompt : prompt + steps]
+    iio.imwrite(path, np.kron(np.concatenate(list(frames), 1), np.ones((2, 2, 1), np.uint8)))
+
+
+def ppo_curves(
+    out: Path, policies, path: Path, methods: tuple[str, ...] = (RL_WORLD_MODEL, RL_MANISKILL, RL_MANISKILL_ONE_SCENE)
+) -> None:
+    """Training success and return of each PPO run against its wall-clock time."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
+    for policy in policies:
+        for method in methods:
+            history = read_history(out / rl_dir(policy, method))
+            if not history:
+                continue
+            minutes = [row["seconds"] / 60 for row in history]
+            axes[0].plot(
+                minutes, [row["charts/success"] for row in history], "-o", markersize=3, label=f"{policy}: {method}"
+            )
+            axes[1].plot(minutes, [row["charts/episode_return"] for row in history], "-o", markersize=3)
+    axes[0].set_ylabel("success in its own env")
+    axes[1].set_ylabel("episode return in its own env")
+    for ax in axes:
+        ax.set_xlabel("wall-clock (min)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
+    """PPO in the world model over its iterations: its return in the world model (left axis), and the simulator
+    success of its checkpoints out of domain with 95% intervals (right axis)."""
+    history = read_history(out / rl_dir(policy, RL_WORLD_MODEL))
+    fig, left = plt.subplots(figsize=(7, 3.4))
+    left.plot(
+        [row["iteration"] for row in history],
+        [row["charts/episode_return"] for row in history],
+        color="tab:blue",
+        label="return in the world model (training episodes)",
+    )
+    left.set_xlabel("PPO iteration (0: the SFT checkpoint)")
+    left.set_ylabel("world-model return", color="tab:blue")
+    right = left.twinx()
+    x = [point["iteration"] for point in curve]
+    rate = np.array([100 * point["success_rate"] for point in curve])
+    ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
+    right.errorbar(x, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color="tab:red", capsize=3)
+    right.set_ylabel(f"simulator success, OOD (%, {curve[0]['episodes']} episodes)", color="tab:red")
+    right.set_ylim(0, 100)
+    left.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
