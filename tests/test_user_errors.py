@@ -17,8 +17,14 @@ from safetensors.torch import load_file, save_file
 from lerobot_roboscape.cli import DEBUG_ENV, USER_ERROR_EXIT, one_line_errors
 from lerobot_roboscape.cli import collect as collect_cli
 from lerobot_roboscape.cli import convert as convert_cli
+from lerobot_roboscape.cli import demo as demo_cli
+from lerobot_roboscape.cli import eval_agreement as agreement_cli
+from lerobot_roboscape.cli import eval_done as eval_done_cli
 from lerobot_roboscape.cli import evaluate as evaluate_cli
+from lerobot_roboscape.cli import experiment as experiment_cli
 from lerobot_roboscape.cli import ppo as ppo_cli
+from lerobot_roboscape.cli import reward_report as reward_report_cli
+from lerobot_roboscape.cli import train_reward as train_reward_cli
 from lerobot_roboscape.cli import train_tokenizer as train_tokenizer_cli
 from lerobot_roboscape.cli import train_wm as train_wm_cli
 from lerobot_roboscape.dataset.reader import open_dataset
@@ -67,6 +73,82 @@ def copy_of(recorded, folder, name="bad"):
 )
 def test_bad_flag_values(capsys, argv, expected):
     assert expected in one_line(capsys, collect_cli.main, argv)
+
+
+# Each command refuses a bad flag value before it does any work, naming the flag and what it accepts.
+BAD_FLAGS = {
+    "experiment: unknown scale": (experiment_cli, ["--pipeline.scale=huge"], "--scale must be one of"),
+    "demo: unknown family": (demo_cli, ["--families=[fly]"], "unknown task families ['fly']"),
+    "agreement: no policy": (agreement_cli, [], "--policy_paths is required"),
+    "agreement: unknown split": (agreement_cli, ["--policy_paths=[p]", "--split=moon"], "got 'moon'"),
+    "agreement: unknown family": (agreement_cli, ["--policy_paths=[p]", "--families=[fly]"], "['fly']"),
+    "agreement: goals the simulator cannot give": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.goal_source=dataset_last_frame"],
+        "use --env.goal_source=text_model",
+    ),
+    "env: done threshold above 1": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.theta=1.5"],
+        "theta and theta_sps must be in (0, 1], got 1.5",
+    ),
+    "env: unknown similarity": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.similarity=cosine"],
+        "similarity must be one of ('auto', 'lpips', 'tokenizer'), got 'cosine'",
+    ),
+    "env: classifier done without a classifier": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.done_source=classifier"],
+        "done_source=classifier needs success_classifier",
+    ),
+    "env: episodes of no step": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.episode_length=0"],
+        "episode_length must be >= 1 or null",
+    ),
+    "env: unknown precision": (
+        agreement_cli,
+        ["--policy_paths=[p]", "--env.text_world_model=t", "--env.precision=fp8"],
+        "precision must be one of ('auto', 'float32', 'bfloat16'), got 'fp8'",
+    ),
+    "eval: no policy": (evaluate_cli, [], "--policy_path is required"),
+    "eval: unknown split": (evaluate_cli, ["--policy_path=p", "--splits=[moon]"], "got ['moon']"),
+    "ppo: no policy": (ppo_cli, [], "--policy_path is required"),
+    "ppo: unknown value loss": (ppo_cli, ["--policy_path=p", "--value_loss=l1"], "value_loss must be mse or huber"),
+    "reward report: unknown frames": (
+        reward_report_cli,
+        ["--env.text_world_model=t", "--frames=dreamed"],
+        "frames must be one of ('real', 'open_loop'), got 'dreamed'",
+    ),
+    "reward report: unknown reward type": (
+        reward_report_cli,
+        ["--env.text_world_model=t", "--env.reward_type=magic"],
+        "reward_type must be world_model, embedding or proxy, got 'magic'",
+    ),
+    "reward report: a baseline reward without its model": (
+        reward_report_cli,
+        ["--env.text_world_model=t", "--env.reward_type=proxy"],
+        "reward_type=proxy needs reward_model",
+    ),
+    "train reward: unknown kind": (train_reward_cli, ["--reward.kind=magic"], "kind must be one of"),
+    "train world model: exploration share above 1": (
+        train_wm_cli,
+        ["--exploration_share=2"],
+        "exploration_share must be in [0, 1], got 2",
+    ),
+    "eval done: missing tokenizer": (
+        eval_done_cli,
+        ["--tokenizer=nowhere/tokenizer", "--world_model=x"],
+        "no VisualTokenizer at nowhere/tokenizer",
+    ),
+}
+
+
+@pytest.mark.parametrize("fault", BAD_FLAGS)
+def test_each_command_refuses_bad_flags_by_name(capsys, fault):
+    cli, argv, expected = BAD_FLAGS[fault]
+    assert expected in one_line(capsys, cli.main, argv)
 
 
 def test_convert_refuses_non_finite_actions_and_names_where(capsys, recorded, tmp_path):
