@@ -270,6 +270,29 @@ def push_dataset(root: Path, repo_id: str, local_dir: Path | None = None, privat
         return publish(folder, repo_id, local_dir, repo_type="dataset")
 
 
+def push_run(
+    namespace: str,
+    local_dir: Path | None,
+    dataset_root: Path,
+    world_models: dict[str, Path],
+    policies: dict[str, tuple[Path, Path | None]],
+) -> dict[str, str]:
+    """Every repo of a pipeline run, under `namespace`: the demonstrations (`roboscape_demos`), the world models with
+    their tokenizer and fidelity report (`roboscape_world_models`; world_models: tokenizer, action_world_model,
+    text_world_model, fidelity_dir), and each policy checkpoint with its simulator evaluation (policies: {repo name:
+    (pretrained_model, eval_dir)}). Returns {repo id: where it went}."""
+    dataset_repo = f"{namespace}/roboscape_demos"
+    pushed = {dataset_repo: push_dataset(dataset_root, dataset_repo, local_dir)}
+    world_models_repo = f"{namespace}/roboscape_world_models"
+    pushed[world_models_repo] = push_world_models(
+        world_models_repo, local_dir, dataset_repo_id=dataset_repo, **world_models
+    )
+    for name, (checkpoint, eval_dir) in policies.items():
+        repo = f"{namespace}/{name}"
+        pushed[repo] = push_policy(repo, checkpoint, local_dir, eval_dir=eval_dir, dataset_repo_id=dataset_repo)
+    return pushed
+
+
 ARTIFACTS = ("dataset", "world_models", "policy")
 
 

@@ -6,25 +6,44 @@ import time
 from pathlib import Path
 
 from lerobot_roboscape.evaluation.tables import write_table
-from lerobot_roboscape.hub.push import push_dataset, push_policy, push_world_models
+from lerobot_roboscape.hub.push import push_run
 from lerobot_roboscape.pipeline import layout, methods, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
 
+# The demo's stages, in order; each header names one, with the details of this run.
+STAGES = (
+    "collect",
+    "tokenizer",
+    "tokenizer report",
+    "world models",
+    "fidelity report",
+    "done and reward",
+    "world-model rollout",
+    "SFT",
+    "lerobot-eval in the world model",
+    "PPO",
+    "Table 1",
+    "push",
+    "report",
+)
+
 
 class StageClock:
-    """Numbered stage headers; records the time each stage took."""
+    """Numbered stage headers, one per entry of `stages` in their order; records the time each stage took."""
 
-    def __init__(self, total: int):
-        self.total, self.number, self.title, self.start, self.began = total, 0, None, None, time.time()
+    def __init__(self, stages: tuple[str, ...] = STAGES):
+        self.stages, self.number, self.title, self.start, self.began = stages, 0, None, None, time.time()
         self.seconds: dict[str, float] = {}
 
-    def __call__(self, title: str):
+    def __call__(self, stage: str, title: str):
+        if self.stages[self.number] != stage:
+            raise RuntimeError(f"stage {stage!r} runs where STAGES has {self.stages[self.number]!r}")
         self.done()
         self.number += 1
         self.title, self.start = title, time.time()
-        print(f"\n=== {self.number}/{self.total} {title} ===", flush=True)
+        print(f"\n=== {self.number}/{len(self.stages)} {title} ===", flush=True)
 
     def done(self):
         if self.start is not None:
@@ -41,19 +60,19 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     """Run every stage (skipping those already complete in output_dir); returns {artifact name: artifact}."""
     out = Path(cfg.output_dir).resolve()
     artifacts: dict[str, Artifact] = {}
-    clock = StageClock(13)
+    clock = StageClock()
 
-    clock("collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
+    clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = stages.demonstrations(cfg, out)
     artifacts["demonstrations (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.train.root))
     artifacts["held-out episodes (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.heldout.root))
     artifacts["ManiSkill trajectory file"] = Artifact(ArtifactKind.TRAJECTORY_FILE, data.trajectory_file)
 
-    clock(f"train the image tokenizer ({cfg.tokenizer_preset} preset)")
+    clock("tokenizer", f"train the image tokenizer ({cfg.tokenizer_preset} preset)")
     tokenizer = stages.tokenizer(cfg, out, data)
     artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
 
-    clock("tokenizer report on the held-out frames (whole frame, object, codebook; each view)")
+    clock("tokenizer report", "tokenizer report on the held-out frames (whole frame, object, codebook; each view)")
     views = stages.tokenizer_report(cfg, out, data, tokenizer)["views"]
     print(
         ", ".join(
@@ -64,13 +83,13 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
         ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
     )
 
-    clock(f"train the action and the text world models ({cfg.wm_preset} preset)")
+    clock("world models", f"train the action and the text world models ({cfg.wm_preset} preset)")
     models = stages.world_models(cfg, out, data, tokenizer)
     artifacts |= {
         f"{control} world model": Artifact(ArtifactKind.WORLD_MODEL, path) for control, path in models.items()
     }
 
-    clock("fidelity report of the action world model on the held-out episodes")
+    clock("fidelity report", "fidelity report of the action world model on the held-out episodes")
     fidelity = stages.fidelity(cfg, out, data, tokenizer, models)
     mean = fidelity["mean"]
     print(
@@ -84,7 +103,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.FIDELITY_DIR / "fidelity.md")
     artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
 
-    clock("reward models, the done signal and the reward report (held-out episodes)")
+    clock("done and reward", "reward models, the done signal and the reward report (held-out episodes)")
     trained = stages.reward_models(cfg, out, data, tokenizer, models)
     done = stages.done_report(cfg, out, data, tokenizer, models, trained)
     print(f"done: {done['chosen']['source']} at threshold {done['chosen']['theta']:.3f}")
@@ -94,30 +113,31 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
     artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
 
-    clock("random actions in the roboscape_wm environment (world-model reward)")
+    clock("world-model rollout", "random actions in the roboscape_wm environment (world-model reward)")
     rollout = stages.world_model_rollout(out, wm_env)
     print(f"{rollout['steps']} steps of {rollout['episodes']} episodes, return {rollout['returns']}")
     artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout["video"])
     artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout["plot"])
 
-    clock("SFT with lerobot-train: " + " and ".join(stages.policy_specs(cfg)))
+    clock("SFT", "SFT with lerobot-train: " + " and ".join(stages.policy_specs(cfg)))
     sft = stages.sft(cfg, out, data)
     artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
 
-    clock("lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
+    clock("lerobot-eval in the world model", "lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
     for name, path in stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
         artifacts[f"{name} lerobot-eval in roboscape_wm"] = Artifact(ArtifactKind.JSON, path)
 
     clock(
+        "PPO",
         "PPO in roboscape_wm and in roboscape_maniskill"
-        + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else "")
+        + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else ""),
     )
     rl = stages.rl(cfg, out, data, wm_env, sft)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
         artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 
-    clock("success in the simulator, IND and OOD (Table 1)")
+    clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     table = stages.simulator_eval(cfg, out, data, checkpoints)
     # Table 1's methods; the reward ablation's OOD rows are roboscape-experiment's to report.
     table = {n: {m: s for m, s in runs.items() if m not in methods.REWARD_ABLATION} for n, runs in table.items()}
@@ -128,42 +148,28 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     artifacts["Table 1 bar chart"] = Artifact(ArtifactKind.IMAGE, tables / "tables.png")
 
     hub = out / "hub"
-    clock("push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({hub})")
+    clock("push", "push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({hub})")
     local_dir = None if cfg.push_to_hub else hub
-    ns = cfg.hub_namespace
-    dataset_repo = f"{ns}/roboscape_demos"
-    pushed = {"dataset repo": (ArtifactKind.DATASET, push_dataset(Path(data.train.root), dataset_repo, local_dir))}
-    pushed["world models repo"] = (
-        ArtifactKind.WORLD_MODELS_BUNDLE,
-        push_world_models(
-            f"{ns}/roboscape_world_models",
-            local_dir,
-            tokenizer=tokenizer,
-            action_world_model=models["action"],
-            text_world_model=models["text"],
-            dataset_repo_id=dataset_repo,
-            fidelity_dir=out / layout.FIDELITY_DIR,
-        ),
-    )
+    labels = {"dataset repo": ArtifactKind.DATASET, "world models repo": ArtifactKind.WORLD_MODELS_BUNDLE}
+    policies = {}
     for name, runs in checkpoints.items():
         for method, checkpoint in runs.items():
             tag = methods.method_tag(method)
-            pushed[f"{name} {tag} repo"] = (
-                ArtifactKind.POLICY,
-                push_policy(
-                    f"{ns}/{name}_{tag}",
-                    checkpoint,
-                    local_dir,
-                    eval_dir=out / layout.eval_dir(name, method),
-                    dataset_repo_id=dataset_repo,
-                ),
-            )
-    for name, (kind, where) in pushed.items():
-        print(f"{name:36s} {where}")
+            policies[f"{name}_{tag}"] = (checkpoint, out / layout.eval_dir(name, method))
+            labels[f"{name} {tag} repo"] = ArtifactKind.POLICY
+    world_models = dict(
+        tokenizer=tokenizer,
+        action_world_model=models["action"],
+        text_world_model=models["text"],
+        fidelity_dir=out / layout.FIDELITY_DIR,
+    )
+    pushed = push_run(cfg.hub_namespace, local_dir, Path(data.train.root), world_models, policies)
+    for (label, kind), where in zip(labels.items(), pushed.values(), strict=True):
+        print(f"{label:36s} {where}")
         if local_dir is not None:
-            artifacts[name] = Artifact(kind, Path(where))
+            artifacts[label] = Artifact(kind, Path(where))
 
-    clock("the experiment's report")
+    clock("report", "the experiment's report")
     report = write_report(cfg, out, cfg.report_dir)
     artifacts["experiment report"] = Artifact(ArtifactKind.MARKDOWN, report)
     clock.done()
