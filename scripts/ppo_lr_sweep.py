@@ -9,7 +9,7 @@ and clip fraction (docs/results/bench/ppo_learning_rate.md).
 import argparse
 from pathlib import Path
 
-from lerobot_roboscape.pipeline import methods, stages
+from lerobot_roboscape.pipeline import methods, policy_stages, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import trained_stages
 from lerobot_roboscape.rl.ppo import PPOConfig, read_history, train_ppo
@@ -26,7 +26,7 @@ def main():
     out = Path(p.output_dir).resolve()
     t = trained_stages(p, out)
     wm = stages.world_model_env(p, t.data, t.tokenizer, t.models, t.done, t.reward_models)
-    env = stages.rl_envs(p, out, t.data, wm)[methods.RL_MANISKILL_ONE_SCENE]
+    env = policy_stages.rl_envs(p, out, t.data, wm)[methods.RL_MANISKILL_ONE_SCENE]
     for run in args.runs:
         name, lr, kl = run.split(":")
         folder = out / "lr_sweep" / name

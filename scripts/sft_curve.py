@@ -211,7 +211,7 @@ def figure(rows: list[dict], path: Path) -> None:
 
 
 def write_targets(eval_json: Path, out: Path) -> None:
-    from lerobot_roboscape.pipeline.stages import SFT
+    from lerobot_roboscape.pipeline.methods import SFT
     from lerobot_roboscape.pipeline.targets import sft_targets
 
     result = json.loads(eval_json.read_text())

@@ -24,7 +24,7 @@ from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_e
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import MissingInputError
-from lerobot_roboscape.pipeline import layout, methods, resume, stages
+from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
@@ -103,7 +103,7 @@ def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[
     dataset = data.train
     if cfg.sft_dataset_root:
         dataset = DatasetConfig(repo_id=cfg.sft_dataset_repo_id, root=str(Path(cfg.sft_dataset_root).resolve()))
-    return stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()))
+    return policy_stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()))
 
 
 def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, policy: str, sft: Path) -> list[dict]:
@@ -115,7 +115,7 @@ def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, po
         seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
         points.append((int(folder.name), seconds, folder / FINAL))
     jobs = [
-        stages.eval_job(
+        policy_stages.eval_job(
             cfg.pipeline,
             data,
             path,
@@ -127,7 +127,7 @@ def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, po
         )
         for iteration, _, path in points
     ]
-    stages.run_evaluations(cfg.pipeline, jobs)
+    policy_stages.run_evaluations(cfg.pipeline, jobs)
     return [
         {
             "iteration": iteration,
@@ -215,11 +215,11 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
         p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )
     sft = sft_policy(cfg, out, trained.data)
-    rl = stages.rl(p, out, trained.data, wm_env, sft)
+    rl = policy_stages.rl(p, out, trained.data, wm_env, sft)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
-    results = stages.simulator_eval(p, out, trained.data, checkpoints)
+    results = policy_stages.simulator_eval(p, out, trained.data, checkpoints)
     policy = next(iter(sft))
     curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
-    ppo_env = stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
+    ppo_env = policy_stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
     replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
     return write_experiment_report(cfg, out, results, curve, replays)

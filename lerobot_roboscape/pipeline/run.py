@@ -1,4 +1,5 @@
-"""The whole pipeline, stage after stage (each in `stages.py`), with a header and the time of each stage."""
+"""The whole pipeline, stage after stage (the data and model stages in `stages.py`, the policy stages in
+`policy_stages.py`), with a header and the time of each stage."""
 
 import contextlib
 import io
@@ -7,7 +8,7 @@ from pathlib import Path
 
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
-from lerobot_roboscape.pipeline import layout, methods, stages
+from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
@@ -119,12 +120,12 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout["video"])
     artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout["plot"])
 
-    clock("SFT", "SFT with lerobot-train: " + " and ".join(stages.policy_specs(cfg)))
-    sft = stages.sft(cfg, out, data)
+    clock("SFT", "SFT with lerobot-train: " + " and ".join(policy_stages.policy_specs(cfg)))
+    sft = policy_stages.sft(cfg, out, data)
     artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
 
     clock("lerobot-eval in the world model", "lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
-    for name, path in stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
+    for name, path in policy_stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
         artifacts[f"{name} lerobot-eval in roboscape_wm"] = Artifact(ArtifactKind.JSON, path)
 
     clock(
@@ -132,13 +133,13 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
         "PPO in roboscape_wm and in roboscape_maniskill"
         + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else ""),
     )
-    rl = stages.rl(cfg, out, data, wm_env, sft)
+    rl = policy_stages.rl(cfg, out, data, wm_env, sft)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
         artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
-    table = stages.simulator_eval(cfg, out, data, checkpoints)
+    table = policy_stages.simulator_eval(cfg, out, data, checkpoints)
     # Table 1's methods; the reward ablation's OOD rows are roboscape-experiment's to report.
     table = {n: {m: s for m, s in runs.items() if m not in methods.REWARD_ABLATION} for n, runs in table.items()}
     tables = out / layout.TABLES_DIR

@@ -1,0 +1,250 @@
+"""The policy stages of the pipeline, one function each, after the data and model stages of `stages.py`: SFT with
+lerobot-train, LeRobot's evaluation in the world model, PPO in the world model and in the simulator, and the
+simulator evaluation behind Table 1. Each resumes as the others do (`resume.py`)."""
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.maniskill_env import build_slots
+from lerobot_roboscape.evaluation.success_rate import (
+    EvalConfig,
+    eval_batch_size,
+    eval_env_config,
+    evaluate_success,
+    markdown_table,
+)
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.layout import (
+    GOAL_FILE,
+    eval_dir,
+    lerobot_eval_dir,
+    rl_dir,
+    sft_dir,
+)
+from lerobot_roboscape.pipeline.lerobot_cli import lerobot_eval, lerobot_sft
+from lerobot_roboscape.pipeline.methods import (
+    REWARD_ABLATION,
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    RL_WORLD_MODEL_DENSE,
+    RL_WORLD_MODEL_SPARSE,
+)
+from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
+from lerobot_roboscape.pipeline.stages import Datasets
+from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.tasks import select_scenes
+
+# ---- policies ----------------------------------------------------------------------------------------------------
+
+
+def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
+    """{policy name: its lerobot-train arguments} of the policies this run trains."""
+    device = [f"--policy.device={cfg.device}"] if cfg.device != "auto" else []
+    specs = {"roboscape_mlp": ["--policy.type=roboscape_mlp", *device]}
+    if cfg.openvla_steps:
+        specs["openvla"] = ["--policy.type=openvla", f"--policy.base_model={cfg.openvla_base}", *device]
+    return specs
+
+
+def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
+    """SFT of each policy with `lerobot-train`; returns {policy name: checkpoint}."""
+    steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
+    return {
+        name: lerobot_sft(
+            out / sft_dir(name),
+            data.train,
+            args,
+            *steps[name],
+            num_workers=cfg.loader_workers,
+            fresh=cfg.fresh,
+        )
+        for name, args in policy_specs(cfg).items()
+    }
+
+
+# The settings of the world-model env that lerobot-eval is given (the others keep their defaults).
+_LEROBOT_EVAL_ENV_KEYS = (
+    "dataset_repo_id",
+    "dataset_root",
+    "tokenizer",
+    "action_world_model",
+    "text_world_model",
+    "max_goal_steps",
+    "allow_random_lpips",
+    "image_size",
+)
+
+
+def lerobot_eval_in_world_model(
+    cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path], env: RoboscapeWorldModelEnvConfig
+) -> dict[str, Path]:
+    """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
+    env_args = [
+        "--env.type=roboscape_wm",
+        f"--env.families=[{','.join(cfg.families)}]",
+        f"--env.episode_length={cfg.eval_episode_length}",
+        *(f"--env.{key}={value}" for key, value in asdict(env).items() if key in _LEROBOT_EVAL_ENV_KEYS),
+    ]
+    results = {}
+    for name, checkpoint in checkpoints.items():
+        results[name] = lerobot_eval(
+            out / lerobot_eval_dir(name),
+            checkpoint,
+            env_args,
+            cfg.eval_episodes,
+            cfg.eval_episodes,
+            fresh=cfg.fresh,
+        )
+        result = json.loads(results[name].read_text())["overall"]
+        print(
+            f"{name} in roboscape_wm: success {result['pc_success']:.0f}% of {result['n_episodes']} episodes, "
+            f"mean return {result['avg_sum_reward']:.2f}"
+        )
+    return results
+
+
+def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig) -> dict:
+    """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
+    training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
+    environment"), the simulator in one scene; with `reward_ablation`, the world model paid only its sparse and
+    only its dense reward."""
+    sim = RoboscapeManiSkillEnvConfig(
+        families=cfg.families,
+        split="ind",
+        image_size=cfg.image_size,
+        episode_length=cfg.ppo_episode_length,
+        dataset_repo_id=data.train.repo_id,
+        dataset_root=data.train.root,
+    )
+    # The goals are generated once, before PPO's clock starts, and shared by the world-model runs.
+    wm = replace(
+        wm_env,
+        split="ind",
+        episode_length=cfg.ppo_episode_length,
+        starts_per_scene=cfg.wm_starts_per_scene,
+        goal_file=str(out / GOAL_FILE),
+    )
+    envs = {RL_WORLD_MODEL: wm, RL_MANISKILL: sim}
+    if cfg.ppo_one_scene:
+        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[select_scenes("ind")[0].id])
+    if cfg.reward_ablation:
+        envs |= {RL_WORLD_MODEL_SPARSE: replace(wm, beta=0.0), RL_WORLD_MODEL_DENSE: replace(wm, alpha=0.0)}
+    return envs
+
+
+def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
+    """One PPO run (resumed from its last checkpoint when interrupted); returns its final checkpoint."""
+    folder = Path(cfg.output_dir)
+    train_once(
+        folder,
+        cfg,
+        fresh,
+        lambda resume: train_ppo(replace(cfg, resume=resume and last_checkpoint(folder) is not None)),
+    )
+    return last_checkpoint(folder) / FINAL
+
+
+def rl(
+    cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig, checkpoints: dict[str, Path]
+) -> dict[str, dict[str, Path]]:
+    """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock);
+    returns {policy: {method: checkpoint}}."""
+    runs = {}
+    for name, sft_checkpoint in checkpoints.items():
+        runs[name] = {}
+        for method, env in rl_envs(cfg, out, data, wm_env).items():
+            runs[name][method] = ppo(
+                PPOConfig(
+                    policy_path=str(sft_checkpoint),
+                    env=env,
+                    output_dir=out / rl_dir(name, method),
+                    num_envs=cfg.ppo_envs,
+                    iterations=cfg.ppo_iterations,
+                    critic_warmup_iterations=cfg.ppo_critic_warmup,
+                    time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
+                    save_freq=max(min(cfg.ppo_iterations, 5), 1),
+                    device=cfg.device,
+                ),
+                cfg.fresh,
+            )
+    return runs
+
+
+# ---- evaluation in the simulator ---------------------------------------------------------------------------------
+
+EVAL_BATCH_SIZE = 8  # parallel episodes of each simulator evaluation
+
+
+def eval_job(
+    cfg: PipelineConfig,
+    data: Datasets,
+    checkpoint: Path,
+    splits: tuple[str, ...],
+    output_dir: Path,
+    episodes: int | None = None,
+    seed: int | None = None,
+    videos: int = 2,
+) -> EvalConfig:
+    """The simulator evaluation of one checkpoint: `episodes` (default: Table 1's) per (split, family)."""
+    return EvalConfig(
+        policy_path=str(checkpoint),
+        families=cfg.families,
+        splits=list(splits),
+        episodes=episodes or cfg.table_episodes,
+        batch_size=EVAL_BATCH_SIZE,
+        episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
+        dataset_repo_id=data.train.repo_id,
+        dataset_root=data.train.root,
+        image_size=cfg.image_size,
+        videos=videos,
+        workers=cfg.workers,
+        output_dir=output_dir,
+        device=cfg.device,
+        **({} if seed is None else {"seed": seed}),
+    )
+
+
+def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
+    """Run the evaluations not yet complete, one after another on the same simulator envs (built once, spread over
+    `workers` processes)."""
+    pending = [job for job in jobs if not is_done(job.output_dir, job, cfg.fresh)]
+    if not pending:
+        return
+    slots = build_slots(eval_env_config(pending[0], "ind", cfg.image_size), eval_batch_size(pending[0]))
+    try:
+        for job in pending:
+            start(job.output_dir)
+            evaluate_success(job, slots)
+            mark_done(job.output_dir, job)
+    finally:
+        slots.close()
+
+
+def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
+    """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's OOD only; 95% Wilson
+    intervals), one evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
+    jobs = {}
+    for name, methods in checkpoints.items():
+        for method, checkpoint in methods.items():
+            for split in ("ood",) if method in REWARD_ABLATION else ("ind", "ood"):
+                jobs[name, method, split] = eval_job(
+                    cfg, data, checkpoint, (split,), out / eval_dir(name, method) / split
+                )
+    run_evaluations(cfg, list(jobs.values()))
+    results = {}
+    for (name, method, split), job in jobs.items():
+        cells = json.loads((job.output_dir / "eval.json").read_text())["splits"][split]
+        results.setdefault(name, {}).setdefault(method, {})[split] = cells
+    for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
+        for method, splits in methods.items():
+            length = jobs[name, method, next(iter(splits))].episode_length or "per family"
+            merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
+            folder = out / eval_dir(name, method)
+            write_text_atomically(folder / "eval.json", json.dumps(merged, indent=2))
+            (folder / "eval.md").write_text(markdown_table(merged))
+    return results
