@@ -11,6 +11,7 @@ STAGES = [
     "atomic",
     "weights",
     "checkpoints",
+    "records",
     "actor_critic",
     "training",
     "perceptual",  # shared foundations

@@ -260,7 +260,7 @@ def settings_of(cfg: AgreementConfig, path: str) -> dict:
 
 
 def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: str, goals: dict | None) -> dict:
-    from lerobot_roboscape.rl.ppo import write_video
+    from lerobot_roboscape.records import write_video
 
     out = cfg.output_dir / f"policy_{k}"
     settings = settings_of(cfg, path)

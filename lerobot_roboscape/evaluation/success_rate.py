@@ -204,7 +204,7 @@ def evaluate_success(cfg: EvalConfig, slots=None) -> dict:
 def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots, policy, io: PolicyIO) -> dict:
     """{family: cell, "all": cell} of one split, its episodes run in batches on `slots`."""
     from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
-    from lerobot_roboscape.rl.ppo import write_video
+    from lerobot_roboscape.records import write_video
 
     env = RoboscapeManiSkillEnv(env_cfg, num_envs=eval_batch_size(cfg), slots=slots)
     outcomes = {family: [] for family in env_cfg.families}

@@ -27,8 +27,8 @@ from lerobot_roboscape.errors import MissingInputError
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
+from lerobot_roboscape.records import write_video
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import write_video
 from lerobot_roboscape.tasks.base import CONTROL_FREQ
 from lerobot_roboscape.training import resolve_device
 

@@ -28,7 +28,7 @@ from lerobot_roboscape.pipeline.methods import (
 from lerobot_roboscape.pipeline.report import machine, targets_table
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
-from lerobot_roboscape.rl.ppo import read_history
+from lerobot_roboscape.records import read_history
 
 matplotlib.use("Agg")
 

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from lerobot_roboscape.records import HISTORY, History, write_video
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
     check_actor_critic,
@@ -40,7 +41,6 @@ from lerobot_roboscape.tasks.base import CONTROL_FREQ
 from lerobot_roboscape.training import resolve_mixed_precision
 
 logger = logging.getLogger(__name__)
-HISTORY = "history.jsonl"
 
 # Per policy type: RL4VLA's settings for OpenVLA; ours for the MLP (its learning rate measured at the bench scale).
 PPO_DEFAULTS = {
@@ -491,6 +491,15 @@ def save_checkpoint(
     return publish_checkpoint(output_dir, iteration, tmp)
 
 
+def load_checkpoint(checkpoint: Path) -> tuple[int, RunningReturnStats, float]:
+    """What `save_checkpoint` wrote that a resumed run continues from: (its iteration, the running return
+    statistics, the seconds of PPO so far). The policy loads from checkpoint/pretrained_model, the optimizer state
+    from checkpoint/training_state."""
+    state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
+    seconds = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
+    return state["iteration"], RunningReturnStats(**state["return_stats"]), seconds
+
+
 def train_ppo(cfg: PPOConfig) -> Path:
     """Run PPO; returns the final checkpoint's pretrained_model directory."""
     accelerator = Accelerator(
@@ -503,9 +512,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
     start_iteration, start_path, return_stats, elapsed = 0, cfg.policy_path, RunningReturnStats(), 0.0
     checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
     if checkpoint is not None:
-        state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
-        start_iteration, return_stats = state["iteration"], RunningReturnStats(**state["return_stats"])
-        elapsed = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
+        start_iteration, return_stats, elapsed = load_checkpoint(checkpoint)
         start_path = str(checkpoint / FINAL)
     elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
         raise OutputExistsError(
@@ -609,36 +616,3 @@ def train_ppo(cfg: PPOConfig) -> Path:
     accelerator.end_training()
     env.close()
     return final if final is not None else last_checkpoint(cfg.output_dir) / FINAL
-
-
-class History:
-    """output_dir/history.jsonl: one line of metrics per iteration, for curves without TensorBoard. A resumed run
-    drops the lines past its checkpoint, which it trains again."""
-
-    def __init__(self, path: Path, start_iteration: int):
-        self.path = path
-        kept = []
-        if path.is_file():
-            kept = [
-                line
-                for line in path.read_text().splitlines()
-                if line and json.loads(line)["iteration"] <= start_iteration
-            ]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("".join(line + "\n" for line in kept))
-
-    def append(self, row: dict) -> None:
-        with self.path.open("a") as f:
-            f.write(json.dumps(row) + "\n")
-
-
-def read_history(output_dir: Path) -> list[dict]:
-    path = Path(output_dir) / HISTORY
-    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
-
-
-def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
-    import imageio.v3 as iio
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, np.stack(frames), plugin="pyav", codec="libx264", fps=fps)
