@@ -151,11 +151,11 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
         wm = RoboscapeWorldModelEnv(dataclasses.replace(wm_config, precision=precision), num_envs=batch)
         timers = {
             "generate": Timed(predict_next_frame),
-            "decode": Timed(wm._decode),
+            "decode": Timed(wm.decode),
             "reward": Timed(wm.reward_fn.forward),
             "done": Timed(wm.done_of),
         }
-        Rollout.predict_next_frame, wm._decode, wm.reward_fn.forward, wm.done_of = timers.values()
+        Rollout.predict_next_frame, wm.decode, wm.reward_fn.forward, wm.done_of = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
         widths = (9, 7, 7, 7)  # of the generate, decode, reward and done columns
         shares = " ".join(f"{t.seconds / wm_seconds:>{w}.0%}" for t, w in zip(timers.values(), widths, strict=True))

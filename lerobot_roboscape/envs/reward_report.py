@@ -27,8 +27,10 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import open_dataset, read_episode
+from lerobot_roboscape.envs.batched import EpisodeBook
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.world_model_env import EpisodeStart, Goal, RoboscapeWorldModelEnv, load_reward_model
+from lerobot_roboscape.envs.loading import load_reward_model
+from lerobot_roboscape.envs.world_model_env import EpisodeStart, Goal, RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.clips import model_frames
 
@@ -72,6 +74,46 @@ class RewardReportConfig:
 
 
 @torch.no_grad()
+def teacher_forced_done(
+    env: RoboscapeWorldModelEnv, tokens_TS: torch.Tensor, actions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Done probability (T,) of known model frames of one episode, and the action model's features (T, C) of
+    them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step)."""
+    with env.autocast():
+        done, features = env.action_model.teacher_forced(tokens_TS[None], actions[None])
+    return env.done_of(tokens_TS, done[0]), features[0]
+
+
+@torch.no_grad()
+def replay_rewards(
+    env: RoboscapeWorldModelEnv, episode_index: int, tokens_TS: torch.Tensor, done_T: torch.Tensor
+) -> tuple[np.ndarray, bool]:
+    """The world-model reward `env` pays along given model frames from one of its starts, as if the action
+    model had predicted them: frames (T, S) tokens, the first being the start, one per `frame_skip` control
+    steps, and the done signal of each (T,). As in the env's `step`, a frame is paid at the last step of its chunk and
+    the steps between are paid 0; past the last frame, it holds (with its done) until the start's horizon.
+    Returns the rewards of the horizon's control steps (0 after an early termination) and whether the episode
+    succeeded."""
+    start = next(s for s in env.starts if s.episode_index == episode_index)
+    k, steps = env.frame_skip, np.arange(1, start.horizon + 1)
+    shown = np.minimum(steps // k, len(tokens_TS) - 1)  # the model frame seen after each control step
+    paid = steps % k == 0
+    goal = env.decode(env.goals_for([start])[0])
+    per_step = []
+    for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
+        frames = env.decode(tokens_TS[chunk])
+        with env.autocast():
+            parts = env.reward_fn(frames, goal.expand_as(frames), done_T[chunk])
+        per_step.append(parts.reward.cpu().numpy())
+    per_step, done = np.where(paid, np.concatenate(per_step), 0.0), done_T[shown].cpu().numpy()
+    book = EpisodeBook(np.array([start.horizon]), env.config.terminate_on_success, env.reward_fn.max_step_reward)
+    rewards = np.array(
+        [book.step(per_step[t : t + 1], done[t : t + 1] >= env.config.theta)[0] for t in range(start.horizon)]
+    )
+    return rewards, bool(book.succeeded[0])
+
+
+@torch.no_grad()
 def episode_rewards(
     env: RoboscapeWorldModelEnv, episode, models: dict, open_loop: bool = False
 ) -> dict[str, np.ndarray]:
@@ -84,15 +126,15 @@ def episode_rewards(
     tokens = env._encode(frames)  # (T, S), T model frames
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
     if open_loop and len(tokens) > 1:
-        with env._precision():
+        with env.autocast():
             generated, _ = env.action_model.generate(tokens[None, :1], len(tokens) - 1, actions=actions[None])
         tokens = torch.cat([tokens[:1], generated[0]])
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal_tokens, _ = env.goals_for([start])
-    decoded = env._decode(tokens)  # (T, n, 3, H, W)
-    goal = env._decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
-    done, features = env.teacher_forced_done(tokens, actions)
-    world_model, _ = env.replay(episode.index, tokens, done)
+    decoded = env.decode(tokens)  # (T, n, 3, H, W)
+    goal = env.decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
+    done, features = teacher_forced_done(env, tokens, actions)
+    world_model, _ = replay_rewards(env, episode.index, tokens, done)
     per_frame = {
         "world_model_dense": env.reward_fn(decoded, goal, done).dense,
         "rule_based": torch.from_numpy(episode.reward_label[indices]),
@@ -112,12 +154,12 @@ def goal_check(env: RoboscapeWorldModelEnv, episode, other: Goal | None = None) 
     than that one; and the three images (3, n, 3, H, W): start, goal, real final frame, as the env decodes them."""
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal = env.goal_of(start)
-    images = env._decode(torch.stack([start.first_tokens, goal.tokens, start.last_tokens]))
+    images = env.decode(torch.stack([start.first_tokens, goal.tokens, start.last_tokens]))
     goal_image = images[1:2].expand(2, -1, -1, -1, -1)
     to_start, to_final = env.reward_fn(images[[0, 2]], goal_image, torch.zeros(2, device=env.device)).distance.tolist()
     to_other = None
     if other is not None:
-        other_image = env._decode(other.tokens[None])
+        other_image = env.decode(other.tokens[None])
         to_other = env.reward_fn(images[2:3], other_image, torch.zeros(1, device=env.device)).distance.item()
     check = {
         "reached": goal.reached,

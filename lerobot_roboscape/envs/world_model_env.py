@@ -25,7 +25,6 @@ import os
 import time
 from collections import Counter
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
 
@@ -45,13 +44,9 @@ from lerobot_roboscape.dataset.reader import (
     read_frames,
 )
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
-from lerobot_roboscape.hub.pull import pull_world_models, snapshot
-from lerobot_roboscape.reward.baselines import RewardModel
+from lerobot_roboscape.envs.loading import load_models, load_reward_distance, load_reward_model, model_refs
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
-from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.tokenizer.similarity import load_similarity
-from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
 
 logger = logging.getLogger(__name__)
@@ -88,68 +83,6 @@ class EpisodeStart:
     horizon: int  # steps of an episode from this start
 
 
-def load_pretrained(cls, ref: str, what: str, command: str):
-    """`cls.from_pretrained` of a local directory or a Hub repo id, with an error naming what is missing."""
-    path = snapshot(ref, what, f"train one with `{command}`")
-    if not (path / "config.json").is_file():
-        raise MissingInputError(
-            f"no {what} at {ref} (config.json missing); train one with `{command}` or give a Hub repo id"
-        )
-    return cls.from_pretrained(str(path))
-
-
-def model_refs(config) -> tuple[str, str, str | None, str]:
-    """Tokenizer, action model, text model (None when unused) and dataset repo id of a `roboscape_wm` config:
-    from its `world_models` repo, or given one by one."""
-    uses_text = config.goal_source == "text_model"
-    if config.world_models:
-        bundle = pull_world_models(config.world_models)
-        return (
-            str(bundle.tokenizer),
-            str(bundle.action_world_model),
-            str(bundle.text_world_model) if uses_text else None,
-            config.dataset_repo_id or bundle.dataset_repo_id,
-        )
-    if not config.dataset_repo_id:
-        raise InvalidInputError(
-            "roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
-            "world_models (a repo that names it)"
-        )
-    return (
-        config.tokenizer,
-        config.action_world_model,
-        config.text_world_model if uses_text else None,
-        config.dataset_repo_id,
-    )
-
-
-@lru_cache(maxsize=8)
-def load_models(tokenizer: str, action_model: str, text_model: str | None, device: str):
-    """Tokenizer and world models, loaded once per process (local directories or Hub repo ids)."""
-    loaded = [
-        load_pretrained(VisualTokenizer, tokenizer, "tokenizer", "roboscape-train-tokenizer"),
-        load_pretrained(STWorldModel, action_model, "action world model", "roboscape-train-wm --wm.control=action"),
-        load_pretrained(STWorldModel, text_model, "text world model", "roboscape-train-wm --wm.control=text")
-        if text_model
-        else None,
-    ]
-    return tuple(m.to(device).eval() if m is not None else None for m in loaded)
-
-
-@lru_cache(maxsize=4)
-def load_reward_model(ref: str | None, device: str) -> RewardModel:
-    if not ref:
-        raise InvalidInputError(
-            "reward_type embedding/proxy needs reward_model (train one with roboscape-train-reward)"
-        )
-    return load_pretrained(RewardModel, ref, "reward model", "roboscape-train-reward").to(device).eval()
-
-
-@lru_cache(maxsize=4)
-def load_reward_distance(kind: str, tokenizer: VisualTokenizer, weights: str | None, allow_random: bool, device: str):
-    return load_similarity(kind, tokenizer, tokenizer.config.lpips_net, weights, allow_random).to(device)
-
-
 class RoboscapeWorldModelEnv(BatchedEnv):
     def __init__(self, config, num_envs: int = 1):
         """config: a `RoboscapeWorldModelEnvConfig` (see envs/configs.py)."""
@@ -166,7 +99,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.frame_skip = self.action_model.config.frame_skip
         self.precision = config.resolved_precision
         bf16 = self.precision == "bfloat16"
-        self._precision = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
+        self.autocast = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
         if self.text_model is not None and self.text_model.config.frame_skip != self.frame_skip:
             raise InvalidInputError(
                 f"the text world model {text_model} steps every {self.text_model.config.frame_skip} control steps but "
@@ -297,9 +230,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             [torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device) for f in frames.values()]
         )
 
-    def _decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
+    def decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
         """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""
-        with self._precision():
+        with self.autocast():
             return self.tokenizer.decode_views(tokens_BS, self._n_cameras).float()
 
     @torch.no_grad()
@@ -309,15 +242,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         frames (`images`, when already decoded)."""
         if self.success_classifier is None:
             return model_done
-        return self.success_classifier.success_probability(self._decode(tokens_BS) if images is None else images)
-
-    @torch.no_grad()
-    def teacher_forced_done(self, tokens_TS: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Done probability (T,) of known model frames of one episode, and the action model's features (T, C) of
-        them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step)."""
-        with self._precision():
-            done, features = self.action_model.teacher_forced(tokens_TS[None], actions[None])
-        return self.done_of(tokens_TS, done[0]), features[0]
+        return self.success_classifier.success_probability(self.decode(tokens_BS) if images is None else images)
 
     @torch.no_grad()
     def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:
@@ -396,7 +321,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         """The text model's goal of each start under its `task`, generated now (not cached: a start given another
         instruction gets the goal of that instruction)."""
         goals = []
-        with self._precision():
+        with self.autocast():
             for chunk in range(0, len(starts), GOAL_BATCH):
                 goals += self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
         return goals
@@ -461,15 +386,15 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
-        with self._precision():
+        with self.autocast():
             self._rollout = Rollout.start(self.action_model, first[:, None], control)
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
         self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step
         self._starts = starts
-        self._frames = self._decode(first)
-        self._goals = self._decode(goal_tokens)
-        with self._precision():
+        self._frames = self.decode(first)
+        self._goals = self.decode(goal_tokens)
+        with self.autocast():
             start_parts = self.reward_fn(self._frames, self._goals, torch.zeros(self.num_envs, device=self.device))
         self._distance = start_parts.distance.cpu().numpy()  # to the goal, of the frame shown
         self._book = EpisodeBook(
@@ -500,12 +425,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             self._substep = 0
             chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
             control = self.action_model.encode_control(chunk)
-            with self._precision():
+            with self.autocast():
                 tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
-            frames = self._decode(tokens)
+            frames = self.decode(tokens)
             done = self.done_of(tokens, done, frames)
             self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync
-            with self._precision():
+            with self.autocast():
                 paid = self.reward_fn(frames, self._goals, done)
             self._frames = torch.where(
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
@@ -538,32 +463,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if self.config.reward_type == "proxy":
             return self.reward_model(frames)
         return parts.reward
-
-    @torch.no_grad()
-    def replay(self, episode_index: int, tokens_TS: torch.Tensor, done_T: torch.Tensor) -> tuple[np.ndarray, bool]:
-        """The world-model reward this env pays along given model frames from one of its starts, as if the action
-        model had predicted them: frames (T, S) tokens, the first being the start, one per `frame_skip` control
-        steps, and the done signal of each (T,). As in `step`, a frame is paid at the last step of its chunk and
-        the steps between are paid 0; past the last frame, it holds (with its done) until the start's horizon.
-        Returns the rewards of the horizon's control steps (0 after an early termination) and whether the episode
-        succeeded."""
-        start = next(s for s in self.starts if s.episode_index == episode_index)
-        k, steps = self.frame_skip, np.arange(1, start.horizon + 1)
-        shown = np.minimum(steps // k, len(tokens_TS) - 1)  # the model frame seen after each control step
-        paid = steps % k == 0
-        goal = self._decode(self.goals_for([start])[0])
-        per_step = []
-        for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
-            frames = self._decode(tokens_TS[chunk])
-            with self._precision():
-                parts = self.reward_fn(frames, goal.expand_as(frames), done_T[chunk])
-            per_step.append(parts.reward.cpu().numpy())
-        per_step, done = np.where(paid, np.concatenate(per_step), 0.0), done_T[shown].cpu().numpy()
-        book = EpisodeBook(np.array([start.horizon]), self.config.terminate_on_success, self.reward_fn.max_step_reward)
-        rewards = np.array(
-            [book.step(per_step[t : t + 1], done[t : t + 1] >= self.config.theta)[0] for t in range(start.horizon)]
-        )
-        return rewards, bool(book.succeeded[0])
 
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
         uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()

@@ -7,6 +7,7 @@ from gymnasium.utils.env_checker import check_env
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
+from lerobot_roboscape.envs.reward_report import replay_rewards
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, goal_generation_seconds
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.perceptual import load_lpips
@@ -142,7 +143,7 @@ def test_goal_from_the_dataset_episode(env_config, token_cache):
     _, info = env.reset(seed=0, options={"episode_index": 1})
     row = next(r for r in token_cache.episodes if r["episode_index"] == 1)
     last = torch.from_numpy(token_cache.tokens[row["start"] + row["length"] - 1].astype(np.int64)).reshape(1, -1)
-    expected = env._pixels(env._decode(last))
+    expected = env._pixels(env.decode(last))
     np.testing.assert_array_equal(info["goal"]["wrist"], expected["wrist"])
 
 
@@ -185,8 +186,8 @@ def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, termin
     )  # the longest successful push
     frames = model_frames(len(episode.action), k)  # what the action model would have made, a frame per k steps
     tokens = env._encode({cam: episode.images[cam][frames] for cam in env.cameras})
-    reached, reached_success = env.replay(episode.index, tokens, torch.from_numpy(episode.done_label[frames]))
-    still, still_success = env.replay(episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
+    reached, reached_success = replay_rewards(env, episode.index, tokens, torch.from_numpy(episode.done_label[frames]))
+    still, still_success = replay_rewards(env, episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
     assert reached_success and not still_success
     assert len(reached) == len(still) == start.horizon
     assert reached.sum() > still.sum()
@@ -248,20 +249,20 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     frames = read_episode(open_dataset("test/demos", root), 4).images  # a push episode's frames
     first = {cam: np.stack([images[0], images[-1]]) for cam, images in frames.items()}
     obs, info = env.reset(options={"frames": first, "task": ["push the cube", "push the cube"], "horizon": [5, 9]})
-    expected = env._pixels(env._decode(env._encode(first)))
+    expected = env._pixels(env.decode(env._encode(first)))
     for cam in env.cameras:
         assert np.array_equal(obs["pixels"][cam], expected[cam])
     assert not np.array_equal(obs["pixels"]["third_view"][0], obs["pixels"]["third_view"][1])
     goals = env.generate_goals(env._starts)
     for cam in env.cameras:  # the goal of each start is the one made from its own frame
-        assert np.array_equal(info["goal"][cam], env._pixels(env._decode(torch.stack([g.tokens for g in goals])))[cam])
+        assert np.array_equal(info["goal"][cam], env._pixels(env.decode(torch.stack([g.tokens for g in goals])))[cam])
     assert (info["episode_index"] == -1).all() and info["task"] == ["push the cube"] * 2
     ended = [env.step(np.zeros((2, 7), np.float32))[3] for _ in range(9)]
     assert [t[0] for t in ended].index(True) == 4 and [t[1] for t in ended].index(True) == 8  # horizons 5 and 9
     last = {cam: np.stack([images[-1], images[-1]]) for cam, images in frames.items()}  # a goal given instead
     _, info = env.reset(options={"frames": first, "task": ["push the cube"] * 2, "goal_frames": last})
     for cam in env.cameras:
-        assert np.array_equal(info["goal"][cam], env._pixels(env._decode(env._encode(last)))[cam])
+        assert np.array_equal(info["goal"][cam], env._pixels(env.decode(env._encode(last)))[cam])
     assert info["goal_from_text_model"].all()
 
 

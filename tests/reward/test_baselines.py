@@ -5,6 +5,7 @@ import torch
 
 from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.writer import read_episode_info
+from lerobot_roboscape.envs.reward_report import replay_rewards, teacher_forced_done
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
@@ -236,8 +237,8 @@ def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_act
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * k])
     generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
     frames = torch.cat([first, generated[0]])
-    done, _ = env.teacher_forced_done(frames, actions)
-    expected, _ = env.replay(episode.index, frames, done)
+    done, _ = teacher_forced_done(env, frames, actions)
+    expected, _ = replay_rewards(env, episode.index, frames, done)
     np.testing.assert_allclose(open_loop["world_model"], expected, rtol=1e-5)
     np.testing.assert_allclose(open_loop["rule_based"], real["rule_based"])  # the recording's own
     with pytest.raises(InvalidInputError, match="frames must be one of"):

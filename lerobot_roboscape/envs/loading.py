@@ -1,0 +1,73 @@
+"""What `roboscape_wm` loads: the tokenizer and the world models (local directories or Hub repo ids, or one world
+models repo that names them all), the baseline reward models and the goal similarity, each once per process."""
+
+from functools import lru_cache
+
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
+from lerobot_roboscape.hub.pull import pull_world_models, snapshot
+from lerobot_roboscape.reward.baselines import RewardModel
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.similarity import load_similarity
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+
+def load_pretrained(cls, ref: str, what: str, command: str):
+    """`cls.from_pretrained` of a local directory or a Hub repo id, with an error naming what is missing."""
+    path = snapshot(ref, what, f"train one with `{command}`")
+    if not (path / "config.json").is_file():
+        raise MissingInputError(
+            f"no {what} at {ref} (config.json missing); train one with `{command}` or give a Hub repo id"
+        )
+    return cls.from_pretrained(str(path))
+
+
+def model_refs(config) -> tuple[str, str, str | None, str]:
+    """Tokenizer, action model, text model (None when unused) and dataset repo id of a `roboscape_wm` config:
+    from its `world_models` repo, or given one by one."""
+    uses_text = config.goal_source == "text_model"
+    if config.world_models:
+        bundle = pull_world_models(config.world_models)
+        return (
+            str(bundle.tokenizer),
+            str(bundle.action_world_model),
+            str(bundle.text_world_model) if uses_text else None,
+            config.dataset_repo_id or bundle.dataset_repo_id,
+        )
+    if not config.dataset_repo_id:
+        raise InvalidInputError(
+            "roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
+            "world_models (a repo that names it)"
+        )
+    return (
+        config.tokenizer,
+        config.action_world_model,
+        config.text_world_model if uses_text else None,
+        config.dataset_repo_id,
+    )
+
+
+@lru_cache(maxsize=8)
+def load_models(tokenizer: str, action_model: str, text_model: str | None, device: str):
+    """Tokenizer and world models, loaded once per process (local directories or Hub repo ids)."""
+    loaded = [
+        load_pretrained(VisualTokenizer, tokenizer, "tokenizer", "roboscape-train-tokenizer"),
+        load_pretrained(STWorldModel, action_model, "action world model", "roboscape-train-wm --wm.control=action"),
+        load_pretrained(STWorldModel, text_model, "text world model", "roboscape-train-wm --wm.control=text")
+        if text_model
+        else None,
+    ]
+    return tuple(m.to(device).eval() if m is not None else None for m in loaded)
+
+
+@lru_cache(maxsize=4)
+def load_reward_model(ref: str | None, device: str) -> RewardModel:
+    if not ref:
+        raise InvalidInputError(
+            "reward_type embedding/proxy needs reward_model (train one with roboscape-train-reward)"
+        )
+    return load_pretrained(RewardModel, ref, "reward model", "roboscape-train-reward").to(device).eval()
+
+
+@lru_cache(maxsize=4)
+def load_reward_distance(kind: str, tokenizer: VisualTokenizer, weights: str | None, allow_random: bool, device: str):
+    return load_similarity(kind, tokenizer, tokenizer.config.lpips_net, weights, allow_random).to(device)
