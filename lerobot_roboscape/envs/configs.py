@@ -131,7 +131,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     features_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
-        from lerobot_roboscape.envs.world_model_env import GOAL_SOURCES
+        from lerobot_roboscape.envs.goal_bank import GOAL_SOURCES
         from lerobot_roboscape.tokenizer.similarity import SIMILARITIES
 
         if self.similarity not in SIMILARITIES:

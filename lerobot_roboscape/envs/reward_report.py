@@ -29,8 +29,9 @@ from torchmetrics.functional.classification import binary_auroc
 from lerobot_roboscape.dataset.reader import open_dataset, read_episode
 from lerobot_roboscape.envs.batched import EpisodeBook
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.envs.goal_bank import EpisodeStart, Goal
 from lerobot_roboscape.envs.loading import load_reward_model
-from lerobot_roboscape.envs.world_model_env import EpisodeStart, Goal, RoboscapeWorldModelEnv
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.clips import model_frames
 
@@ -98,7 +99,7 @@ def replay_rewards(
     k, steps = env.frame_skip, np.arange(1, start.horizon + 1)
     shown = np.minimum(steps // k, len(tokens_TS) - 1)  # the model frame seen after each control step
     paid = steps % k == 0
-    goal = env.decode(env.goals_for([start])[0])
+    goal = env.decode(env.goal_bank.goals_for([start])[0])
     per_step = []
     for chunk in np.array_split(shown, -(-len(shown) // 64)):  # bounded memory for long horizons
         frames = env.decode(tokens_TS[chunk])
@@ -130,7 +131,7 @@ def episode_rewards(
             generated, _ = env.action_model.generate(tokens[None, :1], len(tokens) - 1, actions=actions[None])
         tokens = torch.cat([tokens[:1], generated[0]])
     start = next(s for s in env.starts if s.episode_index == episode.index)
-    goal_tokens, _ = env.goals_for([start])
+    goal_tokens, _ = env.goal_bank.goals_for([start])
     decoded = env.decode(tokens)  # (T, n, 3, H, W)
     goal = env.decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
     done, features = teacher_forced_done(env, tokens, actions)
@@ -153,7 +154,7 @@ def goal_check(env: RoboscapeWorldModelEnv, episode, other: Goal | None = None) 
     from the same start under another family's instruction) whether the real final frame is nearer its own goal
     than that one; and the three images (3, n, 3, H, W): start, goal, real final frame, as the env decodes them."""
     start = next(s for s in env.starts if s.episode_index == episode.index)
-    goal = env.goal_of(start)
+    goal = env.goal_bank.goal_of(start)
     images = env.decode(torch.stack([start.first_tokens, goal.tokens, start.last_tokens]))
     goal_image = images[1:2].expand(2, -1, -1, -1, -1)
     to_start, to_final = env.reward_fn(images[[0, 2]], goal_image, torch.zeros(2, device=env.device)).distance.tolist()
@@ -201,9 +202,9 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     selected = [
         s.episode_index for s in env.starts if cfg.dataset.episodes is None or s.episode_index in cfg.dataset.episodes
     ][: cfg.max_episodes]
-    env.goals_for([s for s in env.starts if s.episode_index in selected])  # in full batches, not one by one
+    env.goal_bank.goals_for([s for s in env.starts if s.episode_index in selected])  # in full batches, not one by one
     swapped = other_family_starts(env, selected)
-    other_goals = dict(zip(swapped, env.generate_goals(list(swapped.values())), strict=True))
+    other_goals = dict(zip(swapped, env.goal_bank.generate(list(swapped.values())), strict=True))
     episodes, grid = [], []
     for index in selected:
         episode = read_episode(dataset, index)

@@ -19,20 +19,13 @@ B episodes run side by side on one device, stepped by one batched call of the ac
   A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
 """
 
-import json
 import logging
-import os
-import time
 from collections import Counter
-from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
 
 from lerobot_roboscape.dataset.reader import (
     action_range,
@@ -44,46 +37,33 @@ from lerobot_roboscape.dataset.reader import (
     read_frames,
 )
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
 from lerobot_roboscape.envs.loading import load_models, load_reward_distance, load_reward_model, model_refs
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
 
 logger = logging.getLogger(__name__)
-GOAL_SOURCES = ("text_model", "dataset_last_frame")
-# Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
-# starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.
-GOAL_BATCH = 8
 # The episode index of a start made from given frames (`reset(options={"frames": ...})`), not from the dataset.
 FROM_FRAMES = -1
 
 
-def goal_generation_seconds(path: Path) -> float | None:
-    """Seconds the text model spent generating the goals of a goal file (`goal_file`), when it recorded them."""
-    if not Path(path).is_file():
-        return None
-    with safe_open(str(path), "pt") as f:
-        seconds = f.metadata().get("seconds")
-    return None if seconds is None else float(seconds)
-
-
-class Goal(NamedTuple):
-    tokens: torch.Tensor  # (S,)
-    reached: bool  # the text model crossed theta (else its last generated frame is the goal)
-    steps: int  # frames generated up to the goal (0: the dataset's own last frame)
-
-
-@dataclass
-class EpisodeStart:
-    episode_index: int
-    task: str
-    first_tokens: torch.Tensor  # (S,)
-    last_tokens: torch.Tensor  # (S,)
-    facts: dict
-    horizon: int  # steps of an episode from this start
-
-
 class RoboscapeWorldModelEnv(BatchedEnv):
+    """B episodes of the world models, side by side.
+
+    **Observation:** {"pixels": {camera: (B, H, W, 3) uint8}}, the tokenizer's decoding of the current model frame,
+    every view the dataset has.
+    **Action:** (B, A) in [-1, 1], one control step; the action model reads a chunk of `frame_skip` of them.
+    **Reward:** paid at the last step of each chunk, 0 between: alpha x `sparse_reward` while done >= theta_sps,
+    plus beta x (1 - the similarity distance of the frame to its goal) (`WorldModelReward`); or a baseline reward
+    model's (`reward_type`).
+    **Episode end:** truncated at the start's horizon (its family's longest successful demonstration, or
+    `episode_length`); `is_success` once done >= theta at any step; with `terminate_on_success`, terminated there.
+    **Starts:** the first frames of a LeRobot dataset's episodes (filtered by family, split, scene, at most
+    `starts_per_scene` each), or frames given to `reset` (another env's first observation).
+    **Goals:** the goal bank's (`envs/goal_bank.py`): made once per start by the text model, or given to `reset`.
+    """
+
     def __init__(self, config, num_envs: int = 1):
         """config: a `RoboscapeWorldModelEnvConfig` (see envs/configs.py)."""
         self.config, self.num_envs = config, num_envs
@@ -138,9 +118,11 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     "success classifier (roboscape-train-reward --reward.kind=success)"
                 )
         self.starts, self.cameras, self.action_range = self._load_starts()
-        self._goal_cache: dict[int, Goal] = {}
+        self.goal_bank = GoalBank(
+            config, self.text_model, self.frame_skip, self.device, self.done_of, self.autocast, self._goal_settings()
+        )
         if config.goal_file and config.goal_source == "text_model":
-            self._use_goal_file(Path(config.goal_file))
+            self.goal_bank.use_file(Path(config.goal_file), self.starts)
 
         size, n = self.tokenizer.config.image_size, len(self.cameras)
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
@@ -244,23 +226,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             return model_done
         return self.success_classifier.success_probability(self.decode(tokens_BS) if images is None else images)
 
-    @torch.no_grad()
-    def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:
-        """Goal tokens (B, S) of these starts, generated once per start and cached; and whether the text model
-        crossed theta (when it never does, the last generated frame is the goal). `goal_of` has the details."""
-        missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self._goal_cache]
-        if missing and self.config.goal_source == "dataset_last_frame":
-            for s in missing:
-                self._goal_cache[s.episode_index] = Goal(s.last_tokens, True, 0)
-        elif missing:
-            self._generate_goals(missing)
-        goals = [self._goal_cache[s.episode_index] for s in starts]
-        return torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
-
-    def goal_of(self, start: EpisodeStart) -> Goal:
-        self.goals_for([start])
-        return self._goal_cache[start.episode_index]
-
     def _goal_settings(self) -> dict:
         """What a start's generated goal depends on, besides the start."""
         cfg = self.config
@@ -276,88 +241,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "precision": self.precision,
         }
 
-    def _use_goal_file(self, path: Path) -> None:
-        """Read the goals of `path`, generate every start's missing one and write them all back (atomically)."""
-        settings = self._goal_settings()
-        if path.is_file():
-            with safe_open(str(path), "pt", device=str(self.device)) as f:
-                made_with = json.loads(f.metadata()["settings"])
-                if made_with != settings:
-                    differ = {k: made_with.get(k) for k in settings if made_with.get(k) != settings[k]}
-                    raise InvalidInputError(
-                        f"goal file {path} was made with other settings {differ}; delete it or choose another "
-                        "--env.goal_file"
-                    )
-                indices, tokens = f.get_tensor("episode_index").tolist(), f.get_tensor("tokens")
-                reached, steps = f.get_tensor("reached").tolist(), f.get_tensor("steps").tolist()
-            for i, index in enumerate(indices):
-                self._goal_cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
-        missing = [s for s in self.starts if s.episode_index not in self._goal_cache]
-        if not missing:
-            return
-        started = time.perf_counter()
-        self._generate_goals(missing)
-        seconds = time.perf_counter() - started
-        logger.info("generated %d goals in %.0f s into %s", len(missing), seconds, path)
-        seconds += goal_generation_seconds(path) or 0.0
-        goals = sorted(self._goal_cache.items())
-        tensors = {
-            "episode_index": torch.tensor([index for index, _ in goals]),
-            "tokens": torch.stack([g.tokens for _, g in goals]).cpu(),
-            "reached": torch.tensor([g.reached for _, g in goals]),
-            "steps": torch.tensor([g.steps for _, g in goals]),
-        }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": str(seconds)})
-        os.replace(tmp, path)
-
-    def _generate_goals(self, starts: list[EpisodeStart]) -> None:
-        for s, goal in zip(starts, self.generate_goals(starts), strict=True):
-            self._goal_cache[s.episode_index] = goal
-
-    @torch.no_grad()
-    def generate_goals(self, starts: list[EpisodeStart]) -> list[Goal]:
-        """The text model's goal of each start under its `task`, generated now (not cached: a start given another
-        instruction gets the goal of that instruction)."""
-        goals = []
-        with self.autocast():
-            for chunk in range(0, len(starts), GOAL_BATCH):
-                goals += self._generate_goal_batch(starts[chunk : chunk + GOAL_BATCH])
-        return goals
-
-    def _generate_goal_batch(self, starts: list[EpisodeStart]) -> list[Goal]:
-        model, theta = self.text_model, self.config.theta
-        padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
-        prompt = torch.stack([s.first_tokens for s in padded])[:, None]
-        control = model.encode_control(instructions=[s.task for s in padded])
-        rollout = Rollout.start(model, prompt, control)
-        goal = prompt[:, 0].clone()
-        reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
-        k, max_frames = self.frame_skip, -(-self.config.max_goal_steps // self.frame_skip)  # steps -> frames
-        steps = torch.full((len(padded),), max_frames * k, device=prompt.device)
-        for frame_index in range(1, max_frames + 1):
-            frame, done = rollout.predict_next_frame(control)
-            done = self.done_of(frame, done)
-            newly = (done >= theta) & ~reached
-            goal[newly] = frame[newly]
-            goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
-            steps[newly] = frame_index * k
-            reached |= newly
-            if reached.all():
-                break
-        for i, s in enumerate(starts):
-            if not reached[i]:
-                logger.warning(
-                    "text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
-                    "its last generated frame is the goal",
-                    theta,
-                    self.config.max_goal_steps,
-                    s.episode_index,
-                    s.task,
-                )
-        return [Goal(goal[i], bool(reached[i]), int(steps[i])) for i in range(len(starts))]
-
     # ---- gymnasium API -------------------------------------------------------------------------------------
 
     def reset(self, *, seed=None, options=None):
@@ -370,7 +253,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             if options.get("goal_frames") is not None:
                 goal_tokens, reached = self._encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
             else:
-                goals = self.generate_goals(starts)
+                goals = self.goal_bank.generate(starts)
                 goal_tokens, reached = torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
         else:
             if "episode_index" in options:
@@ -381,7 +264,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 starts = [by_index[int(i)] for i in wanted]
             else:
                 starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
-            goal_tokens, reached = self.goals_for(starts)
+            goal_tokens, reached = self.goal_bank.goals_for(starts)
         first = torch.stack([s.first_tokens for s in starts])
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)

@@ -12,7 +12,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from lerobot_roboscape.envs.world_model_env import goal_generation_seconds
+from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES

@@ -7,8 +7,9 @@ from gymnasium.utils.env_checker import check_env
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
 from lerobot_roboscape.envs.batched import SingleEnv
+from lerobot_roboscape.envs.goal_bank import GoalBank, goal_generation_seconds
 from lerobot_roboscape.envs.reward_report import replay_rewards
-from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv, goal_generation_seconds
+from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
@@ -115,14 +116,14 @@ def test_goal_never_reached_is_explicit(env_config, caplog):
 def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monkeypatch):
     path = tmp_path / "goals.safetensors"
     env = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
-    assert path.is_file() and set(env._goal_cache) == {s.episode_index for s in env.starts}  # made at creation
+    assert path.is_file() and set(env.goal_bank.cache) == {s.episode_index for s in env.starts}  # made at creation
     assert goal_generation_seconds(path) > 0
     _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
 
     def no_generation(*args):
         raise AssertionError("goals were generated again")
 
-    monkeypatch.setattr(RoboscapeWorldModelEnv, "_generate_goals", no_generation)
+    monkeypatch.setattr(GoalBank, "_fill", no_generation)
     again = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
     _, info_again = again.reset(seed=0, options={"episode_index": [0, 2]})
     np.testing.assert_array_equal(info_again["goal"]["wrist"], info["goal"]["wrist"])
@@ -253,7 +254,7 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     for cam in env.cameras:
         assert np.array_equal(obs["pixels"][cam], expected[cam])
     assert not np.array_equal(obs["pixels"]["third_view"][0], obs["pixels"]["third_view"][1])
-    goals = env.generate_goals(env._starts)
+    goals = env.goal_bank.generate(env._starts)
     for cam in env.cameras:  # the goal of each start is the one made from its own frame
         assert np.array_equal(info["goal"][cam], env._pixels(env.decode(torch.stack([g.tokens for g in goals])))[cam])
     assert (info["episode_index"] == -1).all() and info["task"] == ["push the cube"] * 2

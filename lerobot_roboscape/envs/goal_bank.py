@@ -1,0 +1,173 @@
+"""The goal bank of `roboscape_wm`: the goal frame of each episode start, made once and kept. The text world model
+makes it from the start under the start's instruction, frame after frame, until its done signal crosses theta
+(the frame there is the goal; when it never does, the last frame generated); or it is the dataset episode's own
+last frame (goal_source="dataset_last_frame"). With a goal file, the goals outlive the process (safetensors, with
+the settings they were made with), so PPO's runs share one generation made before their clocks start."""
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.rollout import Rollout
+
+logger = logging.getLogger(__name__)
+GOAL_SOURCES = ("text_model", "dataset_last_frame")
+# Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
+# starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.
+GOAL_BATCH = 8
+
+
+def goal_generation_seconds(path: Path) -> float | None:
+    """Seconds the text model spent generating the goals of a goal file (`goal_file`), when it recorded them."""
+    if not Path(path).is_file():
+        return None
+    with safe_open(str(path), "pt") as f:
+        seconds = f.metadata().get("seconds")
+    return None if seconds is None else float(seconds)
+
+
+class Goal(NamedTuple):
+    tokens: torch.Tensor  # (S,)
+    reached: bool  # the text model crossed theta (else its last generated frame is the goal)
+    steps: int  # frames generated up to the goal (0: the dataset's own last frame)
+
+
+@dataclass
+class EpisodeStart:
+    episode_index: int
+    task: str
+    first_tokens: torch.Tensor  # (S,)
+    last_tokens: torch.Tensor  # (S,)
+    facts: dict
+    horizon: int  # steps of an episode from this start
+
+
+class GoalBank:
+    """Goals of the starts of one env: `goals_for` (cached, as PPO's episodes use them), `generate` (made now, as
+    a start from given frames needs), `use_file` (a goal file read, completed and written back)."""
+
+    def __init__(
+        self,
+        config,
+        text_model: STWorldModel | None,
+        frame_skip: int,
+        device: str,
+        done_of: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+        autocast: Callable,
+        settings: dict,
+    ):
+        """config: the env's `RoboscapeWorldModelEnvConfig` (goal_source, theta, max_goal_steps); done_of: the env's
+        done source, read on generated frames; settings: what a generated goal depends on besides its start."""
+        self.config, self.text_model, self.frame_skip, self.device = config, text_model, frame_skip, device
+        self.done_of, self.autocast, self.settings = done_of, autocast, settings
+        self.cache: dict[int, Goal] = {}
+
+    @torch.no_grad()
+    def goals_for(self, starts: list[EpisodeStart]) -> tuple[torch.Tensor, list[bool]]:
+        """Goal tokens (B, S) of these starts, generated once per start and cached; and whether the text model
+        crossed theta (when it never does, the last generated frame is the goal). `goal_of` has the details."""
+        missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self.cache]
+        if missing and self.config.goal_source == "dataset_last_frame":
+            for s in missing:
+                self.cache[s.episode_index] = Goal(s.last_tokens, True, 0)
+        elif missing:
+            self._fill(missing)
+        goals = [self.cache[s.episode_index] for s in starts]
+        return torch.stack([g.tokens for g in goals]), [g.reached for g in goals]
+
+    def goal_of(self, start: EpisodeStart) -> Goal:
+        self.goals_for([start])
+        return self.cache[start.episode_index]
+
+    def use_file(self, path: Path, starts: list[EpisodeStart]) -> None:
+        """Read the goals of `path`, generate every start's missing one and write them all back (atomically)."""
+        settings = self.settings
+        if path.is_file():
+            with safe_open(str(path), "pt", device=str(self.device)) as f:
+                made_with = json.loads(f.metadata()["settings"])
+                if made_with != settings:
+                    differ = {k: made_with.get(k) for k in settings if made_with.get(k) != settings[k]}
+                    raise InvalidInputError(
+                        f"goal file {path} was made with other settings {differ}; delete it or choose another "
+                        "--env.goal_file"
+                    )
+                indices, tokens = f.get_tensor("episode_index").tolist(), f.get_tensor("tokens")
+                reached, steps = f.get_tensor("reached").tolist(), f.get_tensor("steps").tolist()
+            for i, index in enumerate(indices):
+                self.cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
+        missing = [s for s in starts if s.episode_index not in self.cache]
+        if not missing:
+            return
+        started = time.perf_counter()
+        self._fill(missing)
+        seconds = time.perf_counter() - started
+        logger.info("generated %d goals in %.0f s into %s", len(missing), seconds, path)
+        seconds += goal_generation_seconds(path) or 0.0
+        goals = sorted(self.cache.items())
+        tensors = {
+            "episode_index": torch.tensor([index for index, _ in goals]),
+            "tokens": torch.stack([g.tokens for _, g in goals]).cpu(),
+            "reached": torch.tensor([g.reached for _, g in goals]),
+            "steps": torch.tensor([g.steps for _, g in goals]),
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": str(seconds)})
+        os.replace(tmp, path)
+
+    def _fill(self, starts: list[EpisodeStart]) -> None:
+        for s, goal in zip(starts, self.generate(starts), strict=True):
+            self.cache[s.episode_index] = goal
+
+    @torch.no_grad()
+    def generate(self, starts: list[EpisodeStart]) -> list[Goal]:
+        """The text model's goal of each start under its `task`, generated now (not cached: a start given another
+        instruction gets the goal of that instruction)."""
+        goals = []
+        with self.autocast():
+            for chunk in range(0, len(starts), GOAL_BATCH):
+                goals += self._generate_batch(starts[chunk : chunk + GOAL_BATCH])
+        return goals
+
+    def _generate_batch(self, starts: list[EpisodeStart]) -> list[Goal]:
+        model, theta = self.text_model, self.config.theta
+        padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
+        prompt = torch.stack([s.first_tokens for s in padded])[:, None]
+        control = model.encode_control(instructions=[s.task for s in padded])
+        rollout = Rollout.start(model, prompt, control)
+        goal = prompt[:, 0].clone()
+        reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
+        k, max_frames = self.frame_skip, -(-self.config.max_goal_steps // self.frame_skip)  # steps -> frames
+        steps = torch.full((len(padded),), max_frames * k, device=prompt.device)
+        for frame_index in range(1, max_frames + 1):
+            frame, done = rollout.predict_next_frame(control)
+            done = self.done_of(frame, done)
+            newly = (done >= theta) & ~reached
+            goal[newly] = frame[newly]
+            goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
+            steps[newly] = frame_index * k
+            reached |= newly
+            if reached.all():
+                break
+        for i, s in enumerate(starts):
+            if not reached[i]:
+                logger.warning(
+                    "text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
+                    "its last generated frame is the goal",
+                    theta,
+                    self.config.max_goal_steps,
+                    s.episode_index,
+                    s.task,
+                )
+        return [Goal(goal[i], bool(reached[i]), int(steps[i])) for i in range(len(starts))]
