@@ -183,13 +183,16 @@ def test_scene_listing(readme):
     assert scenes and (len(splits), splits.count("ood")) == (int(scenes[1]), int(scenes[2]))
 
 
-def test_scripts_readme():
-    """scripts/README.md describes every script beside it, and its links resolve."""
-    text = (ROOT / "scripts/README.md").read_text()
-    scripts = sorted(p.name for p in (ROOT / "scripts").glob("*.py"))
-    assert [name for name in scripts if f"`{name}`" not in text] == []
+@pytest.mark.parametrize("folder", ["scripts", "scripts/benchmarks", "scripts/experiments"])
+def test_scripts_readmes(folder):
+    """Each scripts folder's README describes every script beside it, and its links resolve."""
+    text = (ROOT / folder / "README.md").read_text()
+    scripts = sorted(p.name for p in (ROOT / folder).glob("*.py")) + sorted(
+        p.name for p in (ROOT / folder).glob("*.sh")
+    )
+    assert [name for name in scripts if f"`{name}`" not in text and name != "setup.sh"] == []
     links = [t for t in re.findall(r"\]\(([^)\s]+)\)", text) if not re.match(r"[a-z]+://|#", t)]
-    assert links and [t for t in links if not (ROOT / "scripts" / t).exists()] == []
+    assert links and [t for t in links if not (ROOT / folder / t).exists()] == []
 
 
 def test_python_blocks(readme):

@@ -225,7 +225,7 @@ def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):
 
 def test_soak_at_batch_64_is_finite_with_flat_memory(env_config):
     """300 steps of 64 episodes (resets included): finite outputs, and the resident memory stops growing once the
-    first episodes have filled the caches (scripts/soak_world_model_env.py prints the curve)."""
+    first episodes have filled the caches (scripts/benchmarks/soak_world_model_env.py prints the curve)."""
     import psutil
 
     env = RoboscapeWorldModelEnv(env_config(episode_length=50, temperature=1.0, similarity="lpips"), num_envs=64)

@@ -7,17 +7,19 @@ splits asked for at the last one) with `roboscape-eval`'s code, so a run gives i
 one training. An evaluation-only habit (executing a chunk, a binary gripper) is evaluated on a copy of a trained
 checkpoint whose config says so, without training again.
 
-    python scripts/sft_curve.py --dataset outputs/bench/datasets/roboscape_demos --out outputs/sft_curve \
+    python scripts/experiments/sft_curve.py --dataset outputs/bench/datasets/roboscape_demos --out outputs/sft_curve \
         --runs shift:all shift:8 --steps 6000 --checkpoints 3 --episodes 50 --final_splits ind ood
 
 A run is VARIANT:DEMOS (DEMOS per scene, or "all"); finished trainings and evaluations are not redone. The table
 (sft_curve.md), the figure (sft_curve.png) and every number (sft_curve.json) are written under --out.
 
-    python scripts/sft_curve.py --targets outputs/sft_curve/eval/<run>/<steps>/eval.json --out docs/results/sft
+    python scripts/experiments/sft_curve.py --targets outputs/sft_curve/eval/<run>/<steps>/eval.json \
+        --out docs/results/sft
 
 writes the bench report's SFT target rows of one evaluation (IND, with OOD beside) to results.json, and
 
-    python scripts/sft_curve.py --merge outputs/sft_habits/sft_curve.json outputs/sft_curve/sft_curve.json --out DIR
+    python scripts/experiments/sft_curve.py --merge outputs/sft_habits/sft_curve.json \
+        outputs/sft_curve/sft_curve.json --out DIR
 
 one table and figure of several runs' sft_curve.json.
 """

@@ -6,8 +6,8 @@ in one run.
 mesh (tasks/wrist_camera_mesh.py) and spreads the envs over one worker process per core (envs/simulator_slots.py).
 The policy is the roboscape_mlp at its default size with its processors (untrained: its cost is the same).
 
-    python scripts/benchmark_simulator.py                    # profile, then the three benchmarks
-    python scripts/benchmark_simulator.py --only profile eval
+    python scripts/benchmarks/benchmark_simulator.py                    # profile, then the three benchmarks
+    python scripts/benchmarks/benchmark_simulator.py --only profile eval
 """
 
 import argparse
@@ -205,7 +205,7 @@ def bench_eval(policy_path: Path, image_size: int, batches: int, episode_length:
 
 
 def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int, episode_length: int) -> None:
-    from benchmark_ppo import measure  # the PPO throughput of scripts/benchmark_ppo.py, beside this file
+    from benchmark_ppo import measure  # the PPO throughput of scripts/benchmarks/benchmark_ppo.py, beside this file
 
     from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 

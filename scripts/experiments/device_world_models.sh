@@ -2,8 +2,8 @@
 # The bench world models at the BENCH_ON_GPU size on a lent GPU machine (the `device` tool), from the token caches
 # of a reduced-scale run here: docs/results/world_model/report.md, "Trained on a GPU".
 #
-#   bash scripts/device_world_models.sh pack outputs/wm37    # here: assemble .gpu/ (carry it), about 37 MB
-#   bash scripts/device_world_models.sh run OUT ACTION_STEPS TEXT_STEPS BATCH ACTION_LIMIT_S TEXT_LIMIT_S  # there
+#   bash scripts/experiments/device_world_models.sh pack outputs/wm37    # here: assemble .gpu/ (carry it), about 37 MB
+#   bash scripts/experiments/device_world_models.sh run OUT ACTION_STEPS TEXT_STEPS BATCH ACTION_LIMIT_S TEXT_LIMIT_S  # there
 #
 # The GPU image has PyTorch but not LeRobot's data stack: `pack` copies the pure-Python packages the training imports
 # from .venv, and a stand-in for PyAV (never called: training reads the token cache, not videos). The datasets'

@@ -2,7 +2,7 @@
 --run-dir): the targets as rows of the bench report's (`pipeline/report.py: world_model_targets`) in
 results.json, a targets table on stdout, and the figures copied beside them.
 
-    python scripts/world_model_report.py --run-dir outputs/bench --out docs/results/world_model
+    python scripts/experiments/world_model_report.py --run-dir outputs/bench --out docs/results/world_model
 
 With --agreement (a `roboscape-eval-agreement` output folder, OOD) and --open-loop-rewards (a reward_report.json of
 `roboscape-reward-report --frames=open_loop`), the rows of whether the world model judges policies as the

@@ -6,7 +6,7 @@ bounded by the starts).
 Uses the models and dataset of a pipeline run (`roboscape-demo`: tiny models; --demo-dir=outputs/bench: the bench
 scale's 16x16-grid models).
 
-    python scripts/soak_world_model_env.py --demo-dir outputs/bench --batch-size 64 --steps 300
+    python scripts/benchmarks/soak_world_model_env.py --demo-dir outputs/bench --batch-size 64 --steps 300
 """
 
 import argparse

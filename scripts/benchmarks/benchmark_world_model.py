@@ -11,8 +11,9 @@ Two references, measured in the same run as ours:
 Each starts from a full window (window - 1 prompt frames for ours) and the rate is that of the frames after the first
 (`marginal_rate`): the steady state of a long rollout, without the one-time reading of the prompt.
 
-    python scripts/benchmark_world_model.py      # tiny preset at window 16 on CPU (and the paper preset on a GPU)
-    python scripts/benchmark_world_model.py --paper-code ~/1xgpt --batch-sizes 1 16 --config \
+    # the tiny preset at window 16 on CPU (and the paper preset on a GPU)
+    python scripts/benchmarks/benchmark_world_model.py
+    python scripts/benchmarks/benchmark_world_model.py --paper-code ~/1xgpt --batch-sizes 1 16 --config \
         '{"n_layer": 4, "n_head": 4, "d_model": 256, "n_cameras": 1, "tokens_per_side": 16, "window": 16}'
 """
 

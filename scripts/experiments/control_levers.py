@@ -12,9 +12,9 @@ trains a null control: decoding levers need no training of their own.
 under bf16 autocast (roboscape_wm's `precision`) and with one MaskGIT pass: retrieval over 64 starts, and the
 share of float32's rollout tokens each keeps.
 
-    python scripts/control_levers.py run --world motion --variant adaln_one_plus --minutes 10
-    python scripts/control_levers.py report
-    python scripts/control_levers.py precision --threads 2
+    python scripts/experiments/control_levers.py run --world motion --variant adaln_one_plus --minutes 10
+    python scripts/experiments/control_levers.py report
+    python scripts/experiments/control_levers.py precision --threads 2
 """
 
 import argparse

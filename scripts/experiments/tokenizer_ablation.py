@@ -3,7 +3,7 @@ the held-out OOD frames (tokenizer/report.py) every few steps; the table gives e
 view and its wall time. Variants run side by side, one process and one torch thread each (a 2-core machine runs
 two at a time, as fast per variant as one alone with two threads).
 
-    python scripts/tokenizer_ablation.py --train outputs/bench/datasets/roboscape_demos \
+    python scripts/experiments/tokenizer_ablation.py --train outputs/bench/datasets/roboscape_demos \
         --heldout outputs/bench/datasets/roboscape_heldout --steps 1500 --out outputs/tokenizer_ablation \
         --variants l1 object_w20 entropy_0.02
 

@@ -4,7 +4,7 @@ of the clipped objective on the sampled tokens), LoRA r=32, 224 px, with and wit
 On a GPU the default is the published 7B architecture with random weights (`random-7b`, nothing to download;
 the same compute as openvla/openvla-7b) in bf16 at batch 8; on CPU the tiny preset in fp32.
 
-    python scripts/benchmark_openvla.py [--base-model random-7b|tiny|openvla/openvla-7b] [--batch-size 8]
+    python scripts/benchmarks/benchmark_openvla.py [--base-model random-7b|tiny|openvla/openvla-7b] [--batch-size 8]
 """
 
 import argparse

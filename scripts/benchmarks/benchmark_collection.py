@@ -1,6 +1,6 @@
 """Collection and conversion throughput, side by side with ManiSkill's own motion-planning runner.
 
-    .venv/bin/python scripts/benchmark_collection.py --episodes 8 --image-size 64
+    .venv/bin/python scripts/benchmarks/benchmark_collection.py --episodes 8 --image-size 64
 
 Prints, in one run:
 - roboscape-collect: episodes/min and frames/s (both cameras rendered and stored), pick&place, `--workers`.
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import h5py
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def bench_collect(tmp: Path, episodes: int, image_size: int, workers: int) -> dict:

@@ -2,7 +2,8 @@
 checkpoint, one per (name, policy_lr, target_kl), printing each iteration's training success, return, approximate KL
 and clip fraction (docs/results/bench/ppo_learning_rate.md).
 
-    python scripts/ppo_lr_sweep.py --sft outputs/sft_curve/policies/shift_chunk8_exec4_gripper_demosall/15000 \\
+    python scripts/experiments/ppo_lr_sweep.py \\
+        --sft outputs/sft_curve/policies/shift_chunk8_exec4_gripper_demosall/15000 \\
         lr3e-4_kl0.05:3e-4:0.05 lr3e-5:3e-5:none lr1e-4:1e-4:none
 """
 

@@ -8,9 +8,9 @@ scale's 16x16-grid models). `--random-preset bench --frame-skips 1 4` instead ti
 each frame skip k (speed does not depend on the weights), on the run's dataset, goals from its last frames: env
 steps are control steps, and the model makes a frame every k of them.
 
-    python scripts/benchmark_envs.py --batch-sizes 1 16 --steps 20
-    python scripts/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
-    python scripts/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40 \
+    python scripts/benchmarks/benchmark_envs.py --batch-sizes 1 16 --steps 20
+    python scripts/benchmarks/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
+    python scripts/benchmarks/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40 \
         --precisions float32 bfloat16
 """
 

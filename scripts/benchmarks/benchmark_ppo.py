@@ -2,7 +2,7 @@
 `roboscape_maniskill` (the simulator) at the same batch and image size: env steps/s of the rollout alone and of
 whole PPO iterations (rollout + update). Needs a `roboscape-demo` run (its SFT MLP and models).
 
-    python scripts/benchmark_ppo.py --batch-sizes 8 16 --episode-length 40 --iterations 2
+    python scripts/benchmarks/benchmark_ppo.py --batch-sizes 8 16 --episode-length 40 --iterations 2
 """
 
 import argparse

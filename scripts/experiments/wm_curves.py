@@ -2,7 +2,8 @@
 controllability set against training minutes, from each run's heldout_curve.jsonl (`roboscape-train-wm
 --heldout_control...`). Writes OUT/wm_curves.png and prints a markdown table of each run at every point.
 
-    python scripts/wm_curves.py outputs/wm37/wm_share0 outputs/wm37/wm_share0.5 --out docs/results/world_model
+    python scripts/experiments/wm_curves.py outputs/wm37/wm_share0 outputs/wm37/wm_share0.5 \
+        --out docs/results/world_model
 """
 
 import argparse
