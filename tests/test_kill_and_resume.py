@@ -19,7 +19,8 @@ from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.errors import OutputExistsError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
-from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.tokenizer.token_cache import open_token_cache
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training import read_curve

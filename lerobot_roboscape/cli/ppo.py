@@ -12,7 +12,8 @@ import logging
 import draccus
 
 from lerobot_roboscape.cli import one_line_errors
-from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.ppo import train_ppo
 
 
 @one_line_errors("roboscape-ppo")

@@ -36,7 +36,8 @@ from lerobot_roboscape.pipeline.methods import (
 )
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
 from lerobot_roboscape.pipeline.stages import Datasets
-from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.tasks import select_scenes
 
 # ---- policies ----------------------------------------------------------------------------------------------------

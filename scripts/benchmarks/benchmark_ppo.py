@@ -12,10 +12,10 @@ from pathlib import Path
 import torch
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import (
     ActionScorer,
-    PPOConfig,
     RunningReturnStats,
     collect_rollout,
     make_optimizer,

@@ -8,7 +8,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from lerobot_roboscape.rl.ppo import PPOConfig, train_ppo
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.ppo import train_ppo
 from tests.conftest import IMAGE_SIZE
 from tests.harness import assert_same_weights, command, kill_when, rerun
 
