@@ -95,7 +95,7 @@ BAD_FLAGS = {
     "env: unknown similarity": (
         agreement_cli,
         ["--policy_paths=[p]", "--env.text_world_model=t", "--env.similarity=cosine"],
-        "similarity must be one of ('auto', 'lpips', 'tokenizer'), got 'cosine'",
+        "similarity must be one of ('auto', 'lpips', 'tokenizer', 'pixel'), got 'cosine'",
     ),
     "env: classifier done without a classifier": (
         agreement_cli,

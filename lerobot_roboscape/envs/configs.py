@@ -65,8 +65,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         beta: weight of the dense (similarity) reward.
         sparse_reward: value of the sparse reward, paid at every step while done >= theta_sps.
         similarity: the dense reward's distance to the goal: "lpips" (the paper's), "tokenizer" (features of the
-            project's own tokenizer encoder, needs no download) or "auto" (lpips when its trunk weights are
-            present, else tokenizer).
+            project's own tokenizer encoder, needs no download), "pixel" (mean squared pixel difference, a
+            baseline) or "auto" (lpips when its trunk weights are present, else tokenizer).
         episode_length: the fixed horizon of every episode; null: per task family, the longest successful
             episode of that family in the dataset.
         terminate_on_success: end an episode when done >= theta, paying the rest of its horizon at the most a step

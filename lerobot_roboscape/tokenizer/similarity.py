@@ -19,7 +19,7 @@ from lerobot_roboscape.perceptual import default_trunk_path, load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
 logger = logging.getLogger(__name__)
-SIMILARITIES = ("auto", "lpips", "tokenizer")  # of the env's reward (`load_similarity`)
+SIMILARITIES = ("auto", "lpips", "tokenizer", "pixel")  # of the env's reward (`load_similarity`)
 
 
 def _unit_channels(x: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
@@ -61,6 +61,17 @@ class TokenizerPerceptualDistance(nn.Module):
         return torch.stack(per_stage).mean(0).view(-1, 1, 1, 1)
 
 
+class PixelDistance(nn.Module):
+    """The plainest offline distance, a baseline for the perceptual ones: the mean squared difference of the two
+    images' pixels, (B, 3, H, W) in [-1, 1] -> (B, 1, 1, 1) in [0, 1]."""
+
+    name = "pixel"
+
+    @torch.no_grad()
+    def forward(self, images0: torch.Tensor, images1: torch.Tensor) -> torch.Tensor:
+        return ((images0 - images1).pow(2).mean((1, 2, 3)) / 4).view(-1, 1, 1, 1)
+
+
 def load_similarity(
     kind: str,
     tokenizer: VisualTokenizer | None,
@@ -78,6 +89,7 @@ def load_similarity(
             `allow_random_lpips`. "tokenizer": `TokenizerPerceptualDistance` on `tokenizer`'s encoder. "auto": LPIPS
             when its trunk weights are found (`lpips_weights`, else the torch hub cache), else the tokenizer
             distance; it never picks a random trunk, and a named `lpips_weights` that is missing is an error.
+            "pixel": `PixelDistance`, the mean squared pixel difference (a baseline; no trunk at all).
         tokenizer: the trained tokenizer; needed by "tokenizer", and by "auto" when no LPIPS weights are found.
         lpips_net: LPIPS trunk, "alex" or "vgg".
         lpips_weights: torchvision's trunk weights (.pth or .safetensors); default: the torch hub cache.
@@ -95,6 +107,8 @@ def load_similarity(
             logger.info("Perceptual similarity (auto): tokenizer features (no LPIPS weights at %s)", cached)
     if kind == "lpips":
         return load_lpips(lpips_net, lpips_weights, allow_random_lpips)
+    if kind == "pixel":
+        return PixelDistance()
     if tokenizer is None:
         raise InvalidInputError("the tokenizer similarity needs a trained tokenizer, got None")
     return TokenizerPerceptualDistance(tokenizer)

@@ -10,7 +10,7 @@ from lerobot_roboscape.dataset.reader import episode_indices, read_episode
 from lerobot_roboscape.perceptual import TRUNK_FILES, LPIPSTrunkMissingError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance, load_similarity
+from lerobot_roboscape.tokenizer.similarity import PixelDistance, TokenizerPerceptualDistance, load_similarity
 from tests.conftest import IMAGE_SIZE, TEST_TOKENIZER
 
 
@@ -52,6 +52,17 @@ def test_a_random_tokenizer_still_gives_a_metric():
     assert (d[1] > 0).all() and (d[1] < d[2]).all() and (d[2] < d[3]).all() and (d[3] <= 1).all()
     other = (images + 0.2 * noise).clamp(-1, 1)
     assert torch.equal(metric(images, other), metric(other, images))
+
+
+def test_pixel_distance_is_the_scaled_mean_squared_difference():
+    metric = load_similarity("pixel", None)
+    assert isinstance(metric, PixelDistance) and metric.name == "pixel"
+    black, white = -torch.ones(2, 3, 8, 8), torch.ones(2, 3, 8, 8)
+    half = black.clone()
+    half[..., :4] = 1  # half of every image's pixels flipped from black to white
+    assert metric(black, black).flatten().tolist() == [0.0, 0.0]
+    assert metric(black, white).flatten().tolist() == [1.0, 1.0]  # the farthest two images in [-1, 1] are
+    assert metric(black, half).flatten().tolist() == [0.5, 0.5]
 
 
 def test_auto_picks_lpips_only_when_its_weights_are_found(tmp_path, monkeypatch, caplog):
