@@ -30,6 +30,7 @@ from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_f
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
+from lerobot_roboscape.records import write_video
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
     check_policy_fits_env,
@@ -260,8 +261,6 @@ def settings_of(cfg: AgreementConfig, path: str) -> dict:
 
 
 def evaluate_policy(cfg: AgreementConfig, k: int, path: str, sim, wm, device: str, goals: dict | None) -> dict:
-    from lerobot_roboscape.records import write_video
-
     out = cfg.output_dir / f"policy_{k}"
     settings = settings_of(cfg, path)
     if (out / SUMMARY).is_file():

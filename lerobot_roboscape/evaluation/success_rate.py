@@ -14,6 +14,7 @@ from tqdm import tqdm
 from lerobot_roboscape.atomic import write_text_atomically
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from lerobot_roboscape.records import write_video
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training import resolve_device
@@ -204,7 +205,6 @@ def evaluate_success(cfg: EvalConfig, slots=None) -> dict:
 def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots, policy, io: PolicyIO) -> dict:
     """{family: cell, "all": cell} of one split, its episodes run in batches on `slots`."""
     from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
-    from lerobot_roboscape.records import write_video
 
     env = RoboscapeManiSkillEnv(env_cfg, num_envs=eval_batch_size(cfg), slots=slots)
     outcomes = {family: [] for family in env_cfg.families}
