@@ -49,6 +49,18 @@ def test_cache_is_reused_and_rebuilt_when_an_input_changes(demo_dataset, trained
         open_token_cache(token_cache.root, dataset_fingerprint(root), tokenizer_fingerprint(tokenizer))
 
 
+def test_dataset_fingerprint_reads_the_dataset_not_what_lies_beside_it(demo_dataset, tmp_path):
+    _, root = demo_dataset
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    fingerprint = dataset_fingerprint(copy)
+    (copy / "stage.json").write_text('{"seconds": 12.5}')  # a pipeline's record of the run that wrote it
+    assert dataset_fingerprint(copy) == fingerprint
+    info = json.loads((copy / "meta" / "info.json").read_text())
+    (copy / "meta" / "info.json").write_text(json.dumps(info | {"fps": info["fps"] + 1}))
+    assert dataset_fingerprint(copy) != fingerprint
+
+
 def test_mismatched_or_broken_cache_is_named(token_cache, demo_dataset, tmp_path):
     with pytest.raises(TokenCacheMismatchError, match="different dataset"):
         open_token_cache(token_cache.root, dataset_fp="0" * 64)
