@@ -104,10 +104,10 @@ def trained_tokenizer(demo_dataset, tmp_path_factory):
     """Directory of a tokenizer trained for a few steps on `demo_dataset` (through the real training loop)."""
     from lerobot.configs.default import DatasetConfig
 
-    from lerobot_roboscape.checkpoints import FINAL
     from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
     from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
-    from lerobot_roboscape.training import TrainingConfig
+    from lerobot_roboscape.training.checkpoints import FINAL
+    from lerobot_roboscape.training.loop import TrainingConfig
 
     _, root = demo_dataset
     out = tmp_path_factory.mktemp("tokenizer")
@@ -158,7 +158,7 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     """{"action": dir, "text": dir} of tiny world models trained for a few steps on `demo_dataset`."""
     import draccus
 
-    from lerobot_roboscape.checkpoints import FINAL
+    from lerobot_roboscape.training.checkpoints import FINAL
     from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
     _, root = demo_dataset

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.dataset.segmentation import OBJECT
-from lerobot_roboscape.image_fidelity import codebook_use, dilate, frame_measures, summarize
+from lerobot_roboscape.metrics.image_fidelity import codebook_use, dilate, frame_measures, summarize
 
 TABLE, CUBE = torch.tensor([0.6, 0.4, 0.2]), torch.tensor([0.8, 0.1, 0.1])
 

@@ -11,7 +11,6 @@ import pytest
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.dataset import EPISODES_SIDECAR
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
@@ -23,7 +22,8 @@ from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.tokenizer.token_cache import open_token_cache
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
-from lerobot_roboscape.training import read_curve
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.training.loop import read_curve
 from lerobot_roboscape.world_model.train import prepare_token_cache
 from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
 from tests.harness import assert_same_weights, command, kill_when, rerun

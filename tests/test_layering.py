@@ -8,17 +8,12 @@ import lerobot_roboscape
 # The library's folders and top-level modules, upstream first.
 STAGES = [
     "errors",
-    "atomic",
-    "weights",
-    "checkpoints",
-    "records",
-    "actor_critic",
-    "training",
-    "perceptual",  # shared foundations
+    "io",
+    "training",  # shared foundations
     "tasks",
     "dataset",
     "demos",
-    "image_fidelity",  # measures on the datasets' frames and masks, for the models' reports
+    "metrics",  # measures on the datasets' frames and masks, for the models' reports
     "tokenizer",
     "world_model",
     "reward",

@@ -10,9 +10,9 @@ import logging
 
 import draccus
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.training.checkpoints import FINAL
 
 
 @one_line_errors("roboscape-train-reward")

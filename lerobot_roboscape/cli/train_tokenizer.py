@@ -8,9 +8,9 @@ import logging
 
 import draccus
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training.checkpoints import FINAL
 
 
 @one_line_errors("roboscape-train-tokenizer")

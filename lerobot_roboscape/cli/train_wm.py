@@ -13,8 +13,8 @@ import logging
 
 import draccus
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 

@@ -11,13 +11,13 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
-from lerobot_roboscape.atomic import make_tmp_dir
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.writer import check_target, write_dataset
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
 from lerobot_roboscape.demos.planner import KINDS
 from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from lerobot_roboscape.io.atomic import make_tmp_dir
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.tasks.base import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 

@@ -3,7 +3,6 @@
 import json
 from pathlib import Path
 
-import jinja2
 from huggingface_hub import DatasetCard, ModelCard
 from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 from lerobot.datasets.utils import create_lerobot_dataset_card
@@ -11,6 +10,7 @@ from safetensors import safe_open
 
 from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.errors import MissingInputError
+from lerobot_roboscape.io import templates
 
 LICENSE = "apache-2.0"
 DATASET_TAGS = ["robotics", "roboscape", "maniskill"]
@@ -25,11 +25,7 @@ def templates_dir() -> Path:
 
 
 def render(template: str, **fields) -> str:
-    # StrictUndefined: a field the caller forgot is an error here, not an empty line on the Hub.
-    env = jinja2.Environment(
-        undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True
-    )
-    return env.from_string((templates_dir() / template).read_text()).render(**fields)
+    return templates.render(templates_dir(), template, **fields)
 
 
 def model_card(template: str, **fields) -> ModelCard:

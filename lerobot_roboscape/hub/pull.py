@@ -12,7 +12,7 @@ from huggingface_hub import constants, snapshot_download
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, RepositoryNotFoundError
 
 from lerobot_roboscape.errors import MissingInputError
-from lerobot_roboscape.weights import looks_like_repo_id
+from lerobot_roboscape.io.weights import looks_like_repo_id
 
 WORLD_MODELS_MANIFEST = "roboscape_wm.json"
 

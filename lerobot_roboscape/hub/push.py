@@ -26,7 +26,7 @@ from lerobot_roboscape.hub.cards import (
     read_json,
 )
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
-from lerobot_roboscape.weights import looks_like_repo_id
+from lerobot_roboscape.io.weights import looks_like_repo_id
 
 WORLD_MODEL_FOLDERS = {
     "tokenizer": "tokenizer",

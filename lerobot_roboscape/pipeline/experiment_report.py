@@ -25,10 +25,10 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     SFT,
 )
-from lerobot_roboscape.pipeline.report import machine, targets_table
+from lerobot_roboscape.pipeline.report import machine, render_report
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
-from lerobot_roboscape.records import read_history
+from lerobot_roboscape.training.records import read_history
 
 matplotlib.use("Agg")
 
@@ -157,18 +157,21 @@ def step_times(out: Path, runs: list[dict]) -> dict[str, float]:
     return {k: round(v, 1) for k, v in times.items()}
 
 
-def _cell(cell: dict) -> str:
+def cell(cell: dict) -> str:
     low, high = (100 * v for v in cell["ci95"])
     return f"{cell['successes']}/{cell['episodes']} ({100 * cell['success_rate']:.0f}% [{low:.0f}, {high:.0f}])"
 
 
-def _difference(d: dict) -> str:
+def difference(d: dict) -> str:
     low, high = d["ci95"]
     text = f"{100 * d['difference']:+.0f} [{100 * low:+.0f}, {100 * high:+.0f}]"
     if d.get("paired_ci95"):
         low, high = d["paired_ci95"]
         text += f" paired [{100 * low:+.0f}, {100 * high:+.0f}]"
     return text
+
+
+FILTERS = {"cell": cell, "difference": difference}  # beside the run report's
 
 
 def protocol(cfg) -> str:
@@ -208,123 +211,39 @@ def protocol(cfg) -> str:
 
 
 def markdown(cfg, summary: dict) -> str:
-    p, table, targets = cfg.pipeline, summary["table"], summary["targets"]
-    lines = [
-        f"# The paper's claim at the {p.scale} scale: PPO in the world model against SFT and PPO in the simulator",
-        "",
-        f"{summary['machine']}; {summary['date']}. Regenerate with `{command(cfg)}` (a rerun skips the steps "
-        "already complete). The stages before PPO (tokenizer, world models, done, reward, SFT) have their own "
-        "reports: " + ", ".join(f"[{k}]({_relative(v, cfg.report_dir)})" for k, v in UPSTREAM_REPORTS.items()) + ".",
-        "",
-        "## Protocol",
-        "",
-        protocol(cfg),
-        "",
-        "## Targets",
-        "",
-        *targets_table(targets),
-        "",
-        "## Table 1",
-        "",
-        format_table(table, p.families, f"{p.scale} scale", with_paper=True),
-        "Paper rows in italics: the paper's Table 1 (MLP, 80 scenes, its own world models).",
-        "",
-        "![Table 1](tables.png)",
-        "",
-        "PPO in the world model minus each other method, percentage points [95% interval, unpaired] and, where "
-        "the episodes are kept, paired [95% interval over the same initial states]:",
-        "",
-        "| against | split | " + " | ".join(SHORT.get(f, f) for f in p.families) + " | all |",
-        "|---|---|" + "---:|" * (len(p.families) + 1),
-    ]
+    p, table = cfg.pipeline, summary["table"]
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
-    for policy in table:
-        for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
-            for split in ("ind", "ood"):
-                if (policy, other, split, "all") in by:
-                    cells = [_difference(by[policy, other, split, f]) for f in [*p.families, "all"]]
-                    lines.append(f"| {other} | {split.upper()} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "## PPO runs",
-        "",
-        "| method | iterations | PPO clock (min) | decisions | return, first / last 3 iterations | success in its "
-        "own env, first / last 3 |",
-        "|---|---:|---:|---:|---:|---:|",
+    difference_rows = [
+        (other, split.upper(), [by[policy, other, split, f] for f in [*p.families, "all"]])
+        for policy in table
+        for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL)
+        for split in ("ind", "ood")
+        if (policy, other, split, "all") in by
     ]
-    for run in summary["ppo_runs"]:
-        lines.append(
-            f"| {run['method']} | {run['iterations']} | {run['ppo_seconds'] / 60:.1f} | {run['decisions']} | "
-            f"{run['first_return']:.2f} / {run['last_return']:.2f} | {run['first_success']:.2f} / "
-            f"{run['last_success']:.2f} |"
-        )
-    lines += [
-        "",
-        "A decision is one look of the policy: it executes the actions of its chunk that evaluation executes (the "
-        "MLP: 4). Each run's "
-        "success and return are measured in its own env (in the world model, by its done signal):",
-        "",
-        "![PPO curves](ppo_curves.png)",
-        "",
-        "Along the world-model run: its return in the world model, and the simulator success (OOD, "
-        f"{summary['curve'][0]['episodes']} episodes, initial states apart from Table 1's) of the checkpoint it "
-        "saved every few iterations:",
-        "",
-        "![curve](curve.png)",
-        "",
-        "| iteration | PPO clock (min) | OOD success in the simulator |",
-        "|---:|---:|---:|",
-        *(f"| {c['iteration']} | {c['seconds'] / 60:.1f} | {_cell(c)} |" for c in summary["curve"]),
-    ]
-    if any(summary["reward_ablation"].values()):
-        lines += [
-            "",
-            "## Reward ablation",
-            "",
-            "PPO in the world model paid one reward term, at the same budget, OOD (the full reward's row from "
-            "Table 1):",
-            "",
-            "| reward | " + " | ".join(f"OOD {SHORT.get(f, f)}" for f in p.families) + " | OOD all |",
-            "|---|" + "---:|" * (len(p.families) + 1),
-        ]
+    ablation_rows = []
     for policy, methods in summary["reward_ablation"].items():
-        if not methods:
-            continue
-        rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
-            m.split(", ")[1]: s["ood"] for m, s in methods.items()
-        }
-        for name, cells in rows.items():
-            lines.append(f"| {name} | " + " | ".join(_cell(cells[f]) for f in [*p.families, "all"]) + " |")
+        if methods:
+            rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
+                m.split(", ")[1]: s["ood"] for m, s in methods.items()
+            }
+            ablation_rows += [(name, [cells[f] for f in [*p.families, "all"]]) for name, cells in rows.items()]
     replays = summary["replays"]
-    agree = sum(r["world_model_success"] == r["simulator_success"] for r in replays)
-    lines += [
-        "",
-        "## The world model's rollouts replayed in the simulator",
-        "",
-        f"The policy after PPO in the world model, rolled out in `roboscape_wm` from {len(replays)} training starts, "
-        "and the same actions replayed open loop in the simulator from the same scene and initial state. Each "
-        "strip: frames evenly spaced in time, each frame the world model's (both views) | its goal | the "
-        f"simulator's. The two worlds agree on the outcome in {agree} of {len(replays)}:",
-        "",
-        "![replays](replay.png)",
-        "",
-        "| start | family | scene | world-model return | world-model success | simulator success | video |",
-        "|---:|---|---|---:|:---:|:---:|---|",
-        *(
-            f"| {r['episode_index']} | {r['family']} | {r['scene']} | {r['world_model_return']:.2f} | "
-            f"{'yes' if r['world_model_success'] else 'no'} | {'yes' if r['simulator_success'] else 'no'} | "
-            f"[{r['video']}](videos/{r['video']}) |"
-            for r in replays
-        ),
-        "",
-        "## Time of each step",
-        "",
-        "| step | minutes |",
-        "|---|---:|",
-        *(f"| {step} | {seconds / 60:.1f} |" for step, seconds in summary["seconds"].items()),
-        "",
-    ]
-    return "\n".join(lines)
+    return render_report(
+        "claim_report.md",
+        FILTERS,
+        p=p,
+        summary=summary,
+        targets=summary["targets"],
+        command=command(cfg),
+        upstream={name: _relative(path, cfg.report_dir) for name, path in UPSTREAM_REPORTS.items()},
+        protocol=protocol(cfg),
+        table=format_table(table, p.families, f"{p.scale} scale", with_paper=True),
+        short=SHORT,
+        difference_rows=difference_rows,
+        ablation_rows=ablation_rows,
+        replays=replays,
+        agree=sum(r["world_model_success"] == r["simulator_success"] for r in replays),
+    )
 
 
 def command(cfg) -> str:
@@ -358,16 +277,14 @@ def _relative(path: str, report_dir: str) -> str:
 def readme_block(cfg, summary: dict) -> str:
     """The README's results: the claim's targets and Table 1, with the machine and the command."""
     p = cfg.pipeline
-    lines = [
-        f"Measured on {summary['machine']} ({summary['date']}); the report with figures, videos and the time of "
-        f"each step is [{cfg.report_dir}/report.md]({cfg.report_dir}/report.md). Regenerate it with "
-        f"`{command(cfg)}`.",
-        "",
-        *targets_table(summary["targets"]),
-        "",
-        format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
-    ]
-    return "\n".join(lines)
+    return render_report(
+        "readme_results.md",
+        cfg=cfg,
+        summary=summary,
+        targets=summary["targets"],
+        command=command(cfg),
+        table=format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
+    )
 
 
 def update_readme(readme: Path, block: str) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from lerobot_roboscape.pipeline.layout import rl_dir
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL
-from lerobot_roboscape.records import read_history
+from lerobot_roboscape.training.records import read_history
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -6,8 +6,6 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from lerobot_roboscape.atomic import write_text_atomically
-from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
 from lerobot_roboscape.evaluation.success_rate import (
@@ -17,6 +15,7 @@ from lerobot_roboscape.evaluation.success_rate import (
     evaluate_success,
     markdown_table,
 )
+from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.layout import (
     GOAL_FILE,
@@ -39,6 +38,7 @@ from lerobot_roboscape.pipeline.stages import Datasets
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.tasks import select_scenes
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 
 # ---- policies ----------------------------------------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
-from lerobot_roboscape.atomic import write_text_atomically
+from lerobot_roboscape.io.atomic import write_text_atomically
 
 STAGE_FILE = "stage.json"
 

@@ -12,7 +12,6 @@ import imageio.v3 as iio
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
@@ -53,6 +52,7 @@ from lerobot_roboscape.tasks import select_scenes
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model

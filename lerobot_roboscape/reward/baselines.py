@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.weights import CheckedHubMixin
+from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
 
 REWARD_KINDS = ("embedding", "proxy", "success")

@@ -30,7 +30,7 @@ from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 

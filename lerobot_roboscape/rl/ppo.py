@@ -1,6 +1,6 @@
 """PPO for LeRobot policies in the roboscape envs (paper Algorithm 1), on Accelerate, read top to bottom:
-GAE, reward scaling and the losses -> rollout -> update -> the training loop with checkpoints (its
-settings in configuration_ppo.py).
+GAE and the losses -> rollout -> update -> the training loop (its settings in configuration_ppo.py; the running
+return statistics that scale rewards, and the checkpoints, in ppo_state.py).
 
 One iteration runs one episode of fixed horizon in each of the batched envs (all start together: N scenes at
 once), scales its rewards by the running spread of the discounted return, scores it with GAE, and updates the
@@ -10,7 +10,6 @@ the value head only, so the critic of a freshly SFT'd policy catches up before i
 A process of `accelerate launch` steps its own share of the envs; Accelerate averages the gradients.
 """
 
-import json
 import logging
 import math
 import time
@@ -18,17 +17,14 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import NamedTuple
 
-import draccus
 import numpy as np
 import torch
 from accelerate import Accelerator
-from lerobot.optim.optimizers import load_optimizer_state, save_optimizer_state
+from lerobot.optim.optimizers import load_optimizer_state
 from torch import Tensor, nn
 from tqdm import tqdm
 
-from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.errors import OutputExistsError
-from lerobot_roboscape.records import HISTORY, History, write_video
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
@@ -37,12 +33,19 @@ from lerobot_roboscape.rl.policy_loading import (
     check_policy_fits_frame_skip,
     load_policy,
 )
+from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
 from lerobot_roboscape.tasks.base import CONTROL_FREQ
-from lerobot_roboscape.training import resolve_mixed_precision
+from lerobot_roboscape.training.checkpoints import (
+    CHECKPOINTS,
+    FINAL,
+    last_checkpoint,
+)
+from lerobot_roboscape.training.loop import resolve_mixed_precision
+from lerobot_roboscape.training.records import HISTORY, History, write_video
 
 logger = logging.getLogger(__name__)
 
-# GAE, reward scaling and the PPO losses.
+# GAE and the PPO losses.
 
 
 def compute_gae(
@@ -69,36 +72,6 @@ def compute_gae(
         advantages[t] = next_advantage
         next_value = values[t]
     return advantages, advantages + values
-
-
-class RunningReturnStats:
-    """Running mean and variance of the discounted return (Chan et al.'s parallel update, as gymnasium's
-    NormalizeReward). Its state is checkpointed, so a resumed run scales rewards as an uninterrupted one. Under
-    `accelerate launch` each process keeps its own, from its share of the envs (the checkpoint holds the main
-    process's)."""
-
-    def __init__(self, mean: float = 0.0, var: float = 1.0, count: float = 1e-4):
-        self.mean, self.var, self.count = mean, var, count
-
-    def update(self, values: np.ndarray) -> None:
-        batch_mean, batch_var, batch_count = float(values.mean()), float(values.var()), len(values)
-        delta, total = batch_mean - self.mean, self.count + batch_count
-        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
-        self.mean, self.var, self.count = self.mean + delta * batch_count / total, m2 / total, total
-
-    def scale_rewards(self, rewards: Tensor, alive: Tensor, gamma: float) -> Tensor:
-        """Update with the discounted returns accumulated along this rollout (T, B), then divide its rewards by
-        their standard deviation."""
-        returns = torch.zeros_like(rewards, dtype=torch.float64)
-        running = torch.zeros_like(returns[0])
-        for t in range(len(rewards)):
-            running = gamma * running + rewards[t]
-            returns[t] = running
-        self.update(returns[alive].cpu().numpy())
-        return rewards / math.sqrt(self.var + 1e-8)
-
-    def state_dict(self) -> dict:
-        return {"mean": self.mean, "var": self.var, "count": self.count}
 
 
 class PPOLosses(NamedTuple):
@@ -316,7 +289,7 @@ def update(
     }
 
 
-# Training loop with checkpoints.
+# Training loop with checkpoints (ppo_state.py).
 
 
 def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
@@ -326,46 +299,6 @@ def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
     return torch.optim.AdamW(
         [{"params": rest, "lr": cfg.policy_lr}, {"params": value_head, "lr": cfg.value_lr}], eps=1e-5, weight_decay=0.0
     )
-
-
-def save_checkpoint(
-    output_dir: Path,
-    iteration: int,
-    policy,
-    io: PolicyIO,
-    optimizer,
-    cfg: PPOConfig,
-    return_stats: RunningReturnStats,
-    reward: str,
-    seconds: float,
-) -> Path:
-    """checkpoints/NNNNNNNN/{pretrained_model (policy + processors, loadable by lerobot-eval), training_state,
-    ppo_config.json, reward.txt (the reward it was trained on, its similarity resolved)}, written to a temporary
-    folder and moved into place; `checkpoints/last` names the newest (lerobot_roboscape.checkpoints)."""
-    tmp = begin_checkpoint(output_dir, iteration)
-    policy.save_pretrained(tmp / FINAL)
-    io.preprocessor.save_pretrained(tmp / FINAL)
-    io.postprocessor.save_pretrained(tmp / FINAL)
-    (tmp / "training_state").mkdir()
-    save_optimizer_state(optimizer, tmp / "training_state")
-    # json writes floats by repr, which reads back bit for bit.
-    state = {"iteration": iteration, "return_stats": return_stats.state_dict()}
-    (tmp / "training_state" / "iteration.json").write_text(json.dumps(state))
-    # Wall-clock apart from the state, which is the same bytes in every run with the same flags.
-    (tmp / "training_state" / "clock.json").write_text(json.dumps({"seconds": seconds}))
-    with draccus.config_type("json"):
-        draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
-    (tmp / "reward.txt").write_text(reward + "\n")
-    return publish_checkpoint(output_dir, iteration, tmp)
-
-
-def load_checkpoint(checkpoint: Path) -> tuple[int, RunningReturnStats, float]:
-    """What `save_checkpoint` wrote that a resumed run continues from: (its iteration, the running return
-    statistics, the seconds of PPO so far). The policy loads from checkpoint/pretrained_model, the optimizer state
-    from checkpoint/training_state."""
-    state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
-    seconds = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
-    return state["iteration"], RunningReturnStats(**state["return_stats"]), seconds
 
 
 def train_ppo(cfg: PPOConfig) -> Path:

@@ -12,9 +12,9 @@ from torch import nn
 from vector_quantize_pytorch import LFQ
 
 from lerobot_roboscape.dataset.segmentation import OBJECT
-from lerobot_roboscape.image_fidelity import OBJECT_DILATION, dilate
+from lerobot_roboscape.io.weights import CheckedHubMixin
+from lerobot_roboscape.metrics.image_fidelity import OBJECT_DILATION, dilate
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
-from lerobot_roboscape.weights import CheckedHubMixin
 
 
 def _norm(channels: int) -> nn.GroupNorm:

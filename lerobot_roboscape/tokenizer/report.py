@@ -19,9 +19,9 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import FrameBank, camera_names, open_dataset
 from lerobot_roboscape.dataset.segmentation import OBJECT, has_masks
-from lerobot_roboscape.image_fidelity import MIN_OBJECT_PIXELS, codebook_use, frame_measures, psnr, summarize
+from lerobot_roboscape.metrics.image_fidelity import MIN_OBJECT_PIXELS, codebook_use, frame_measures, psnr, summarize
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.training import read_curve, resolve_device
+from lerobot_roboscape.training.loop import read_curve, resolve_device
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

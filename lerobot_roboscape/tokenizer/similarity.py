@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.perceptual import default_trunk_path, load_lpips
+from lerobot_roboscape.metrics.perceptual import default_trunk_path, load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
 logger = logging.getLogger(__name__)

@@ -18,11 +18,11 @@ from lerobot_roboscape.dataset.reader import (
     open_dataset,
 )
 from lerobot_roboscape.dataset.segmentation import SEGMENTATION_META, has_masks
-from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig, TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import curve_point, measure_tokenizer
-from lerobot_roboscape.training import TrainingConfig, fit
+from lerobot_roboscape.training.loop import TrainingConfig, fit
 
 
 @dataclass

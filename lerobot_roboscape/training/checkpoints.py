@@ -14,7 +14,7 @@ from pathlib import Path
 
 from lerobot.utils.constants import CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
 
-from lerobot_roboscape.atomic import make_tmp_dir, write_text_atomically
+from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
 
 # LeRobot's names, so that its tools and ours find the same folders.
 CHECKPOINTS, LAST, FINAL = CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR

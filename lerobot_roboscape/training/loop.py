@@ -22,9 +22,15 @@ from accelerate.utils import set_seed
 from torch import nn
 from tqdm import tqdm
 
-from lerobot_roboscape.atomic import make_tmp_dir
-from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL, begin_checkpoint, last_checkpoint, publish_checkpoint
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from lerobot_roboscape.io.atomic import make_tmp_dir
+from lerobot_roboscape.training.checkpoints import (
+    CHECKPOINTS,
+    FINAL,
+    begin_checkpoint,
+    last_checkpoint,
+    publish_checkpoint,
+)
 
 logger = logging.getLogger(__name__)
 # One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.

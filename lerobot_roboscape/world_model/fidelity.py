@@ -23,10 +23,10 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.dataset.segmentation import has_masks, read_masks
-from lerobot_roboscape.image_fidelity import frame_measures
-from lerobot_roboscape.perceptual import load_lpips
+from lerobot_roboscape.metrics.image_fidelity import frame_measures
+from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.controllability import ControllabilityReportConfig, evaluate_controllability
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel

@@ -14,7 +14,7 @@ from huggingface_hub import snapshot_download
 from torch import nn
 
 from lerobot_roboscape.errors import InvalidInputError
-from lerobot_roboscape.weights import CheckedHubMixin
+from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.rollout import Rollout

@@ -12,7 +12,6 @@ from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.utils.constants import ACTION
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -23,7 +22,8 @@ from lerobot_roboscape.tokenizer.token_cache import (
     open_token_cache,
     tokenizer_fingerprint,
 )
-from lerobot_roboscape.training import TrainingConfig, fit, resolve_device, save_atomically
+from lerobot_roboscape.training.checkpoints import FINAL
+from lerobot_roboscape.training.loop import TrainingConfig, fit, resolve_device, save_atomically
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
 from lerobot_roboscape.world_model.controllability import control_summary, read_control_set

@@ -13,9 +13,9 @@ from pathlib import Path
 from lerobot_roboscape.pipeline import methods, policy_stages, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import trained_stages
-from lerobot_roboscape.records import read_history
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
+from lerobot_roboscape.training.records import read_history
 
 
 def main():

@@ -14,7 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from lerobot_roboscape.training import read_curve  # noqa: E402
+from lerobot_roboscape.training.loop import read_curve  # noqa: E402
 
 MEASURES = {
     "retrieval_whole_frame": "retrieval, whole frame (K = 4)",

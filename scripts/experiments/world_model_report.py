@@ -21,7 +21,7 @@ from lerobot_roboscape.pipeline.figures import world_model_figure
 from lerobot_roboscape.pipeline.layout import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
 from lerobot_roboscape.pipeline.report import machine, world_model_results
 from lerobot_roboscape.pipeline.targets import agreement_targets, world_model_targets
-from lerobot_roboscape.training import read_curve
+from lerobot_roboscape.training.loop import read_curve
 
 FIGURES = {
     FIDELITY_DIR: ("fidelity.png", "controllability.png"),

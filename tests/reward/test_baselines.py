@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_roboscape.checkpoints import FINAL
 from lerobot_roboscape.dataset.writer import read_episode_info
 from lerobot_roboscape.envs.reward_report import replay_rewards, teacher_forced_done
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE

@@ -8,10 +8,10 @@ from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 from safetensors.torch import load_file
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-from lerobot_roboscape.records import read_history
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import collect_rollout, compute_gae, ppo_losses, train_ppo
+from lerobot_roboscape.training.records import read_history
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 

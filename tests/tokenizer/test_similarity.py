@@ -7,7 +7,7 @@ import torchvision
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
-from lerobot_roboscape.perceptual import TRUNK_FILES, LPIPSTrunkMissingError
+from lerobot_roboscape.metrics.perceptual import TRUNK_FILES, LPIPSTrunkMissingError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import PixelDistance, TokenizerPerceptualDistance, load_similarity

@@ -10,7 +10,7 @@ from safetensors.torch import save_file
 
 from lerobot_roboscape.dataset.reader import DatasetError, FrameBank
 from lerobot_roboscape.dataset.segmentation import OBJECT
-from lerobot_roboscape.perceptual import LPIPSTrunkMissingError, load_lpips
+from lerobot_roboscape.metrics.perceptual import LPIPSTrunkMissingError, load_lpips
 from lerobot_roboscape.tokenizer.configuration_tokenizer import PaperTokenizerConfig, TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer

@@ -103,7 +103,7 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
     clock that counts training only."""
     import draccus
 
-    from lerobot_roboscape.training import read_curve
+    from lerobot_roboscape.training.loop import read_curve
     from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
     from tests.world_model.test_training import train_args
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_roboscape.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel

@@ -19,7 +19,7 @@ from torch.distributions import Categorical
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
 from lerobot_policy_openvla.checkpoint import SPIECE_SPACE, OpenVLACheckpointError, build_vla, read_checkpoint
 from lerobot_policy_openvla.configuration_openvla import OpenVLAConfig
-from lerobot_roboscape.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+from lerobot_roboscape.rl.actor_critic import ActionEvaluation, PolicySample, scale_gradient
 
 ACTION_DIM = 7
 SAFETENSORS_FILE = "model.safetensors"

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from torch.distributions import Normal
 
 from lerobot_policy_roboscape_mlp.configuration_roboscape_mlp import RoboscapeMLPConfig
-from lerobot_roboscape.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+from lerobot_roboscape.rl.actor_critic import ActionEvaluation, PolicySample, scale_gradient
 
 
 def random_shift(images_BCHW: Tensor, pad: int) -> Tensor:
