@@ -18,19 +18,20 @@ import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.atomic import write_text_atomically
-from lerobot_roboscape.checkpoints import CHECKPOINTS, FINAL
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import MissingInputError
+from lerobot_roboscape.errors import InvalidInputError, MissingInputError
+from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
+from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
-from lerobot_roboscape.records import write_video
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.tasks.base import CONTROL_FREQ
-from lerobot_roboscape.training import resolve_device
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
+from lerobot_roboscape.training.loop import resolve_device
+from lerobot_roboscape.training.records import write_video
 
 logger = logging.getLogger(__name__)
 CURVE_DIR, REPLAY_DIR = "curve", "replay"
@@ -62,6 +63,11 @@ class ExperimentConfig:
     replay_episodes: int = 8
     report_dir: str = "docs/results/bench"
     readme: str | None = "README.md"
+
+    def __post_init__(self):
+        for name in ("curve_episodes", "replay_episodes"):
+            if getattr(self, name) < 1:
+                raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
 
 
 @dataclass
@@ -207,19 +213,36 @@ def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:
     return np.concatenate([clip[t] for t in picks], axis=1)
 
 
+# The experiment's steps, in order; each header names one.
+STEPS = ("world-model env", "SFT", "PPO", "Table 1", "checkpoint curve", "replay", "report")
+
+
 def run_experiment(cfg: ExperimentConfig) -> Path:
     """Run every step (skipping those complete); returns the report."""
     p, out = cfg.pipeline, Path(cfg.pipeline.output_dir).resolve()
     trained = trained_stages(p, out)
+    clock = StageClock(STEPS)
+    clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
     wm_env = stages.world_model_env(
         p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )
+    clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or 'SFT with lerobot-train'}")
     sft = sft_policy(cfg, out, trained.data)
+    clock(
+        "PPO",
+        "PPO in roboscape_wm and in roboscape_maniskill" + (" (and the reward ablation)" if p.reward_ablation else ""),
+    )
     rl = policy_stages.rl(p, out, trained.data, wm_env, sft)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
+    clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     results = policy_stages.simulator_eval(p, out, trained.data, checkpoints)
     policy = next(iter(sft))
+    clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")
     curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
+    clock("replay", "world-model rollouts replayed in the simulator")
     ppo_env = policy_stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
     replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
-    return write_experiment_report(cfg, out, results, curve, replays)
+    clock("report", "the claim's report")
+    report = write_experiment_report(cfg, out, results, curve, replays)
+    clock.done()
+    return report

@@ -10,6 +10,7 @@ from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
+from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
 
@@ -31,37 +32,11 @@ STAGES = (
 )
 
 
-class StageClock:
-    """Numbered stage headers, one per entry of `stages` in their order; records the time each stage took."""
-
-    def __init__(self, stages: tuple[str, ...] = STAGES):
-        self.stages, self.number, self.title, self.start, self.began = stages, 0, None, None, time.time()
-        self.seconds: dict[str, float] = {}
-
-    def __call__(self, stage: str, title: str):
-        if self.stages[self.number] != stage:
-            raise RuntimeError(f"stage {stage!r} runs where STAGES has {self.stages[self.number]!r}")
-        self.done()
-        self.number += 1
-        self.title, self.start = title, time.time()
-        print(f"\n=== {self.number}/{len(self.stages)} {title} ===", flush=True)
-
-    def done(self):
-        if self.start is not None:
-            self.seconds[self.title] = time.time() - self.start
-            print(
-                f"--- stage {self.number} done in {self.seconds[self.title]:.0f}s "
-                f"({(time.time() - self.began) / 60:.1f} min so far)",
-                flush=True,
-            )
-            self.start = None
-
-
 def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
     """Run every stage (skipping those already complete in output_dir); returns {artifact name: artifact}."""
     out = Path(cfg.output_dir).resolve()
     artifacts: dict[str, Artifact] = {}
-    clock = StageClock()
+    clock = StageClock(STAGES)
 
     clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = stages.demonstrations(cfg, out)

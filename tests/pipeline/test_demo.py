@@ -1,7 +1,9 @@
-"""`roboscape-demo` at its smallest, end to end: every artifact it names exists and loads, and a rerun skips the
-completed stages."""
+"""`roboscape-demo` and `roboscape-experiment` at their smallest, end to end, as a user runs them: each SIGKILLed at
+every stage boundary and run again ends with the outputs of an uninterrupted run; every artifact the demo names
+exists and loads; and a rerun skips the completed stages."""
 
 import json
+import shutil
 
 import draccus
 import numpy as np
@@ -11,20 +13,83 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.pipeline.clock import header
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig, run_experiment
+from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment
 from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
-from lerobot_roboscape.pipeline.run import run_pipeline
+from lerobot_roboscape.pipeline.run import STAGES, run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
+from tests.harness import assert_same_outputs, command, kill_at_line, run
 
 pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
 
-def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
-    out = tmp_path / "demo"
-    args = ["--scale=smoke", f"--output_dir={out}", f"--report_dir={tmp_path / 'report'}"]
+def killed_at_every_boundary(name: str, args: list[str], stages: tuple[str, ...]) -> None:
+    """Run the command SIGKILLed as each stage after the first begins (the one before it just complete), each
+    kill's rerun resuming the last, and then to its end."""
+    for number in range(2, len(stages) + 1):
+        kill_at_line(command(name, *args), header(number, len(stages)))
+    run(command(name, *args))
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """The smoke demo killed at every stage boundary (its folders then moved aside to killed/), and run again
+    uninterrupted in the same folders: (base folder, the uninterrupted run's output)."""
+    base = tmp_path_factory.mktemp("demo")
+    args = ["--scale=smoke", f"--output_dir={base / 'demo'}", f"--report_dir={base / 'report'}"]
+    killed_at_every_boundary("demo", args, STAGES)
+    (base / "killed").mkdir()
+    for folder in ("demo", "report"):
+        (base / folder).rename(base / "killed" / folder)
+    return base, run(command("demo", *args)).stdout
+
+
+@pytest.fixture(scope="module")
+def experiment(demo):
+    """The smoke experiment on the demo's outputs, killed at every step boundary (its folders then moved aside to
+    killed_experiment/), and run again uninterrupted on the same demo outputs. Returns its arguments."""
+    base, _ = demo
+    args = [
+        "--pipeline.scale=smoke",
+        f"--pipeline.output_dir={base / 'demo'}",
+        "--curve_episodes=1",
+        "--replay_episodes=1",
+        f"--report_dir={base / 'claim'}",
+        "--readme=null",
+    ]
+    shutil.copytree(base / "demo", base / "before_experiment", symlinks=True)
+    killed_at_every_boundary("experiment", args, STEPS)
+    (base / "killed_experiment").mkdir()
+    for folder in ("demo", "claim"):
+        (base / folder).rename(base / "killed_experiment" / folder)
+    (base / "before_experiment").rename(base / "demo")
+    run(command("experiment", *args))
+    return args
+
+
+def test_demo_killed_at_every_stage_boundary_ends_as_an_uninterrupted_run(demo):
+    base, _ = demo
+    assert_same_outputs(base / "killed" / "demo", base / "demo")  # (before the experiment writes into it)
+    assert_same_outputs(base / "killed" / "report", base / "report")
+
+
+def test_experiment_killed_at_every_step_boundary_ends_as_an_uninterrupted_run(demo, experiment):
+    base, _ = demo
+    assert_same_outputs(base / "killed_experiment" / "demo", base / "demo")
+    assert_same_outputs(base / "killed_experiment" / "claim", base / "claim")
+
+
+def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
+    base, stdout = demo
+    out, tmp_path = base / "demo", base
+    args = ["--scale=smoke", f"--output_dir={out}", f"--report_dir={base / 'report'}"]
+    tokenizer_weights = (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns
     artifacts = run_pipeline(draccus.parse(PipelineConfig, args=args))
-    summary = capsys.readouterr().out.split("=== results")[1]
+    # A rerun with the same settings skips every completed stage: nothing is trained again.
+    assert (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns == tokenizer_weights
+    assert "done in 0s" in capsys.readouterr().out
+    summary = stdout.split("=== results")[1]  # the uninterrupted run's
 
     for name, artifact in artifacts.items():
         assert artifact.path.exists(), f"{name}: {artifact.path}"
@@ -77,27 +142,11 @@ def test_demo_smoke_scale_end_to_end(tmp_path, capsys):
     assert results["table"]["roboscape_mlp"] == tables and results["targets"]
     assert (tmp_path / "report" / "tokenizer_reconstruction.png").is_file()
 
-    # A rerun with the same settings skips every completed stage: nothing is trained again.
-    tokenizer_weights = (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns
-    run_pipeline(draccus.parse(PipelineConfig, args=args))
-    assert (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns == tokenizer_weights
-    assert "done in 0s" in capsys.readouterr().out
-
-    # The claim experiment on the same run: its PPO runs and Table 1 are the pipeline's (skipped), the rest new.
+    # The claim experiment on the same run (its steps complete, it writes the report and the README's block): its
+    # PPO runs and Table 1 are the pipeline's.
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nrest\n")
-    experiment = draccus.parse(
-        ExperimentConfig,
-        args=[
-            "--pipeline.scale=smoke",
-            f"--pipeline.output_dir={out}",
-            "--curve_episodes=1",
-            "--replay_episodes=1",
-            f"--report_dir={tmp_path / 'claim'}",
-            f"--readme={readme}",
-        ],
-    )
-    report = run_experiment(experiment)
+    report = run_experiment(draccus.parse(ExperimentConfig, args=[*experiment[:-1], f"--readme={readme}"]))
     claim = json.loads((tmp_path / "claim" / "results.json").read_text())
     assert claim["table"]["roboscape_mlp"] == tables  # the pipeline's evaluations, not new ones
     assert [point["iteration"] for point in claim["curve"]] == [0, 1]  # SFT, then PPO's one checkpoint
