@@ -78,6 +78,16 @@ def test_bad_flag_values(capsys, argv, expected):
 # Each command refuses a bad flag value before it does any work, naming the flag and what it accepts.
 BAD_FLAGS = {
     "experiment: unknown scale": (experiment_cli, ["--pipeline.scale=huge"], "--scale must be one of"),
+    "experiment: no replayed rollout": (
+        experiment_cli,
+        ["--replay_episodes=0"],
+        "--replay_episodes must be >= 1, got 0",
+    ),
+    "experiment: on a run that was never made": (
+        experiment_cli,
+        ["--pipeline.scale=smoke", "--pipeline.output_dir=nowhere/run"],
+        "is missing: the experiment runs on a pipeline run's trained stages; run roboscape-demo --scale=smoke",
+    ),
     "demo: unknown family": (demo_cli, ["--families=[fly]"], "unknown task families ['fly']"),
     "agreement: no policy": (agreement_cli, [], "--policy_paths is required"),
     "agreement: unknown split": (agreement_cli, ["--policy_paths=[p]", "--split=moon"], "got 'moon'"),
