@@ -109,9 +109,9 @@ def _logs(path: Path) -> bool:
 
 def assert_same_outputs(expected: Path, got: Path) -> None:
     """Two runs' output folders hold the same files with the same contents, timing and the record of a resumed run
-    aside: JSON (and JSON lines) without those fields, reports and cards without their time tables and those lines, safetensors tensor for tensor, videos frame
-    for frame in number and shape (the simulator's renders of an evaluation differ in a few pixels between two
-    uninterrupted runs), every other file byte for byte."""
+    aside: JSON (and JSON lines) without those fields; reports and cards without their time tables and those
+    lines; safetensors tensor for tensor; videos by their number of frames and shape (the simulator's renders of an
+    evaluation differ in a few pixels between two uninterrupted runs); every other file byte for byte."""
     files = lambda root: {p.relative_to(root) for p in root.rglob("*") if p.is_file() and not _logs(p)}  # noqa: E731
     names = files(expected)
     assert names == files(got), sorted(map(str, names ^ files(got)))

@@ -156,7 +156,8 @@ BAD_FLAGS = {
 
 
 @pytest.mark.parametrize("fault", BAD_FLAGS)
-def test_each_command_refuses_bad_flags_by_name(capsys, fault):
+def test_each_command_refuses_bad_flags_by_name(capsys, monkeypatch, fault):
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_OFFLINE", True)  # a repo id that is not there: no retries
     cli, argv, expected = BAD_FLAGS[fault]
     assert expected in one_line(capsys, cli.main, argv)
 
