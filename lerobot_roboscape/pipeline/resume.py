@@ -67,12 +67,14 @@ def stage_seconds(folder: Path) -> float | None:
 
 def run_once(folder: Path, settings, fresh: bool, work: Callable[[], object]) -> bool:
     """Run `work` into a cleared `folder` and record it complete, unless it already completed with these
-    settings; True when it ran."""
+    settings; True when it ran. The record holds the settings as they were asked for, before `work` (which may
+    fill fields of the config in place)."""
     if is_done(folder, settings, fresh):
         return False
+    asked = _jsonable(settings)
     start(folder)
     work()
-    mark_done(folder, settings)
+    mark_done(folder, asked)
     return True
 
 
@@ -82,6 +84,7 @@ def train_once(folder: Path, settings, fresh: bool, train: Callable[[bool], obje
     a new run. True when it ran."""
     if is_done(folder, settings, fresh):
         return False
+    asked = _jsonable(settings)  # as asked for: a trainer may fill fields of its config (the action statistics)
     train(prepare(folder, settings, fresh))
-    mark_done(folder, settings)
+    mark_done(folder, asked)
     return True

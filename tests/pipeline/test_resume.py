@@ -66,3 +66,18 @@ def test_train_once_resumes_a_killed_run_and_skips_a_finished_one(tmp_path):
     assert resume.train_once(folder, Settings(10), False, seen.append) is True  # resumed, then marked done
     assert seen == [False, True] and (folder / "checkpoints").is_dir()
     assert resume.train_once(folder, Settings(10), False, seen.append) is False and seen == [False, True]
+
+
+def test_a_stage_that_fills_its_config_in_place_is_still_skipped_next_time(tmp_path):
+    # The world-model trainer fills its config's action statistics: the record must hold what was asked for.
+    folder, runs = tmp_path / "world_model", []
+
+    def train(resume_from: bool, settings: Settings) -> None:
+        runs.append(resume_from)
+        settings.lr = 0.5
+
+    for _ in range(2):
+        asked = Settings(10)
+        resume.train_once(folder, asked, False, lambda r, s=asked: train(r, s))
+        resume.run_once(tmp_path / "report", Settings(3), False, lambda: Settings(3).__setattr__("lr", 0.5))
+    assert runs == [False]
