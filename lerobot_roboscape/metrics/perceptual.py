@@ -21,6 +21,7 @@ logger = logging.getLogger(__name__)
 # torchvision's published trunk weights, as they are named in the torch hub cache.
 TRUNK_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}
 TRUNK_BUILDERS = {"alex": torchvision.models.alexnet, "vgg": torchvision.models.vgg16}
+RANDOM_TRUNK_SEED = 0
 
 
 class LPIPSTrunkMissingError(MissingInputError):
@@ -52,8 +53,11 @@ def load_lpips(
     """
     if net not in TRUNK_FILES:
         raise InvalidInputError(f"LPIPS net must be one of {sorted(TRUNK_FILES)}, got {net!r}")
-    with warnings.catch_warnings():  # lpips still calls torchvision with its deprecated `pretrained=` argument
-        warnings.simplefilter("ignore", UserWarning)
+    # A random trunk is the same in every process, and building it leaves the caller's random stream alone: a
+    # report resumed in a new process measures what an uninterrupted run measures.
+    with warnings.catch_warnings(), torch.random.fork_rng(devices=[]):
+        warnings.simplefilter("ignore", UserWarning)  # lpips still calls torchvision with `pretrained=`
+        torch.manual_seed(RANDOM_TRUNK_SEED)
         metric = lpips.LPIPS(net=net, pretrained=True, pnet_rand=True, verbose=False)
     path = Path(trunk_path) if trunk_path is not None else default_trunk_path(net)
     if path.is_file():

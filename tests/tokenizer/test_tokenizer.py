@@ -92,6 +92,12 @@ def test_lpips_trunk_loads_from_a_file_and_is_refused_when_missing(tmp_path):
         load_lpips("alex", trunk_path=tmp_path / "missing.pth")
     random_metric = load_lpips("alex", trunk_path=None, allow_random_trunk=True)  # tests only: said so by the flag
     assert random_metric.random_trunk
+    # The same random trunk in every process, whatever the caller drew before, and the caller's stream untouched.
+    torch.manual_seed(123)
+    state = torch.random.get_rng_state()
+    again = load_lpips("alex", trunk_path=None, allow_random_trunk=True)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert torch.equal(again.net.slice1[0].weight, random_metric.net.slice1[0].weight)
     image, other = torch.rand(2, 1, 3, 32, 32) * 2 - 1
     assert random_metric(image, image).item() == pytest.approx(0.0, abs=1e-6)
     assert random_metric(image, other).item() > 0
