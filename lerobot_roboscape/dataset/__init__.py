@@ -1,3 +1,3 @@
-from lerobot_roboscape.dataset.writer import EPISODES_SIDECAR, read_episode_info, write_dataset
+from lerobot_roboscape.dataset.writer import DATASET_FOLDERS, EPISODES_SIDECAR, read_episode_info, write_dataset
 
-__all__ = ["EPISODES_SIDECAR", "read_episode_info", "write_dataset"]
+__all__ = ["DATASET_FOLDERS", "EPISODES_SIDECAR", "read_episode_info", "write_dataset"]

@@ -15,11 +15,14 @@ from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD,
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
-from lerobot_roboscape.dataset.segmentation import write_masks
+from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR, write_masks
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
 EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"
+# A dataset's own folders: LeRobot's, and the masks beside them. Anything else under its root (a pipeline's record
+# of the run that wrote it) is not the dataset: not hashed into caches' keys, not pushed.
+DATASET_FOLDERS = ("meta", "data", "videos", SEGMENTATION_DIR)
 
 
 def _quiet_encoders() -> None:

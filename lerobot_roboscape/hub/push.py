@@ -15,6 +15,7 @@ from pathlib import Path
 from huggingface_hub import HfApi
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_roboscape.dataset import DATASET_FOLDERS
 from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.cards import (
     DATASET_TAGS,
@@ -259,13 +260,19 @@ def push_dataset(root: Path, repo_id: str, local_dir: Path | None = None, privat
         raise MissingInputError(f"no LeRobot dataset at {root} (meta/info.json is missing)")
     if local_dir is None:
         LeRobotDataset(repo_id, root=root).push_to_hub(
-            tags=DATASET_TAGS, license=LICENSE, private=private, dataset_description=dataset_description(root, repo_id)
+            tags=DATASET_TAGS,
+            license=LICENSE,
+            private=private,
+            allow_patterns=[f"{folder}/*" for folder in DATASET_FOLDERS],
+            dataset_description=dataset_description(root, repo_id),
         )
         return f"https://huggingface.co/datasets/{repo_id}"
     card = dataset_card(root, repo_id)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "repo"
-        shutil.copytree(root, folder, ignore=shutil.ignore_patterns("images"))  # as push_to_hub ignores images/
+        for own in DATASET_FOLDERS:  # as push_to_hub uploads them, without images/
+            if (root / own).is_dir():
+                shutil.copytree(root / own, folder / own, ignore=shutil.ignore_patterns("images"))
         card.save(folder / "README.md")
         return publish(folder, repo_id, local_dir, repo_type="dataset")
 

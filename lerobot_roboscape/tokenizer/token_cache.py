@@ -27,7 +27,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
-from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR
+from lerobot_roboscape.dataset.writer import DATASET_FOLDERS
 from lerobot_roboscape.errors import InvalidInputError, require_finite
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
@@ -47,13 +47,8 @@ def tokenizer_fingerprint(tokenizer: VisualTokenizer) -> str:
     return digest.hexdigest()
 
 
-DATASET_FOLDERS = ("meta", "data", "videos", SEGMENTATION_DIR)  # a LeRobotDataset's, and the masks beside them
-
-
 def dataset_fingerprint(root: str | Path) -> str:
-    """Hash of the dataset's metadata and tables, plus the names and sizes of its videos. Only the dataset's own
-    folders count: what else a folder holds (a pipeline's record of the run that wrote it, with its time) does
-    not change the frames."""
+    """Hash of the dataset's metadata and tables, plus the names and sizes of its videos: its own folders only."""
     root = Path(root)
     digest = hashlib.sha256()
     files = (p for folder in DATASET_FOLDERS for p in (root / folder).rglob("*") if p.is_file())

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+from fnmatch import fnmatch
 from pathlib import Path
 
 import huggingface_hub.repocard
@@ -221,13 +222,17 @@ def test_policy_repo_pulled_offline_and_evaluated_by_lerobot(
 
 
 def test_dataset_push_is_lerobots_with_our_card(demo_dataset, recorded_hub, tmp_path):
-    _, root = demo_dataset
+    root = tmp_path / "demos"
+    shutil.copytree(demo_dataset[1], root)
+    (root / "stage.json").write_text('{"seconds": 3.0}')  # a pipeline's record beside the dataset: not pushed
     assert push_dataset(root, "me/demos") == "https://huggingface.co/datasets/me/demos"
     calls = {c["call"]: c for c in recorded_hub}
     assert calls["create_repo"]["repo_type"] == "dataset"
     upload = calls["upload_folder"]
     assert Path(upload["folder_path"]) == root and "images/" in upload["ignore_patterns"]
-    assert "meta/info.json" in upload["files"] and any(f.startswith("videos/") for f in upload["files"])
+    uploaded = [f for f in upload["files"] if any(fnmatch(f, p) for p in upload["allow_patterns"])]
+    assert "meta/info.json" in uploaded and any(f.startswith("videos/") for f in uploaded)
+    assert "stage.json" in upload["files"] and "stage.json" not in uploaded
     card = DatasetCard(calls["upload_file"]["content"])
     assert calls["upload_file"]["path_in_repo"] == "README.md"
     assert {"LeRobot", "robotics", "roboscape"} <= set(card.data.tags) and card.data.license == "apache-2.0"
@@ -238,7 +243,7 @@ def test_dataset_push_is_lerobots_with_our_card(demo_dataset, recorded_hub, tmp_
     assert local == tmp_path / "hub" / "datasets" / "me" / "demos"
     assert (local / "README.md").read_text() == calls["upload_file"]["content"]
     assert sorted(str(p.relative_to(local)) for p in local.rglob("*") if p.is_file() and p.name != "README.md") == [
-        f for f in upload["files"] if not f.startswith("images/")
+        f for f in uploaded if not f.startswith("images/")
     ]
 
 
