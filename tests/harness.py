@@ -1,15 +1,20 @@
 """The kill-and-resume harness: a command runs as a user runs it (`python -m lerobot_roboscape.cli.<name>`), is
-SIGKILLed at a point inside its work, and is rerun (in the test's process: what the killed run left crosses the
-process boundary); what it ends with is compared with an uninterrupted run."""
+SIGKILLed at a point inside its work (`kill_when`, `kill_at_line`), and is rerun, in the test's process (`rerun`)
+or in another (`run`): what the killed run left crosses the process boundary. What it ends with is compared with
+an uninterrupted run (`output_differences`, `assert_same_weights`)."""
 
+import contextlib
 import importlib
 import json
+import os
+import queue
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
-from datetime import date
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -32,9 +37,20 @@ def rerun(name: str, *args: str) -> None:
     importlib.import_module(f"lerobot_roboscape.cli.{name}").main(list(args))
 
 
+def _start(cmd: list[str], **streams) -> subprocess.Popen:
+    # Its own process group, so a kill reaches what it started too (lerobot-train, simulator workers).
+    return subprocess.Popen(cmd, text=True, start_new_session=True, **streams)
+
+
+def _kill(process: subprocess.Popen) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+
+
 def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -> None:
     """Start `cmd` and SIGKILL it as soon as `ready()` holds (polled every 10 ms). Fails if it ends first."""
-    process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = _start(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + timeout
     try:
         while not ready():
@@ -46,28 +62,33 @@ def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -
                 raise AssertionError(f"{cmd[2]} did not reach the kill point in {timeout} s")
             time.sleep(0.01)
     finally:
-        process.send_signal(signal.SIGKILL)
-        process.wait()
+        _kill(process)
         process.stderr.close()
 
 
-def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> None:
+def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> str:
     """Start `cmd` and SIGKILL it as soon as it prints a line that begins with `prefix` (a stage header: the stage
-    before it is complete, its own has begun). Fails if it ends first."""
-    process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    before it is complete, its own has begun); returns what it printed. Fails if it ends first or stays silent
+    past the timeout."""
+    process = _start(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(
+        target=lambda: [lines.put(line) for line in process.stdout] + [lines.put(None)], daemon=True
+    ).start()
     deadline, seen = time.time() + timeout, []
     try:
-        for line in process.stdout:
+        while True:
+            try:
+                line = lines.get(timeout=max(deadline - time.time(), 0))
+            except queue.Empty:
+                raise AssertionError(f"{cmd[2]} did not print {prefix!r} in {timeout} s") from None
+            if line is None:
+                raise AssertionError(f"{cmd[2]} ended before printing {prefix!r}: {''.join(seen)[-2000:]}")
             seen.append(line)
             if line.startswith(prefix):
-                return
-            if time.time() > deadline:
-                raise AssertionError(f"{cmd[2]} did not print {prefix!r} in {timeout} s")
-        raise AssertionError(f"{cmd[2]} ended before printing {prefix!r}: {''.join(seen)[-2000:]}")
+                return "".join(seen)
     finally:
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        process.stdout.close()
+        _kill(process)
 
 
 # What two uninterrupted runs of the same settings do not share either: the clock, and what is drawn against it.
@@ -89,32 +110,44 @@ def _untimed(value):
     return value
 
 
+DATE = re.compile(r"\d{4}-\d{2}-\d{2}")
+MINUTES = re.compile(r"\d+(\.\d+)? min\b")
+
+
 def _untimed_markdown(text: str) -> list[str]:
-    """The lines of a report but its time table and the line that names the machine and the date."""
+    """The lines of a report but its time table, the line that names the machine and the date, and the resumed
+    flag; durations in minutes elsewhere are blanked."""
     lines, in_times = [], False
     for line in text.splitlines():
         if line.startswith("## "):
             in_times = line.startswith("## Time")
-        if not in_times and date.today().isoformat() not in line and f'"{RESUMED}": ' not in line:
-            lines.append(line)
+        if not in_times and not DATE.search(line) and f'"{RESUMED}": ' not in line:
+            lines.append(MINUTES.sub("? min", line))
     return lines
 
 
 def _logs(path: Path) -> bool:
-    """TensorBoard's event files and the folders named for the time they were opened."""
+    """TensorBoard's event files and the folders named for the time they were opened (`path` inside a run)."""
     return path.name.startswith("events.out.tfevents") or any(
         part.replace(".", "").isdigit() and "." in part for part in path.parts
     )
 
 
-def assert_same_outputs(expected: Path, got: Path) -> None:
-    """Two runs' output folders hold the same files with the same contents, timing and the record of a resumed run
-    aside: JSON (and JSON lines) without those fields; reports and cards without their time tables and those
-    lines; safetensors tensor for tensor; videos by their number of frames and shape (the simulator's renders of an
-    evaluation differ in a few pixels between two uninterrupted runs); every other file byte for byte."""
-    files = lambda root: {p.relative_to(root) for p in root.rglob("*") if p.is_file() and not _logs(p)}  # noqa: E731
-    names = files(expected)
-    assert names == files(got), sorted(map(str, names ^ files(got)))
+def output_differences(expected: Path, got: Path) -> list[str]:
+    """What differs between two runs' output folders, timing and the record of a resumed run aside: JSON (and JSON
+    lines) compared without those fields; reports and cards without their time tables, dates, durations and the
+    resumed flag; safetensors tensor for tensor; videos by their number of frames and shape (the simulator's
+    renders of an evaluation differ in a few pixels between two uninterrupted runs); every other file byte for
+    byte. Figures drawn against PPO's clock are not compared."""
+    assert expected.is_dir() and got.is_dir(), (expected, got)
+
+    def files(root: Path) -> set[Path]:
+        return {p.relative_to(root) for p in root.rglob("*") if p.is_file() and not _logs(p.relative_to(root))}
+
+    names, others = files(expected), files(got)
+    assert names, f"{expected} holds no output to compare"
+    if names != others:
+        return [f"only in one run: {sorted(map(str, names ^ others))}"]
     different = []
     for name in sorted(names):
         a, b = expected / name, got / name
@@ -135,7 +168,7 @@ def assert_same_outputs(expected: Path, got: Path) -> None:
             same = False
         if not same:
             different.append(str(name))
-    assert not different, f"differ beyond timing: {different}"
+    return different
 
 
 def _tensor_differences(expected: Path, got: Path) -> list[str]:

@@ -4,6 +4,7 @@ exists and loads; and a rerun skips the completed stages."""
 
 import json
 import shutil
+from pathlib import Path
 
 import draccus
 import numpy as np
@@ -17,71 +18,83 @@ from lerobot_roboscape.pipeline.clock import header
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment
 from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
+from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.pipeline.run import STAGES, run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
-from tests.harness import assert_same_outputs, command, kill_at_line, run
+from tests.harness import command, kill_at_line, output_differences, run
 
 pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
 
 
-def killed_at_every_boundary(name: str, args: list[str], stages: tuple[str, ...]) -> None:
+def killed_at_every_boundary(name: str, args: list[str], stages: tuple[str, ...], out: Path) -> list[str]:
     """Run the command SIGKILLed as each stage after the first begins (the one before it just complete), each
-    kill's rerun resuming the last, and then to its end."""
+    kill's rerun resuming the last, and then to its end. Returns the stage records that a later rerun wrote
+    again: a stage that completed before a kill must be skipped after it, not run again."""
+    completed: dict[Path, int] = {}
     for number in range(2, len(stages) + 1):
         kill_at_line(command(name, *args), header(number, len(stages)))
+        completed |= {p: p.stat().st_mtime_ns for p in out.rglob(STAGE_FILE) if p not in completed}
     run(command(name, *args))
+    return [str(p) for p, written in completed.items() if not p.is_file() or p.stat().st_mtime_ns != written]
 
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    """The smoke demo killed at every stage boundary (its folders then moved aside to killed/), and run again
-    uninterrupted in the same folders: (base folder, the uninterrupted run's output)."""
+    """The smoke demo killed at every stage boundary, its folders then moved aside to killed/, and run again
+    uninterrupted in the same folders. Returns (base folder, the uninterrupted run's output, the stages run again
+    after a kill, what differs between the two runs' outputs)."""
     base = tmp_path_factory.mktemp("demo")
     args = ["--scale=smoke", f"--output_dir={base / 'demo'}", f"--report_dir={base / 'report'}"]
-    killed_at_every_boundary("demo", args, STAGES)
+    run_again = killed_at_every_boundary("demo", args, STAGES, base / "demo")
     (base / "killed").mkdir()
     for folder in ("demo", "report"):
         (base / folder).rename(base / "killed" / folder)
-    return base, run(command("demo", *args)).stdout
+    stdout = run(command("demo", *args)).stdout
+    # Compared now, before the experiment writes into the demo's folders.
+    differences = [*output_differences(base / "killed" / "demo", base / "demo")]
+    differences += output_differences(base / "killed" / "report", base / "report")
+    return base, stdout, run_again, differences
 
 
 @pytest.fixture(scope="module")
 def experiment(demo):
     """The smoke experiment on the demo's outputs, killed at every step boundary (its folders then moved aside to
-    killed_experiment/), and run again uninterrupted on the same demo outputs. Returns its arguments."""
-    base, _ = demo
+    killed_experiment/), and run again uninterrupted on the same demo outputs. Returns (its arguments but the
+    README's, the steps run again after a kill, what differs between the two runs' outputs)."""
+    base = demo[0]
     args = [
         "--pipeline.scale=smoke",
         f"--pipeline.output_dir={base / 'demo'}",
         "--curve_episodes=1",
         "--replay_episodes=1",
         f"--report_dir={base / 'claim'}",
-        "--readme=null",
     ]
     shutil.copytree(base / "demo", base / "before_experiment", symlinks=True)
-    killed_at_every_boundary("experiment", args, STEPS)
+    run_again = killed_at_every_boundary("experiment", [*args, "--readme=null"], STEPS, base / "demo")
     (base / "killed_experiment").mkdir()
     for folder in ("demo", "claim"):
         (base / folder).rename(base / "killed_experiment" / folder)
     (base / "before_experiment").rename(base / "demo")
-    run(command("experiment", *args))
-    return args
+    run(command("experiment", *args, "--readme=null"))
+    differences = [*output_differences(base / "killed_experiment" / "demo", base / "demo")]
+    differences += output_differences(base / "killed_experiment" / "claim", base / "claim")
+    return args, run_again, differences
 
 
 def test_demo_killed_at_every_stage_boundary_ends_as_an_uninterrupted_run(demo):
-    base, _ = demo
-    assert_same_outputs(base / "killed" / "demo", base / "demo")  # (before the experiment writes into it)
-    assert_same_outputs(base / "killed" / "report", base / "report")
+    _, _, run_again, differences = demo
+    assert not run_again, f"completed stages ran again after a kill: {run_again}"
+    assert not differences, f"differ beyond timing: {differences}"
 
 
-def test_experiment_killed_at_every_step_boundary_ends_as_an_uninterrupted_run(demo, experiment):
-    base, _ = demo
-    assert_same_outputs(base / "killed_experiment" / "demo", base / "demo")
-    assert_same_outputs(base / "killed_experiment" / "claim", base / "claim")
+def test_experiment_killed_at_every_step_boundary_ends_as_an_uninterrupted_run(experiment):
+    _, run_again, differences = experiment
+    assert not run_again, f"completed steps ran again after a kill: {run_again}"
+    assert not differences, f"differ beyond timing: {differences}"
 
 
 def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
-    base, stdout = demo
+    base, stdout, _, _ = demo
     out, tmp_path = base / "demo", base
     args = ["--scale=smoke", f"--output_dir={out}", f"--report_dir={base / 'report'}"]
     tokenizer_weights = (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns
@@ -146,7 +159,7 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
     # PPO runs and Table 1 are the pipeline's.
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nrest\n")
-    report = run_experiment(draccus.parse(ExperimentConfig, args=[*experiment[:-1], f"--readme={readme}"]))
+    report = run_experiment(draccus.parse(ExperimentConfig, args=[*experiment[0], f"--readme={readme}"]))
     claim = json.loads((tmp_path / "claim" / "results.json").read_text())
     assert claim["table"]["roboscape_mlp"] == tables  # the pipeline's evaluations, not new ones
     assert [point["iteration"] for point in claim["curve"]] == [0, 1]  # SFT, then PPO's one checkpoint
