@@ -1,2 +1,2 @@
-"""Measures of images: PSNR and SSIM of the whole frame and of the object's region, and perceptual distances
-(LPIPS, or the tokenizer's features)."""
+"""Measures of images: PSNR and SSIM of the whole frame and of the object's region (`image_fidelity.py`), and LPIPS
+loaded offline (`perceptual.py`)."""

@@ -277,14 +277,17 @@ def _relative(path: str, report_dir: str) -> str:
 def readme_block(cfg, summary: dict) -> str:
     """The README's results: the claim's targets and Table 1, with the machine and the command."""
     p = cfg.pipeline
-    return render_report(
-        "readme_results.md",
-        cfg=cfg,
-        summary=summary,
-        targets=summary["targets"],
-        command=command(cfg),
-        table=format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
-    )
+    return (
+        render_report(
+            "readme_results.md",
+            cfg=cfg,
+            summary=summary,
+            targets=summary["targets"],
+            command=command(cfg),
+            table=format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
+        ).rstrip("\n")
+        + "\n"
+    )  # one final newline, whatever the template's file ends with
 
 
 def update_readme(readme: Path, block: str) -> None:

@@ -1,4 +1,4 @@
-"""What PPO needs from a policy (DESIGN.md "Contracts"), shared by every policy plugin.
+"""What PPO needs from a policy, shared by every policy plugin.
 
 A policy reads a batch that went through its own preprocessor. Its actions are in the policy's normalised
 space; the policy's postprocessor turns them into env actions. `raw_action` is whatever the policy needs to

@@ -1,7 +1,8 @@
 """The tokenizer's report on held-out frames, per camera view: does the reconstruction keep the task object?
 
 Per view: whole-frame PSNR, object-region PSNR and the share of frames in which the object survives
-(image_fidelity.py, from the masks recorded with the dataset), and codebook use (share of codes used, perplexity).
+(metrics/image_fidelity.py, from the masks recorded with the dataset), and codebook use (share of codes used,
+perplexity).
 Writes tokenizer_report.json, tokenizer_report.md, reconstruction.png (real above reconstructed, a column per frame
 that shows the object) and, when the training run recorded them, its held-out curves (heldout_curve.png).
 """

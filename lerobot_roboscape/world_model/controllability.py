@@ -4,7 +4,7 @@ From each start's first frame the model rolls out `horizon` frames under each of
 sequences. Rollout i should be nearer its own real future (sequence i replayed in the simulator) than any other
 sequence's: the retrieval accuracy is the share of rollouts whose nearest real future is their own, by PSNR
 averaged over the horizon, on the whole frame and on the object's region (the real future's object mask, dilated
-as in image_fidelity.py).
+as in metrics/image_fidelity.py).
 
 Beside it, the same model with every action replaced by its null action: a model that ignores the actions makes
 one rollout for all K sequences, so its retrieval is chance (1/K, ties shared) whatever the frames look like.

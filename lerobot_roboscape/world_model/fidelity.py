@@ -38,8 +38,8 @@ from lerobot_roboscape.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
-# Of the task object (image_fidelity.py), when the held-out dataset has its masks: over views and the frames that
-# show it.
+# Of the task object (metrics/image_fidelity.py), when the held-out dataset has its masks: over views and the
+# frames that show it.
 OBJECT_METRICS = ("object_psnr", "object_survival")
 LABELS = {
     "psnr": "PSNR",
