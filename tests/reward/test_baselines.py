@@ -235,7 +235,8 @@ def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_act
     k, indices = env.frame_skip, model_frames(len(episode.action), env.frame_skip)
     first = env._encode({cam: episode.images[cam][:1] for cam in env.cameras})
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * k])
-    generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
+    with env.autocast():  # as the report generates: in the env's precision
+        generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
     frames = torch.cat([first, generated[0]])
     done, _ = teacher_forced_done(env, frames, actions)
     expected, _ = replay_rewards(env, episode.index, frames, done)
