@@ -1,5 +1,6 @@
 """Training a world model (action- or text-conditioned) on a pre-tokenised LeRobot dataset."""
 
+import copy
 import json
 import logging
 from dataclasses import asdict, dataclass, field
@@ -122,8 +123,9 @@ def check_same_layout(cache: TokenCache, other: TokenCache) -> None:
 
 
 def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, action_stats: dict) -> WorldModelConfig:
-    """Frame layout, action width and action statistics come from the data; say so when the layout differs from
-    the preset."""
+    """A copy of `wm` whose frame layout, action width and action statistics come from the data; says so when the
+    layout differs from the preset. The caller's config stays as it was given (a pipeline records it)."""
+    wm = copy.deepcopy(wm)
     for name, value in (
         ("n_cameras", len(cache.cameras)),
         ("tokens_per_side", cache.tokens_per_side),
