@@ -66,10 +66,9 @@ def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -
         process.stderr.close()
 
 
-def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> str:
+def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> None:
     """Start `cmd` and SIGKILL it as soon as it prints a line that begins with `prefix` (a stage header: the stage
-    before it is complete, its own has begun); returns what it printed. Fails if it ends first or stays silent
-    past the timeout."""
+    before it is complete, its own has begun). Fails if it ends first or stays silent past the timeout."""
     process = _start(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     lines: queue.Queue = queue.Queue()
     threading.Thread(
@@ -86,7 +85,7 @@ def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> str:
                 raise AssertionError(f"{cmd[2]} ended before printing {prefix!r}: {''.join(seen)[-2000:]}")
             seen.append(line)
             if line.startswith(prefix):
-                return "".join(seen)
+                return
     finally:
         _kill(process)
 
