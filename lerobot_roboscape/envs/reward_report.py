@@ -124,7 +124,7 @@ def episode_rewards(
     the model frame seen after each step (the last one holds)."""
     indices = model_frames(len(episode.action), env.frame_skip)
     frames = {cam: episode.images[cam][indices] for cam in env.cameras}
-    tokens = env._encode(frames)  # (T, S), T model frames
+    tokens = env.encode(frames)  # (T, S), T model frames
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
     if open_loop and len(tokens) > 1:
         with env.autocast():

@@ -165,7 +165,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 continue
             per_scene[scene] += 1
             frames = read_frames(dataset, index, [0, -1])
-            tokens = self._encode(frames)  # (2, S)
+            tokens = self.encode(frames)  # (2, S)
             task = dataset.meta.episodes[index]["tasks"][0]
             horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
             starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts, horizon))
@@ -187,7 +187,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             )
         if tasks is None or len(tasks) != self.num_envs:
             raise InvalidInputError(f"frames need an instruction per episode ({self.num_envs}), got {tasks!r}")
-        tokens = self._encode(self._checked_frames(frames))  # (B, S)
+        tokens = self.encode(self._checked_frames(frames))  # (B, S)
         horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
         return [
             EpisodeStart(FROM_FRAMES, str(task), tokens[i], tokens[i], {}, int(horizons[i]))
@@ -206,7 +206,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 )
         return {cam: np.asarray(frames[cam], np.uint8) for cam in self.cameras}
 
-    def _encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
+    def encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
         return self.tokenizer.encode_views(
             [torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device) for f in frames.values()]
@@ -251,7 +251,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if "frames" in options:  # new starts: their goals are made now (or given), not cached
             starts = self._starts_from_frames(options["frames"], options.get("task"), options.get("horizon"))
             if options.get("goal_frames") is not None:
-                goal_tokens, reached = self._encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
+                goal_tokens, reached = self.encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
             else:
                 goals = self.goal_bank.generate(starts)
                 goal_tokens, reached = torch.stack([g.tokens for g in goals]), [g.reached for g in goals]

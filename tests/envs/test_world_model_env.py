@@ -186,7 +186,7 @@ def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, termin
         data.meta.episodes[i]["length"] for i, f in enumerate(facts) if f["task_family"] == "push" and f["success"]
     )  # the longest successful push
     frames = model_frames(len(episode.action), k)  # what the action model would have made, a frame per k steps
-    tokens = env._encode({cam: episode.images[cam][frames] for cam in env.cameras})
+    tokens = env.encode({cam: episode.images[cam][frames] for cam in env.cameras})
     reached, reached_success = replay_rewards(env, episode.index, tokens, torch.from_numpy(episode.done_label[frames]))
     still, still_success = replay_rewards(env, episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
     assert reached_success and not still_success
@@ -250,7 +250,7 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     frames = read_episode(open_dataset("test/demos", root), 4).images  # a push episode's frames
     first = {cam: np.stack([images[0], images[-1]]) for cam, images in frames.items()}
     obs, info = env.reset(options={"frames": first, "task": ["push the cube", "push the cube"], "horizon": [5, 9]})
-    expected = env._pixels(env.decode(env._encode(first)))
+    expected = env._pixels(env.decode(env.encode(first)))
     for cam in env.cameras:
         assert np.array_equal(obs["pixels"][cam], expected[cam])
     assert not np.array_equal(obs["pixels"]["third_view"][0], obs["pixels"]["third_view"][1])
@@ -263,7 +263,7 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     last = {cam: np.stack([images[-1], images[-1]]) for cam, images in frames.items()}  # a goal given instead
     _, info = env.reset(options={"frames": first, "task": ["push the cube"] * 2, "goal_frames": last})
     for cam in env.cameras:
-        assert np.array_equal(info["goal"][cam], env._pixels(env.decode(env._encode(last)))[cam])
+        assert np.array_equal(info["goal"][cam], env._pixels(env.decode(env.encode(last)))[cam])
     assert info["goal_from_text_model"].all()
 
 

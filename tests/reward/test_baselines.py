@@ -233,7 +233,7 @@ def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_act
     episode = read_episode(open_dataset("test/demos", root), 0)
     open_loop, real = episode_rewards(env, episode, {}, open_loop=True), episode_rewards(env, episode, {})
     k, indices = env.frame_skip, model_frames(len(episode.action), env.frame_skip)
-    first = env._encode({cam: episode.images[cam][:1] for cam in env.cameras})
+    first = env.encode({cam: episode.images[cam][:1] for cam in env.cameras})
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * k])
     with env.autocast():  # as the report generates: in the env's precision
         generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
