@@ -24,6 +24,7 @@ from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.layout import (
     CONTROL_DIR,
+    CONTROL_IND_DIR,
     CONVERTED_DIR,
     DEMOS_DIR,
     DEMOS_REPO_ID,
@@ -61,6 +62,7 @@ logger = logging.getLogger(__name__)
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
 VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
 CONTROL_SEED = 70_000  # and the starts of the controllability set
+CONTROL_IND_SEED = 75_000  # and those of its twin in the training scenes
 EXPLORE_SEED = 80_000  # and the exploratory episodes
 
 
@@ -73,7 +75,9 @@ class Datasets:
     models never saw, for the fidelity and reward reports (OOD scenes, half failed; or one converted episode).
     validation: episodes the done threshold is chosen on (IND scenes, new initial states, half failed; the
     demonstrations themselves at the scales without held-out scenes). controllability: K action sequences from
-    each of some OOD starts (demos/controllability.py), or None. trajectory_file: the recorded ManiSkill .h5 that
+    each of some OOD starts (demos/controllability.py), or None; controllability_ind: the same from new initial
+    states of the training scenes (where RL runs, so where the world model must first be faithful), or None.
+    trajectory_file: the recorded ManiSkill .h5 that
     `roboscape-convert` read. exploration: exploratory episodes in the IND scenes (demos/exploration.py) for the
     action world model only, or None."""
 
@@ -83,6 +87,7 @@ class Datasets:
     controllability: DatasetConfig | None
     trajectory_file: Path
     exploration: DatasetConfig | None = None
+    controllability_ind: DatasetConfig | None = None
 
 
 def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
@@ -113,6 +118,26 @@ def _unseen_episodes(
         ),
         cfg.fresh,
     )
+
+
+def _controllability(
+    cfg: PipelineConfig, root: Path, split: str, scenes: int | None, seed: int, starts_per_scene: int = 2
+) -> DatasetConfig:
+    """A controllability set (K action sequences from each start) in the scenes of `split`."""
+    control = ControllabilityConfig(
+        repo_id=f"local/{root.name}",
+        root=str(root),
+        families=cfg.families,
+        split=split,
+        max_scenes=scenes,
+        starts_per_scene=starts_per_scene,
+        seed=seed,
+        image_size=cfg.image_size,
+        workers=cfg.workers,
+        overwrite=True,
+    )
+    run_once(root, control, cfg.fresh, lambda: collect_controllability(control))
+    return DatasetConfig(repo_id=control.repo_id, root=control.root)
 
 
 def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
@@ -152,24 +177,13 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
         mark_done(converted, record)
     h5 = next(h5_dir.glob("*.h5"))
     heldout = DatasetConfig(repo_id="local/maniskill_converted", root=str(converted))
-    validation, controllability = train, None
+    validation, controllability, controllability_ind = train, None, None
     if cfg.heldout_scenes:
         heldout = _unseen_episodes(cfg, out / HELDOUT_DIR, "ood", cfg.heldout_scenes, 4, HELDOUT_SEED)
         validation = _unseen_episodes(cfg, out / VALIDATION_DIR, "ind", cfg.scenes, 1, VALIDATION_SEED)
-        control = ControllabilityConfig(
-            repo_id="local/roboscape_controllability",
-            root=str(out / CONTROL_DIR),
-            families=cfg.families,
-            split="ood",
-            max_scenes=cfg.heldout_scenes,
-            seed=CONTROL_SEED,
-            image_size=cfg.image_size,
-            workers=cfg.workers,
-            overwrite=True,
-        )
-        folder = Path(control.root)
-        run_once(folder, control, cfg.fresh, lambda: collect_controllability(control))
-        controllability = DatasetConfig(repo_id=control.repo_id, root=control.root)
+        controllability = _controllability(cfg, out / CONTROL_DIR, "ood", cfg.heldout_scenes, CONTROL_SEED)
+        # One start per training scene, from new initial states: where RL runs, the world model is judged first.
+        controllability_ind = _controllability(cfg, out / CONTROL_IND_DIR, "ind", cfg.scenes, CONTROL_IND_SEED, 1)
     exploration = None
     if cfg.explore_episodes_per_scene:
         exploration = _collect(
@@ -188,7 +202,7 @@ def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
             ),
             cfg.fresh,
         )
-    return Datasets(train, heldout, validation, controllability, h5, exploration)
+    return Datasets(train, heldout, validation, controllability, h5, exploration, controllability_ind)
 
 
 # ---- models ------------------------------------------------------------------------------------------------------

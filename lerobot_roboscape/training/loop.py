@@ -35,6 +35,10 @@ from lerobot_roboscape.training.checkpoints import (
 logger = logging.getLogger(__name__)
 # One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.
 HELDOUT_CURVE = "heldout_curve.jsonl"
+# One line per logging step: the losses, and the throughput since the previous one (samples/s, TFLOP/s, MFU).
+TRAIN_LOG = "train_log.jsonl"
+# Dense bf16 peak of the GPUs MFU is read against (their data sheets), by a name nvidia-smi reports.
+PEAK_BF16_TFLOPS = {"H200": 989.0, "H100": 989.0, "A100": 312.0, "L40S": 362.0, "L4": 121.0, "4090": 165.0}
 
 
 @dataclass
@@ -53,6 +57,11 @@ class TrainingConfig:
     keep_checkpoints: checkpoints kept on disk (older ones are deleted).
     seed: seed of the initialisation and of the batch sampling.
     mixed_precision: "auto" (bf16 on a GPU that supports it, else full precision), "bf16", "fp16" or "no".
+    compile: torch.compile the model's training step (static shapes); null: on a GPU only, where it pays (on the
+        CPU its compilation outweighs a short run).
+    tf32: on a GPU, TF32 tensor cores for the matmuls left in fp32.
+    peak_tflops: the device's peak bf16 TFLOP/s that MFU is read against; null: looked up from the GPU's name
+        (PEAK_BF16_TFLOPS), none on a CPU (then only TFLOP/s are reported).
     resume: continue from the last checkpoint in output_dir.
     """
 
@@ -68,6 +77,9 @@ class TrainingConfig:
     keep_checkpoints: int = 2
     seed: int = 0
     mixed_precision: str = "auto"
+    compile: bool | None = None
+    tf32: bool = True
+    peak_tflops: float | None = None
     resume: bool = False
 
     def __post_init__(self):
@@ -106,12 +118,55 @@ def native_bf16(device: str) -> bool:
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
+def peak_flops(config: TrainingConfig, device: torch.device) -> float | None:
+    """The device's peak bf16 FLOP/s: the config's, else the GPU's from PEAK_BF16_TFLOPS; None when unknown."""
+    if config.peak_tflops is not None:
+        return config.peak_tflops * 1e12
+    if device.type != "cuda":
+        return None
+    name = torch.cuda.get_device_name(device)
+    return next((tflops * 1e12 for key, tflops in PEAK_BF16_TFLOPS.items() if key in name), None)
+
+
 def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
     accelerator = Accelerator(
         mixed_precision=resolve_mixed_precision(config.mixed_precision), log_with="tensorboard", project_dir=output_dir
     )
+    if accelerator.device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = config.tf32
     set_seed(config.seed)
     return accelerator
+
+
+class Throughput:
+    """Samples/s, TFLOP/s and MFU between two logging steps. Reading the clock waits for the device, once per
+    logging step, not once per step."""
+
+    def __init__(self, samples_per_step: int, flops_per_sample: float | None, peak: float | None, device):
+        self.samples_per_step, self.flops_per_sample, self.peak = samples_per_step, flops_per_sample, peak
+        self.device = device
+        self.step, self.time = 0, time.perf_counter()
+
+    def _sync(self):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def mark(self, step: int) -> None:
+        self._sync()
+        self.step, self.time = step, time.perf_counter()
+
+    def read(self, step: int) -> dict[str, float]:
+        """The figures since the last mark, which moves here."""
+        self._sync()
+        seconds = time.perf_counter() - self.time
+        samples_per_s = (step - self.step) * self.samples_per_step / max(seconds, 1e-9)
+        self.step, self.time = step, time.perf_counter()
+        figures = {"samples_per_s": samples_per_s}
+        if self.flops_per_sample:
+            figures["tflops"] = samples_per_s * self.flops_per_sample / 1e12
+            if self.peak:
+                figures["mfu"] = samples_per_s * self.flops_per_sample / self.peak
+        return figures
 
 
 def _save_checkpoint(accelerator: Accelerator, model: nn.Module, step: int, output_dir: Path, keep: int) -> None:
@@ -153,10 +208,16 @@ def fit(
     run_config: dict,
     desc: str = "training",
     evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
+    flops_per_sample: float | None = None,
 ) -> nn.Module:
     """Train `model` for config.steps steps on `batches(step, process_index)`; returns the unwrapped model, also
     saved (save_pretrained) to output_dir/pretrained_model with the run's config. `evaluate(model)`, when given, is
-    called every config.eval_freq steps and at the end, on the main process, in eval mode and without gradients."""
+    called every config.eval_freq steps and at the end, on the main process, in eval mode and without gradients.
+
+    `loss_fn` may return its logs as tensors: they are read (which waits for the device) on logging steps only, as
+    is the check that the loss is finite, so the host queues steps ahead of the device. With `flops_per_sample` (the
+    model's FLOPs per training sample), the log reads TFLOP/s and MFU beside samples/s (output_dir/train_log.jsonl,
+    TensorBoard and the progress bar)."""
     output_dir = Path(output_dir)
     resume_from = last_checkpoint(output_dir) if config.resume else None
     if not config.resume and (output_dir / CHECKPOINTS).exists():
@@ -172,9 +233,13 @@ def fit(
         {"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
         {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
     ]
-    optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95))
+    # Fused AdamW: one kernel for every parameter's update (CUDA only).
+    fused = accelerator.device.type == "cuda"
+    optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95), fused=fused)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(config))
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
+    if config.compile if config.compile is not None else accelerator.device.type == "cuda":
+        accelerator.unwrap_model(model).compile()  # in place: the state dict's keys stay as they are
     accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
     start = 0
     if resume_from is not None:
@@ -184,7 +249,10 @@ def fit(
     if accelerator.is_main_process:
         (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
         _truncate_curve(output_dir / HELDOUT_CURVE, start)
+        _truncate_curve(output_dir / TRAIN_LOG, start)
     began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating
+    batch_size = config.batch_size * accelerator.num_processes
+    throughput = Throughput(batch_size, flops_per_sample, peak_flops(config, accelerator.device), accelerator.device)
 
     model.train()
     progress = tqdm(
@@ -202,17 +270,25 @@ def fit(
         }
         with accelerator.autocast():
             loss, logs = loss_fn(model, batch)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss is {loss.item()} at step {step}; lower --train.lr or check the data")
         accelerator.backward(loss)
-        logs["grad_norm"] = float(accelerator.clip_grad_norm_(params, config.grad_clip))
+        logs["grad_norm"] = accelerator.clip_grad_norm_(params, config.grad_clip)
         optimizer.step()
         scheduler.step()
         optimizer.zero_grad(set_to_none=True)
         if (step + 1) % config.log_freq == 0 or step == start:
+            logs = {name: float(value) for name, value in logs.items()}  # waits for the device
+            if not math.isfinite(logs["loss"] if "loss" in logs else float(loss)):
+                raise FloatingPointError(
+                    f"loss is {float(loss)} at step {step + 1}; lower --train.lr or check the data"
+                )
+            if step == start:
+                throughput.mark(step + 1)  # the first step (compilation, warm-up) is not throughput
+            else:
+                logs |= throughput.read(step + 1)
             logs["lr"] = scheduler.get_last_lr()[0]
             accelerator.log(logs, step=step + 1)
-            progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in ("loss", "token_acc", "l1")})
+            _log_line(output_dir, accelerator, step + 1, logs)
+            progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in PROGRESS_KEYS})
         last = step + 1 == config.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
             tic = time.time()
@@ -226,6 +302,15 @@ def fit(
     if accelerator.is_main_process:
         save_atomically(unwrapped, output_dir / FINAL)
     return unwrapped
+
+
+PROGRESS_KEYS = ("loss", "token_acc", "l1", "samples_per_s", "mfu")
+
+
+def _log_line(output_dir: Path, accelerator: Accelerator, step: int, logs: dict) -> None:
+    if accelerator.is_main_process:
+        with open(output_dir / TRAIN_LOG, "a") as f:
+            f.write(json.dumps({"step": step, **{k: round(v, 6) for k, v in logs.items()}}) + "\n")
 
 
 def _every(step: int, freq: int) -> bool:

@@ -16,7 +16,7 @@ from torch import nn
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.control_encoders import ACTION_TOKENS, ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 
@@ -25,11 +25,16 @@ TEXT_ENCODER_DIR = "text_encoder"
 
 def balanced_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """Binary cross-entropy with each class averaged on its own, then the two averaged: a rare positive class
-    weighs as much as the common negative one (a class absent from the batch drops out)."""
+    weighs as much as the common negative one (a class absent from the batch drops out). Written with weights, not
+    boolean indexing, so that it never waits on the device (no data-dependent shapes)."""
     per_item = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
-    positive = labels > 0.5
-    parts = [per_item[m].mean() for m in (positive, ~positive) if m.any()]
-    return torch.stack(parts).mean()
+    positive = (labels > 0.5).to(per_item.dtype)
+    means, present = [], []
+    for weight in (positive, 1 - positive):
+        count = weight.sum()
+        means.append((per_item * weight).sum() / count.clamp(min=1))
+        present.append((count > 0).to(per_item.dtype))
+    return (means[0] * present[0] + means[1] * present[1]) / (present[0] + present[1]).clamp(min=1)
 
 
 class STWorldModel(
@@ -57,6 +62,7 @@ class STWorldModel(
         nn.init.normal_(self.pos_emb, std=0.02)
         for block in self.blocks:
             block.zero_init_modulation()
+        self._compiled_blocks: list | None = None  # see compile()
 
     @staticmethod
     def _init_weights(module):
@@ -93,8 +99,9 @@ class STWorldModel(
         x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
         control = control._replace(pooled=self.ln_pooled(control.pooled))
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
+        blocks = self._compiled_blocks if cache is None and self.training and self._compiled_blocks else self.blocks
         kvs = []
-        for block, layer_cache in zip(self.blocks, layer_caches, strict=True):
+        for block, layer_cache in zip(blocks, layer_caches, strict=True):
             x_BTSC, kv = block(x_BTSC, control, layer_cache)
             kvs.append(kv)
         return self.ln_f(x_BTSC), kvs
@@ -128,27 +135,30 @@ class STWorldModel(
         inputs = tokens.masked_fill(mask, self.config.mask_token_id)
 
         logits, done_logits, _ = self.compute_logits(inputs, control)
-        token_loss = logits.sum() * 0
+        # Every token's loss, weighted: 0 where not masked, changed_weight where masked and changed since the previous
+        # frame. No boolean indexing, so a training step never waits on the device.
         changed = torch.zeros_like(mask)
         changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
-        changed = changed[mask]  # of the masked tokens
-        if mask.any():
-            token_ce = F.cross_entropy(logits[mask].float(), tokens[mask], reduction="none")
-            weight = torch.where(changed, self.config.changed_weight, 1.0)
-            token_loss = (weight * token_ce).sum() / weight.sum()
+        masked, masked_changed = mask.float(), (mask & changed).float()
+        weight = masked + (self.config.changed_weight - 1) * masked_changed
+        token_ce = F.cross_entropy(logits.flatten(0, 2).float(), tokens.flatten(), reduction="none").view_as(weight)
+        token_loss = (weight * token_ce).sum() / weight.sum().clamp(min=1e-6)
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + self.config.done_weight * done_loss
-        hits = logits[mask].argmax(-1) == tokens[mask]
-        accuracy = hits.float().mean() if mask.any() else torch.tensor(0.0)
+        hits = (logits.argmax(-1) == tokens).float()
+        n_masked, n_changed = masked.sum(), masked_changed.sum()
+        accuracy = (hits * masked).sum() / n_masked.clamp(min=1)
         # the accuracy on the changed tokens: copying the previous frame scores 0 there
-        changed_accuracy = hits[changed].float().mean() if changed.any() else accuracy
-        return loss, {
-            "loss": loss.item(),
-            "token_ce": token_loss.item(),
-            "token_acc": accuracy.item(),
-            "changed_acc": changed_accuracy.item(),
-            "done_loss": done_loss.item(),
+        changed_accuracy = torch.where(n_changed > 0, (hits * masked_changed).sum() / n_changed.clamp(min=1), accuracy)
+        # Detached tensors: the training loop reads them on its logging steps only.
+        logs = {
+            "loss": loss,
+            "token_ce": token_loss,
+            "token_acc": accuracy,
+            "changed_acc": changed_accuracy,
+            "done_loss": done_loss,
         }
+        return loss, {name: value.detach() for name, value in logs.items()}
 
     def done_loss(self, logits: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         if self.config.done_loss == "rmse":
@@ -157,6 +167,34 @@ class STWorldModel(
 
     def forward(self, batch: dict) -> tuple[torch.Tensor, dict]:
         return self.compute_loss(batch)
+
+    def compile(self, **kwargs) -> None:
+        """torch.compile the blocks' training pass: regional compilation, tensors in (whatever the control), so one
+        graph serves every block and compiles in seconds. Generation, which carries a cache of Python state, stays
+        eager, as does the loss around the blocks. The state dict is unchanged."""
+        self._compiled_blocks = [torch.compile(block, **kwargs) for block in self.blocks]
+
+    def forward_flops_per_clip(self) -> float:
+        """Matmul FLOPs (2 per multiply-add) of the forward pass over one training clip of `window` frames, attention
+        included, as nanoGPT's estimate_mfu counts them; a training step costs 3x (the backward pass twice the
+        forward's). The frozen T5 is left out: its states are computed once per instruction."""
+        c = self.config
+        T, S, C, V = c.window, c.tokens_per_frame, c.d_model, c.vocab_size
+        L = ACTION_TOKENS if c.control == "action" else c.text_max_length
+        per_token = 8 * C * C + 8 * C * C + 4 * C * C + 4 * c.mlp_ratio * C * C  # spatial, temporal, cross, MLP
+        attention = T * 4 * S * S * C + S * 4 * T * T * C + T * 4 * S * L * C  # spatial, temporal, cross
+        modulated = T if c.control == "action" else 1  # the text's pooled control is one per clip
+        modulation = modulated * 24 * C * C if c.adaln != "none" else 0
+        blocks = c.n_layer * (T * S * per_token + attention + T * 4 * C * C * L + modulation)  # + cross keys/values
+        head = T * S * 2 * C * V + T * 2 * (C * c.done_hidden + c.done_hidden)
+        if c.control == "action":
+            control = T * 2 * (c.frame_skip * c.action_dim * C + C * ACTION_TOKENS * C)
+        else:
+            control = 2 * L * self.control_encoder.t5.config.d_model * C  # the projection of the T5 states
+        return float(blocks + head + control)
+
+    def training_flops_per_clip(self) -> float:
+        return 3 * self.forward_flops_per_clip()
 
     # ---- generation ----------------------------------------------------------------------------------------
 

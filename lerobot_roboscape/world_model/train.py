@@ -25,7 +25,7 @@ from lerobot_roboscape.tokenizer.token_cache import (
 )
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig, fit, resolve_device, save_atomically
-from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
+from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
 from lerobot_roboscape.world_model.controllability import control_summary, read_control_set
 from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
@@ -36,9 +36,15 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class WorldModelTrainingConfig(TrainingConfig):
+    """Args (beside TrainingConfig's):
+    resident: hold the token caches whole on the training device and slice each step's clips there
+        (ResidentClips), so that a step sends only row indices; null: on a GPU.
+    """
+
     steps: int = 800
     batch_size: int = 8
     lr: float = 1e-3
+    resident: bool | None = None
 
 
 @dataclass
@@ -180,6 +186,10 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         batches = ClipMixture([sampler, explore], [1 - share, share], cfg.train.batch_size, cfg.train.seed)
         action_stats = aggregate_feature_stats([action_stats, explore_stats])
         run_config["exploration_token_cache"] = str(explore_cache.root)
+    device = resolve_device("auto")  # where fit trains (Accelerate's choice)
+    if cfg.train.resident if cfg.train.resident is not None else device == "cuda":
+        batches = ResidentClips(batches, device)
+        logger.info("token caches resident on %s: %.0f MiB", device, batches.nbytes / 2**20)
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
     model = fit(
@@ -191,6 +201,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         run_config,
         desc=f"{cfg.wm.control} world model",
         evaluate=heldout_control(cfg) if cfg.heldout_control is not None else None,
+        flops_per_sample=model.training_flops_per_clip(),
     )
     if cfg.done_tuning_steps and cfg.wm.control == "action":
         tune_done_on_open_loop(model, cache, episodes, cfg)

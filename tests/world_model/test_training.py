@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
-from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, select_episodes
+from lerobot_roboscape.training.loop import TRAIN_LOG
+from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, gather, select_episodes
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
@@ -55,7 +56,7 @@ def test_clips_follow_the_action_convention(token_cache):
     again = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=0)(step=5)
     assert torch.equal(batch["tokens"], again["tokens"])  # a pure function of the step: resumable
     row = episodes[0]
-    clip = ClipSampler(token_cache, episodes, 4, 1).clip(row, rng=_FixedStart(0))
+    clip = _clip(ClipSampler(token_cache, episodes, 4, 1), start=0)
     assert clip["no_action"].tolist() == [True, False, False, False]
     assert (clip["actions"][1, 0] == token_cache.actions[row["start"]]).all()  # frame 1 carries action 0
 
@@ -65,13 +66,13 @@ def test_clips_of_action_chunks(token_cache):
     row = max(select_episodes(token_cache), key=lambda r: r["length"])
     start, k = row["start"], 3
     sampler = ClipSampler(token_cache, [row], window=3, batch_size=1, frame_skip=k)
-    clip = sampler.clip(row, rng=_FixedStart(1))
+    clip = _clip(sampler, start=1)
     assert np.array_equal(clip["tokens"], token_cache.tokens[start + np.array([1, 4, 7])].reshape(3, -1))
     assert clip["no_action"].tolist() == [False, False, False]
     assert (clip["actions"][0, :2] == 0).all()  # steps -2 and -1: before the episode
     assert np.array_equal(clip["actions"][0, 2], token_cache.actions[start])
     assert np.array_equal(clip["actions"][2], token_cache.actions[start + 4 : start + 7])  # steps 4..6 lead to 7
-    end = sampler.clip(row, rng=_FixedStart(row["length"] - 2))  # past the end: the last frame held, no actions
+    end = _clip(sampler, start=row["length"] - 2)  # past the end: the last frame held, no actions
     assert (end["tokens"][1] == end["tokens"][2]).all() and (end["actions"][2] == 0).all()
 
 
@@ -115,11 +116,38 @@ def test_action_model_trains_on_exploratory_episodes_too(
 
 
 class _FixedStart:
+    """A random generator that always draws the sampler's first episode, from control step `start`."""
+
     def __init__(self, start):
         self.start = start
 
+    def choice(self, n, size, p):
+        return np.zeros(size, dtype=np.int64)
+
     def integers(self, low, high):
-        return self.start
+        return np.full_like(high, self.start)
+
+
+def _clip(sampler: ClipSampler, start: int) -> dict:
+    """The sampler's first episode's clip from control step `start`, unbatched."""
+    batch = gather(sampler.cache, sampler.draw(_FixedStart(start), 1))
+    return {k: v[0] for k, v in batch.items()}
+
+
+def test_resident_clips_are_the_samplers_batches(token_cache):
+    """Sliced from the caches held on the device, the batches are the host sampler's, mixture included."""
+    episodes = select_episodes(token_cache)
+    sampler = ClipSampler(token_cache, episodes, window=4, batch_size=8, seed=3, frame_skip=2)
+    mixture = ClipMixture([sampler, ClipSampler(token_cache, episodes[:2], 4, 8, 1, 2)], [0.6, 0.4], 16, seed=5)
+    for source in (sampler, mixture):
+        resident = ResidentClips(source, "cpu")
+        for step in (0, 7):
+            host, sliced = source(step), resident(step)
+            assert host["task"] == sliced["task"]
+            for key in ("tokens", "actions", "no_action", "done", "reward"):
+                assert host[key].dtype == sliced[key].dtype and torch.equal(host[key], sliced[key]), key
+    one_cache = token_cache.tokens.size * 4 + token_cache.actions.nbytes + 2 * len(token_cache.done) * 4
+    assert resident.nbytes == 2 * one_cache  # the mixture's two samplers read one cache: it is held twice
 
 
 def test_episode_filters(token_cache):
@@ -151,6 +179,28 @@ def test_trained_model_learns_and_loads(action_wm):
     assert model.config.vocab_size == 64 and model.config.tokens_per_frame == 32  # taken from the token cache
     logs = list((action_wm / "logs").rglob("events.out.tfevents*"))
     assert logs, "TensorBoard logs are written"
+
+
+def test_training_log_reads_throughput_and_flops(action_wm):
+    """Every logging step's line carries the losses and, from the second on, clips/s and the TFLOP/s they make with
+    the model's FLOPs per clip (MFU needs a known peak: none on a CPU)."""
+    lines = [json.loads(line) for line in (action_wm / TRAIN_LOG).read_text().splitlines()]
+    assert [line["step"] for line in lines] == [1, *range(5, STEPS + 1, 5)]
+    flops = STWorldModel.from_pretrained(action_wm / FINAL).training_flops_per_clip()
+    for line in lines[1:]:
+        assert line["samples_per_s"] > 0 and "mfu" not in line
+        assert line["tflops"] == pytest.approx(line["samples_per_s"] * flops / 1e12, rel=1e-3)
+    assert all(0 <= line["token_acc"] <= 1 and line["loss"] > 0 for line in lines)
+
+
+def test_resident_clips_train_the_same_model(demo_dataset, trained_tokenizer, token_cache, tmp_path):
+    """Clips sliced from the caches held on the device train the model the host sampler's clips train."""
+    for resident in ("false", "true"):
+        args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / resident, steps=3)
+        train_world_model(draccus.parse(TrainWorldModelConfig, args=[*args, f"--train.resident={resident}"]))
+    assert_same_weights(
+        tmp_path / "false" / FINAL / "model.safetensors", tmp_path / "true" / FINAL / "model.safetensors"
+    )
 
 
 def test_text_world_model_trains_on_successful_optimal_episodes(demo_dataset, trained_tokenizer, token_cache, tmp_path):

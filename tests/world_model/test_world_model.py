@@ -333,3 +333,55 @@ def test_bad_inputs_are_named():
         TinyWorldModelConfig(window=4, prompt_frames=4)
     with pytest.raises(ValueError, match="control must be"):
         TinyWorldModelConfig(control="audio")
+
+
+@pytest.mark.parametrize("control", ["action", "text"])
+def test_loss_is_the_masked_mean_without_waiting_on_the_device(control):
+    """The weighted loss (no boolean indexing, so no host sync) equals its definition: the token cross-entropy
+    averaged over the masked tokens, changed ones weighing changed_weight, plus the class-balanced done loss; its
+    logs are tensors the training loop reads on logging steps only."""
+    model = make_model(control, changed_weight=3.0, clean_frame_prob=0.0).train()
+    batch = random_batch(B=4, T=4, S=8)
+    batch["done"][:] = 0.0
+    batch["done"][0, 3] = 1.0  # one rare positive
+    batch["task"] = TASKS * 2
+    torch.manual_seed(7)
+    loss, logs = model(batch)
+    assert all(torch.is_tensor(v) and not v.requires_grad for v in logs.values())
+    # The same draw of masks, then the definition with boolean indexing.
+    torch.manual_seed(7)
+    tokens = batch["tokens"]
+    B, T, S = tokens.shape
+    ratio = torch.cos(torch.pi / 2 * torch.rand(B, T, 1)) * (torch.rand(B, T, 1) >= 0.0)
+    ratio[:, 0] = 0.0
+    mask = torch.rand(B, T, S) < ratio
+    control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
+    logits, done_logits, _ = model.compute_logits(tokens.masked_fill(mask, model.config.mask_token_id), control_tokens)
+    changed = torch.zeros_like(mask)
+    changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
+    ce = torch.nn.functional.cross_entropy(logits[mask], tokens[mask], reduction="none")
+    weight = torch.where(changed[mask], 3.0, 1.0)
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(done_logits, batch["done"], reduction="none")
+    positive = batch["done"] > 0.5
+    expected = (weight * ce).sum() / weight.sum() + (bce[positive].mean() + bce[~positive].mean()) / 2
+    torch.testing.assert_close(loss, expected)
+    hits = logits[mask].argmax(-1) == tokens[mask]
+    torch.testing.assert_close(logs["token_acc"], hits.float().mean())
+    torch.testing.assert_close(logs["changed_acc"], hits[changed[mask]].float().mean())
+
+
+@pytest.mark.parametrize("control", ["action", "text"])
+def test_flops_per_clip_are_the_matmuls_counted(control):
+    """The analytic FLOPs behind MFU equal what PyTorch's FLOP counter sees in a forward pass (attention by the
+    math kernel, which it can count)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    model = make_model(control, tokens_per_side=4, d_model=64, window=5, frame_skip=2)
+    batch = random_batch(B=2, T=5, S=32)
+    batch["actions"] = torch.rand(2, 5, 2, 7)
+    model.encode_control(instructions=batch["task"]) if control == "text" else None  # T5 states cached first
+    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as counter:
+        model(batch)
+    assert counter.get_total_flops() / 2 == model.forward_flops_per_clip()
+    assert model.training_flops_per_clip() == 3 * model.forward_flops_per_clip()
