@@ -175,6 +175,20 @@ class BenchWorldModelConfig(WorldModelConfig):
     changed_weight: float = 5.0
 
 
+@WorldModelConfig.register_subclass("gpu")
+@dataclass
+class GpuWorldModelConfig(BenchWorldModelConfig):
+    """The bench's frames (two 16x16 views, 1024 codes) at the size one GPU trains in minutes: 8 layers of width 384
+    (27x the bench preset's parameters) and a window of 8 frames. A training step costs ~0.6 TFLOP per clip, so at
+    batch 64 a GPU that runs bf16 at 300 TFLOP/s (30% of an H100's peak) trains ~500 clips/s."""
+
+    n_layer: int = 8
+    n_head: int = 6
+    d_model: int = 384
+    window: int = 8
+    done_hidden: int = 256
+
+
 @WorldModelConfig.register_subclass("paper")
 @dataclass
 class PaperWorldModelConfig(WorldModelConfig):

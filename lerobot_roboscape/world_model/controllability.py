@@ -29,6 +29,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from lerobot.configs.default import DatasetConfig
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.dataset.segmentation import read_masks
@@ -136,6 +138,43 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
     if not starts:
         raise InvalidInputError(f"{dataset.root} has no start to measure")
     return starts
+
+
+CONTROL_STARTS_FIELDS = ("first", "actions", "real", "masks")
+
+
+def save_control_starts(starts: list[ControlStart], path: str | Path, frame_skip: int) -> None:
+    """A controllability set as read for a model's frame skip, in one safetensors file (tensors, and the starts'
+    facts in its metadata): what a machine without the datasets' videos measures retrieval on."""
+    tensors = {
+        f"{i}.{name}": getattr(s, name).cpu().contiguous()
+        for i, s in enumerate(starts)
+        for name in CONTROL_STARTS_FIELDS
+    }
+    facts = [{"start": s.start, "episodes": s.episodes, "task": s.task} for s in starts]
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    save_file(tensors, tmp, metadata={"starts": json.dumps(facts), "frame_skip": str(frame_skip)})
+    tmp.replace(path)
+
+
+def load_control_starts(path: str | Path, frame_skip: int, device="cpu") -> list[ControlStart]:
+    """The starts `save_control_starts` wrote; refuses a file read for another frame skip."""
+    with safe_open(str(path), "pt") as f:
+        metadata = f.metadata() or {}
+    if "starts" not in metadata:
+        raise InvalidInputError(f"{path}: not a controllability set saved by save_control_starts")
+    if int(metadata["frame_skip"]) != frame_skip:
+        raise InvalidInputError(
+            f"{path} was read for frame_skip={metadata['frame_skip']}, the model steps every {frame_skip} control steps"
+        )
+    tensors = load_file(str(path), device=str(device))
+    return [
+        ControlStart(
+            facts["start"], facts["episodes"], facts["task"], *(tensors[f"{i}.{n}"] for n in CONTROL_STARTS_FIELDS)
+        )
+        for i, facts in enumerate(json.loads(metadata["starts"]))
+    ]
 
 
 @torch.no_grad()

@@ -123,11 +123,15 @@ class TemporalAttention(Attention):
         q = self.heads(self.q(x_PTC))
         k, v = map(self.heads, self.kv(x_PTC).chunk(2, dim=-1))
         if cache is None:
-            cos, sin = rotary(torch.arange(q.shape[2], device=q.device), q.shape[-1], q.dtype)
+            T = q.shape[2]
+            cos, sin = rotary(torch.arange(T, device=q.device), q.shape[-1], q.dtype)
             q, k = rotate(q, cos, sin), rotate(k, cos, sin)
-            dropout = self.dropout if self.training else 0.0
-            y = F.scaled_dot_product_attention(q, k, v, is_causal=True, dropout_p=dropout)
-            return self.merge(y), (k, v)
+            # Two matmuls, not the fused kernel: there is a row per token position (B * S, 131,072 at batch 256),
+            # beyond the 65,535 batch rows CUDA's fused attention kernels launch, and T is a handful of frames.
+            scores = (q @ k.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (P, H, T, T)
+            future = torch.ones(T, T, dtype=torch.bool, device=q.device).triu(1)
+            weights = F.dropout(scores.masked_fill(future, -math.inf).softmax(-1), self.dropout, self.training)
+            return self.merge(weights @ v), (k, v)
         if q.shape[2] != 1:
             raise ValueError(f"a cached step reads one new frame, got {q.shape[2]}")
         cos, sin = cache.ring.rotation()

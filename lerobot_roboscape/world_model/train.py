@@ -27,7 +27,7 @@ from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig, fit, resolve_device, save_atomically
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
-from lerobot_roboscape.world_model.controllability import control_summary, read_control_set
+from lerobot_roboscape.world_model.controllability import control_summary, load_control_starts, read_control_set
 from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
@@ -66,6 +66,9 @@ class TrainWorldModelConfig:
     heldout_control: a controllability set (`roboscape-collect-control`, OOD starts) on which the action model's
         retrieval and action gain are read every --train.eval_freq steps (output_dir/heldout_curve.jsonl).
     heldout_horizon: control steps of those rollouts.
+    heldout_starts: controllability sets already read (world_model/controllability.py: save_control_starts, e.g. on
+        a machine without the datasets' videos), measured beside heldout_control; the curve names each measure
+        after its file (`<file stem>/retrieval_whole_frame`).
     done_tuning_steps: after training, fit the done head alone on the model's own open-loop frames of training
         episodes and on their real frames, for this many full-batch steps, so that it fires where roboscape_wm
         reads it (world_model/done_tuning.py); 0: off. The action model only.
@@ -86,6 +89,7 @@ class TrainWorldModelConfig:
     exploration_share: float = 0.5
     heldout_control: DatasetConfig | None = None
     heldout_horizon: int = 16
+    heldout_starts: list[Path] = field(default_factory=list)
     done_tuning_steps: int = 300
     done_tuning_episodes: int | None = 128
     device: str = "auto"
@@ -96,8 +100,11 @@ class TrainWorldModelConfig:
                 f"exploration={self.exploration.repo_id}: exploratory episodes train the action world model only, "
                 f"not the {self.wm.control} one"
             )
-        if self.heldout_control is not None and self.wm.control != "action":
+        if (self.heldout_control is not None or self.heldout_starts) and self.wm.control != "action":
             raise InvalidInputError("heldout_control measures the action world model; the text model has no actions")
+        for path in self.heldout_starts:
+            if not Path(path).is_file():
+                raise InvalidInputError(f"heldout_starts: {path} is not a file (save_control_starts writes one)")
         if not 0.0 <= self.exploration_share <= 1.0:
             raise InvalidInputError(f"exploration_share must be in [0, 1], got {self.exploration_share}")
 
@@ -200,7 +207,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         cfg.output_dir,
         run_config,
         desc=f"{cfg.wm.control} world model",
-        evaluate=heldout_control(cfg) if cfg.heldout_control is not None else None,
+        evaluate=heldout_control(cfg) if cfg.heldout_control is not None or cfg.heldout_starts else None,
         flops_per_sample=model.training_flops_per_clip(),
     )
     if cfg.done_tuning_steps and cfg.wm.control == "action":
@@ -230,9 +237,18 @@ def tune_done_on_open_loop(model: STWorldModel, cache: TokenCache, episodes: lis
 
 
 def heldout_control(cfg: TrainWorldModelConfig):
-    """The held-out evaluation of the action model: retrieval and action gain on the controllability set."""
+    """The held-out evaluation of the action model: retrieval and action gain on the controllability set, and on
+    each saved set of heldout_starts (named by its file)."""
     device = resolve_device(cfg.device)
-    dataset = open_dataset(cfg.heldout_control.repo_id, cfg.heldout_control.root, cfg.heldout_control.episodes)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
-    starts = read_control_set(dataset, tokenizer, cfg.wm.frame_skip, cfg.heldout_horizon, device)
-    return lambda model: control_summary(model, tokenizer, starts)
+    sets = {}
+    if cfg.heldout_control is not None:
+        dataset = open_dataset(cfg.heldout_control.repo_id, cfg.heldout_control.root, cfg.heldout_control.episodes)
+        sets[""] = read_control_set(dataset, tokenizer, cfg.wm.frame_skip, cfg.heldout_horizon, device)
+    for path in cfg.heldout_starts:
+        sets[f"{Path(path).stem}/"] = load_control_starts(path, cfg.wm.frame_skip, device)
+    return lambda model: {
+        f"{name}{measure}": value
+        for name, starts in sets.items()
+        for measure, value in control_summary(model, tokenizer, starts).items()
+    }

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
@@ -108,20 +109,34 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
     from tests.world_model.test_training import train_args
 
     _, root = control_set
-    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, steps=4) + [
+    # The same set read once and saved, as the device machine (without the videos) gets it: measured beside it.
+    from lerobot_roboscape.world_model.controllability import load_control_starts, save_control_starts
+
+    saved = tmp_path / "sets" / "ind.safetensors"
+    saved.parent.mkdir()
+    reader = VisualTokenizer.from_pretrained(str(trained_tokenizer)).eval()
+    read = read_control_set(open_dataset("local/roboscape_controllability", root), reader, 4, 4, "cpu")
+    save_control_starts(read, saved, frame_skip=4)
+    loaded = load_control_starts(saved, frame_skip=4)
+    assert [(s.start, s.episodes, s.task) for s in loaded] == [(s.start, s.episodes, s.task) for s in read]
+    assert all(
+        torch.equal(a.real, b.real) and torch.equal(a.actions, b.actions) for a, b in zip(read, loaded, strict=True)
+    )
+    with pytest.raises(ValueError, match="read for frame_skip=4"):
+        load_control_starts(saved, frame_skip=2)
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "run", steps=4) + [
         "--heldout_control.repo_id=local/roboscape_controllability",
         f"--heldout_control.root={root}",
         "--heldout_horizon=4",
         "--train.eval_freq=2",
+        f"--heldout_starts=[{saved}]",
     ]
     train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+    tmp_path = tmp_path / "run"
     curve = read_curve(tmp_path)
     assert [point["step"] for point in curve] == [2, 4]
     # The last reading is the final model's (the done head's refit after training leaves the frames as they are).
-    from lerobot_roboscape.dataset.reader import open_dataset
-    from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-    from lerobot_roboscape.world_model.controllability import control_summary, read_control_set
-    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+    from lerobot_roboscape.world_model.controllability import control_summary
 
     model = STWorldModel.from_pretrained(str(tmp_path / "pretrained_model")).eval()
     tokenizer = VisualTokenizer.from_pretrained(str(trained_tokenizer)).eval()
@@ -131,6 +146,7 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
     final = control_summary(model, tokenizer, starts)
     for key in ("retrieval_whole_frame", "retrieval_object", "action_gain_db", "likelihood_retrieval"):
         assert curve[-1][key] == pytest.approx(final[key], abs=1e-4), key
+        assert curve[-1][f"ind/{key}"] == pytest.approx(final[key], abs=1e-4), key  # the same starts, saved
     assert curve[0]["seconds"] <= curve[1]["seconds"]
 
 

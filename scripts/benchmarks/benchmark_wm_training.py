@@ -1,0 +1,142 @@
+"""Training throughput of the world model: clips/s and MFU of the training path, against today's, in one run.
+
+Both run `training/loop.py: fit` on the same model and the same batches (a token cache of random codes in the bench
+layout: two 16x16 views, 1024 codes, 7-D actions, episodes of 80 control steps), for a few steps after a warm-up:
+- `today`: the path the GPU lease of docs/results/world_model/report.md ran: clips gathered on the host and copied
+  each step (ClipSampler), fp32 (`--train.mixed_precision=no`), no TF32, no torch.compile, and the logs read every
+  step (as the loss's `.item()` calls did, each a wait on the device);
+- `new`: the token cache held on the device and the clips sliced there (ResidentClips), bf16 autocast, TF32,
+  the blocks compiled (on a GPU), the logs read once at the end of the timed steps.
+Fused AdamW runs on both sides on a GPU.
+
+Clips/s are read from the run's own training log (output_dir/train_log.jsonl) between the first step (compilation)
+and the last; MFU against the card's dense bf16 peak (training/loop.py: PEAK_BF16_TFLOPS), with the model's FLOPs per
+clip (STWorldModel.training_flops_per_clip: matmuls, attention included, the backward pass twice the forward).
+
+    # on the 2 CPU cores: a smoke figure of the bench preset
+    python scripts/benchmarks/benchmark_wm_training.py --presets bench --batch-sizes 4 --steps 6
+    # on a GPU: both presets over a batch sweep
+    python scripts/benchmarks/benchmark_wm_training.py --presets bench gpu --batch-sizes 16 64 256 --steps 40
+"""
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from accelerate.state import AcceleratorState
+
+from lerobot_roboscape.tokenizer.token_cache import TokenCache
+from lerobot_roboscape.training.loop import TRAIN_LOG, fit, peak_flops
+from lerobot_roboscape.world_model.clips import ClipSampler, ResidentClips
+from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.train import WorldModelTrainingConfig
+
+PATHS = {
+    "today": dict(resident=False, mixed_precision="no", tf32=False, compile=False, read_logs_every_step=True),
+    "new": dict(resident=True, mixed_precision="bf16", tf32=True, compile=None, read_logs_every_step=False),
+}
+
+
+def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int = 16, vocab: int = 1024) -> TokenCache:
+    """A token cache of random codes in the bench layout: what training reads, without a dataset."""
+    rng = np.random.default_rng(0)
+    N = episodes * length
+    rows = [
+        {"episode_index": e, "start": e * length, "length": length, "task": "push the cube", "optimal": True}
+        for e in range(episodes)
+    ]
+    return TokenCache(
+        root=Path("random"),
+        manifest={"vocab_size": vocab, "cameras": [f"view{i}" for i in range(cameras)], "tokens_per_side": side},
+        tokens=rng.integers(0, vocab, (N, cameras, side, side), dtype=np.uint16),
+        actions=rng.uniform(-1, 1, (N, 7)).astype(np.float32),
+        done=np.zeros(N, np.float32),
+        rewards=np.zeros(N, np.float32),
+        episodes=rows,
+    )
+
+
+def run(preset: str, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device) -> dict:
+    settings = PATHS[path]
+    config = WorldModelConfig.get_choice_class(preset)(control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7)
+    torch.manual_seed(0)
+    model = STWorldModel(config)
+    batches = ClipSampler(cache, cache.episodes, config.window, batch, seed=0, frame_skip=config.frame_skip)
+    if settings["resident"]:
+        batches = ResidentClips(batches, device)
+    train = WorldModelTrainingConfig(
+        steps=steps,
+        batch_size=batch,
+        warmup_steps=1,
+        log_freq=1 if settings["read_logs_every_step"] else steps - 1,
+        save_freq=10**9,
+        mixed_precision=settings["mixed_precision"],
+        tf32=settings["tf32"],
+        compile=settings["compile"],
+    )
+    AcceleratorState._reset_state(reset_partial_state=True)  # each run picks its own precision
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+    with tempfile.TemporaryDirectory() as out:
+        try:
+            fit(model, lambda m, b: m(b), batches, train, out, {}, desc=f"{preset} {path} b{batch}",
+                flops_per_sample=model.training_flops_per_clip())  # fmt: skip
+        except torch.OutOfMemoryError:
+            return {"error": "out of memory"}
+        except RuntimeError as error:  # a kernel that refuses the shape: say which, go on with the sweep
+            return {"error": str(error).splitlines()[0][:120]}
+        lines = [json.loads(line) for line in (Path(out) / TRAIN_LOG).read_text().splitlines()]
+    # From the first step (compilation) on: each logged line covers the steps since the one before.
+    timed = [(b["step"] - a["step"], b["samples_per_s"]) for a, b in zip(lines, lines[1:], strict=False)]
+    seconds = sum(n * batch / samples_per_s for n, samples_per_s in timed)
+    clips_per_s = sum(n for n, _ in timed) * batch / seconds
+    flops = clips_per_s * model.training_flops_per_clip()
+    figures = {"clips_per_s": clips_per_s, "tflops": flops / 1e12}
+    if peak := peak_flops(train, device):
+        figures["mfu"] = flops / peak
+    if device.type == "cuda":
+        figures["peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+    return figures
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--presets", nargs="+", default=["bench"])
+    parser.add_argument("--batch-sizes", nargs="+", type=int, default=[4])
+    parser.add_argument("--steps", type=int, default=6, help="steps per run; the first (compilation) is not timed")
+    parser.add_argument("--episodes", type=int, default=64, help="episodes of the random token cache")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args()
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    cache = random_token_cache(args.episodes, 80)
+    print(f"device: {name}, torch {torch.__version__}; {args.steps} steps per run, the first not timed")
+    print("| preset | batch | today clips/s | new clips/s | speed-up | today MFU | new MFU | new TFLOP/s | new GiB |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    rows = []
+    for preset in args.presets:
+        for batch in args.batch_sizes:
+            today, new = (run(preset, batch, path, args.steps, cache, device) for path in ("today", "new"))
+            rows.append({"preset": preset, "batch": batch, "today": today, "new": new, "device": name})
+
+            def cell(figures, key, fmt):
+                return figures.get("error", "-") if key not in figures else format(figures[key], fmt)
+
+            ratio = f"{new['clips_per_s'] / today['clips_per_s']:.1f}x" if "error" not in today | new else "-"
+            print(
+                f"| {preset} | {batch} | {cell(today, 'clips_per_s', '.3g')} | {cell(new, 'clips_per_s', '.3g')} | "
+                f"{ratio} | {cell(today, 'mfu', '.1%')} | {cell(new, 'mfu', '.1%')} | {cell(new, 'tflops', '.3g')} | "
+                f"{cell(new, 'peak_gib', '.1f')} |",
+                flush=True,
+            )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
