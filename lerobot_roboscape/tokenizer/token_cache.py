@@ -11,10 +11,16 @@ A cache is a directory of memory-mapped arrays plus a manifest naming the datase
 
 Its directory name is derived from both fingerprints, so a changed dataset or retrained tokenizer gets a new cache
 instead of a stale one; opening a cache with fingerprints that do not match raises `TokenCacheMismatchError`.
+
+`export_token_cache` writes a cache and its dataset's action statistics into one compressed file that travels (to a
+GPU machine without the datasets); `import_token_cache` makes a cache of it there, which trains without its dataset
+(ACTION_STATS_FILE holds what the trainer would read of it).
 """
 
 import hashlib
+import io
 import json
+import lzma
 import os
 import shutil
 import tempfile
@@ -33,6 +39,7 @@ from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 
 FORMAT_VERSION = 2
 ARRAYS = ("tokens", "actions", "done", "rewards")
+ACTION_STATS_FILE = "action_stats.json"  # an imported cache's dataset statistics of the actions
 
 
 class TokenCacheMismatchError(InvalidInputError):
@@ -209,3 +216,65 @@ def load_or_build_token_cache(
     if (path / "manifest.json").is_file():
         return open_token_cache(path, dataset_fp, tokenizer_fp)
     return build_token_cache(dataset, tokenizer, path, device=device)
+
+
+def export_token_cache(cache: TokenCache, path: str | Path, action_stats: dict) -> int:
+    """The cache and its dataset's action statistics (dataset.meta.stats["action"]) in one xz file; returns its
+    bytes. A code is stored as 0 where it repeats the previous control step's at its place in the episode, else as
+    code + 1: between two control steps most of a frame is unchanged, so the zeros compress away."""
+    tokens = np.asarray(cache.tokens).reshape(len(cache.tokens), -1)
+    repeats = np.zeros(tokens.shape, dtype=bool)
+    repeats[1:] = tokens[1:] == tokens[:-1]
+    repeats[[row["start"] for row in cache.episodes]] = False  # an episode's first frame is stored whole
+    coded = np.where(repeats, 0, tokens.astype(np.uint32) + 1).astype(np.uint16)
+    header = {
+        "manifest": cache.manifest,
+        "episodes": cache.episodes,
+        "token_shape": list(cache.tokens.shape),
+        "action_stats": {k: np.asarray(v).tolist() for k, v in action_stats.items()},
+    }
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
+        tokens=coded,
+        actions=np.asarray(cache.actions),
+        done=np.asarray(cache.done),
+        rewards=np.asarray(cache.rewards),
+    )
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with lzma.open(tmp, "wb", preset=6) as f:
+        f.write(buffer.getvalue())
+    os.replace(tmp, path)
+    return path.stat().st_size
+
+
+def import_token_cache(path: str | Path, cache_dir: str | Path) -> Path:
+    """A cache under `cache_dir`, named as load_or_build_token_cache names it, from an exported file; its dataset's
+    action statistics beside it (ACTION_STATS_FILE). Returns its directory."""
+    path = Path(path)
+    try:
+        with lzma.open(path) as f:
+            arrays = dict(np.load(io.BytesIO(f.read())))
+        header = json.loads(arrays.pop("header").tobytes())
+    except (lzma.LZMAError, OSError, ValueError, KeyError) as error:
+        raise InvalidInputError(f"{path}: not a token cache exported by export_token_cache ({error})") from error
+    manifest = header["manifest"]
+    name = f"v{FORMAT_VERSION}-{manifest['dataset_fingerprint'][:16]}-{manifest['tokenizer_fingerprint'][:16]}"
+    target = Path(cache_dir) / name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=target.parent))
+    coded = arrays.pop("tokens").astype(np.int32)
+    repeats = coded == 0
+    for row in range(1, len(coded)):  # undo the repeats in order: a run of them copies its first code
+        coded[row, repeats[row]] = coded[row - 1, repeats[row]]
+    np.save(tmp / "tokens.npy", (coded - 1).astype(np.uint16).reshape(header["token_shape"]))
+    for name_, array in arrays.items():
+        np.save(tmp / f"{name_}.npy", array)
+    (tmp / "episodes.json").write_text(json.dumps(header["episodes"]))
+    (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    (tmp / ACTION_STATS_FILE).write_text(json.dumps(header["action_stats"]))
+    shutil.rmtree(target, ignore_errors=True)
+    os.replace(tmp, target)
+    return target

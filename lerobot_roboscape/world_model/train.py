@@ -17,6 +17,7 @@ from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import (
+    ACTION_STATS_FILE,
     TokenCache,
     dataset_fingerprint,
     load_or_build_token_cache,
@@ -57,12 +58,14 @@ class TrainWorldModelConfig:
     train: optimisation, logging, checkpoints and resume.
     output_dir: checkpoints, logs and the final model (output_dir/pretrained_model).
     cache_dir: where token caches are built and found (one per dataset and tokenizer).
-    token_cache: use this existing cache; it must match the dataset and tokenizer.
+    token_cache: use this existing cache; it must match the dataset and tokenizer. One imported from an exported file
+        (tokenizer/token_cache.py: import_token_cache) is read without its dataset.
     only_optimal: train on optimal episodes only (default: yes for the text model, no for the action model).
     only_successful: train on successful episodes only (default: yes for the text model, no for the action model).
     exploration: exploratory episodes for the action model (`roboscape-collect --kinds=[noisy,excursion,random]`),
         a dataset of their own; null: none. Its actions join the demonstrations' in the normalisation statistics.
     exploration_share: share of the action model's training clips drawn from `exploration`.
+    exploration_token_cache: use this existing cache of `exploration`, as token_cache.
     heldout_control: a controllability set (`roboscape-collect-control`, OOD starts) on which the action model's
         retrieval and action gain are read every --train.eval_freq steps (output_dir/heldout_curve.jsonl).
     heldout_horizon: control steps of those rollouts.
@@ -87,6 +90,7 @@ class TrainWorldModelConfig:
     only_successful: bool | None = None
     exploration: DatasetConfig | None = None
     exploration_share: float = 0.5
+    exploration_token_cache: Path | None = None
     heldout_control: DatasetConfig | None = None
     heldout_horizon: int = 16
     heldout_starts: list[Path] = field(default_factory=list)
@@ -117,10 +121,15 @@ def prepare_token_cache(
     device: str = "auto",
 ) -> tuple[TokenCache, dict]:
     """The token cache of every episode of the dataset under this tokenizer, built on first use, and the dataset's
-    action statistics (LeRobot's dataset.meta.stats["action"])."""
+    action statistics (LeRobot's dataset.meta.stats["action"]). A cache imported from an exported file
+    (import_token_cache) carries those statistics and is read without its dataset."""
+    tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
+    if token_cache is not None and (Path(token_cache) / ACTION_STATS_FILE).is_file():
+        cache = open_token_cache(token_cache, tokenizer_fp=tokenizer_fingerprint(tokenizer))
+        stats = json.loads((Path(token_cache) / ACTION_STATS_FILE).read_text())
+        return cache, {name: np.asarray(value) for name, value in stats.items()}
     dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root)  # the cache covers all episodes
     stats = dataset.meta.stats[ACTION]
-    tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
     if token_cache is not None:
         cache = open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
     else:
@@ -176,7 +185,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     batches, run_config = sampler, {**asdict(cfg), "token_cache": str(cache.root)}
     if cfg.exploration is not None:
         explore_cache, explore_stats = prepare_token_cache(
-            cfg.exploration, cfg.tokenizer, cfg.cache_dir, device=cfg.device
+            cfg.exploration, cfg.tokenizer, cfg.cache_dir, cfg.exploration_token_cache, cfg.device
         )
         check_same_layout(cache, explore_cache)
         explore_episodes = select_episodes(explore_cache, cfg.exploration.episodes)

@@ -11,6 +11,8 @@ from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import (
     TokenCacheMismatchError,
     dataset_fingerprint,
+    export_token_cache,
+    import_token_cache,
     load_or_build_token_cache,
     open_token_cache,
     tokenizer_fingerprint,
@@ -85,3 +87,39 @@ def test_missing_or_empty_dataset_is_named(tmp_path):
     LeRobotDataset.create("test/empty", fps=20, root=tmp_path / "empty", features=features).finalize()
     with pytest.raises(DatasetError, match="has no episodes"):
         open_dataset("test/empty", tmp_path / "empty")
+
+
+def test_exported_cache_travels_whole_and_trains_without_its_dataset(
+    demo_dataset, trained_tokenizer, token_cache, tmp_path
+):
+    """export -> import gives the cache back array for array, with its dataset's action statistics; the world model
+    trained on it with no dataset at hand is the one trained on the original."""
+    import draccus
+
+    from lerobot_roboscape.training.checkpoints import FINAL
+    from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+    from tests.harness import assert_same_weights
+    from tests.world_model.test_training import train_args
+
+    dataset, _ = demo_dataset
+    size = export_token_cache(token_cache, tmp_path / "cache.xz", dataset.meta.stats["action"])
+    raw = sum(getattr(token_cache, name).nbytes for name in ("tokens", "actions", "done", "rewards"))
+    assert size == (tmp_path / "cache.xz").stat().st_size < raw
+    imported = open_token_cache(import_token_cache(tmp_path / "cache.xz", tmp_path / "there"))
+    assert imported.root.name == token_cache.root.name and imported.manifest == token_cache.manifest
+    assert imported.episodes == token_cache.episodes
+    for name in ("tokens", "actions", "done", "rewards"):
+        assert np.array_equal(getattr(imported, name), getattr(token_cache, name)), name
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "here", steps=3)
+    train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
+    away = [a.replace(str(token_cache.root), str(imported.root)) for a in args if not a.startswith("--dataset.root")]
+    away = [a.replace(str(tmp_path / "here"), str(tmp_path / "away")) for a in away] + [
+        f"--dataset.root={tmp_path}/none"
+    ]
+    train_world_model(draccus.parse(TrainWorldModelConfig, args=away))
+    assert_same_weights(
+        tmp_path / "here" / FINAL / "model.safetensors", tmp_path / "away" / FINAL / "model.safetensors"
+    )
+    (tmp_path / "broken.xz").write_bytes(b"not xz")
+    with pytest.raises(ValueError, match="broken.xz: not a token cache exported"):
+        import_token_cache(tmp_path / "broken.xz", tmp_path / "there")
