@@ -89,6 +89,7 @@ BAD_FLAGS = {
         "is missing: the experiment runs on a pipeline run's trained stages; run roboscape-demo --scale=smoke",
     ),
     "demo: unknown family": (demo_cli, ["--families=[fly]"], "unknown task families ['fly']"),
+    "demo: stop after no stage": (demo_cli, ["--stop_after=tokeniser"], "stop_after='tokeniser' is not a stage"),
     "agreement: no policy": (agreement_cli, [], "--policy_paths is required"),
     "agreement: unknown split": (agreement_cli, ["--policy_paths=[p]", "--split=moon"], "got 'moon'"),
     "agreement: unknown family": (agreement_cli, ["--policy_paths=[p]", "--families=[fly]"], "['fly']"),

@@ -208,6 +208,8 @@ class PipelineConfig:
     output_dir: where every artifact goes. A rerun skips each stage whose outputs are complete and were made with
         the same settings (so a killed run resumes); --fresh=true starts over.
     fresh: retrain everything, ignoring what output_dir holds.
+    stop_after: run the stages up to this one and stop (a stage's name, e.g. "tokenizer": the data and the tokenizer
+        that scripts/experiments/device_world_models.sh packs for a GPU); null: every stage.
     report_dir: also write the experiment's report (report.md, results.json, figures) here.
     families: task families to collect and evaluate.
     scenes: IND scenes per family (null: all).
@@ -262,6 +264,7 @@ class PipelineConfig:
     scale: str = "tiny"
     output_dir: str = "outputs/demo"
     fresh: bool = False
+    stop_after: str | None = None
     report_dir: str | None = None
     families: list[str] | None = None
     scenes: int | None = None

@@ -10,7 +10,7 @@ from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
-from lerobot_roboscape.pipeline.clock import StageClock
+from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.report import write_report
 
@@ -33,10 +33,16 @@ STAGES = (
 
 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
-    """Run every stage (skipping those already complete in output_dir); returns {artifact name: artifact}."""
-    out = Path(cfg.output_dir).resolve()
+    """Run every stage (skipping those already complete in output_dir), or those up to cfg.stop_after; returns
+    {artifact name: artifact} of the stages run."""
     artifacts: dict[str, Artifact] = {}
-    clock = StageClock(STAGES)
+    with contextlib.suppress(StopAfter):
+        _run_stages(cfg, StageClock(STAGES, cfg.stop_after), artifacts)
+    return artifacts
+
+
+def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Artifact]) -> None:
+    out = Path(cfg.output_dir).resolve()
 
     clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = stages.demonstrations(cfg, out)
@@ -155,4 +161,3 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
         with contextlib.redirect_stdout(io.StringIO()):  # LeRobot's from_pretrained prints where it loads from
             loaded = load_artifact(artifact)
         print(f"{name:44s} {loaded:34s} {artifact.path}")
-    return artifacts

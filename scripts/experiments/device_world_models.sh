@@ -1,25 +1,32 @@
 #!/usr/bin/env bash
-# The bench world models at the BENCH_ON_GPU size on a lent GPU machine (the `device` tool), from the token caches
-# of a reduced-scale run here: docs/results/world_model/report.md, "Trained on a GPU".
+# The world models trained on a lent GPU machine (the `device` tool), from a bench run's data packed here.
 #
-#   bash scripts/experiments/device_world_models.sh pack outputs/wm37    # here: assemble .gpu/ (carry it), about 37 MB
-#   bash scripts/experiments/device_world_models.sh run OUT ACTION_STEPS TEXT_STEPS BATCH ACTION_LIMIT_S TEXT_LIMIT_S  # there
+# Here:
+#   bash scripts/experiments/device_world_models.sh pack outputs/bench   # .gpu/ (carry it): caches, sets, packages
+#   bash scripts/experiments/device_world_models.sh unpack DIR CONTROL   # DIR: the call's files; -> DIR/CONTROL/pretrained_model
+# There (each mode prepares the machine first, once; its files land in $OUT):
+#   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
+#   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
+#   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #
-# The GPU image has PyTorch but not LeRobot's data stack: `pack` copies the pure-Python packages the training imports
-# from .venv, and a stand-in for PyAV (never called: training reads the token cache, not videos). The datasets'
-# fingerprints read video and mask names and sizes only, so their sizes travel and sparse files stand in there.
+# The GPU image has PyTorch but not LeRobot's data stack: `pack` takes the pure-Python packages training imports from
+# .venv (2.5 MB compressed) and a stand-in for PyAV, never called (training reads token caches, not videos). The
+# token caches travel exported (tokenizer/token_cache.py) and train without their datasets. What comes back is at most
+# 8 files of 16 MiB: a model's weights in bf16, cut in pieces, and a tarball of its logs and curves.
 set -uo pipefail
 mode=$1; shift
 G=$(pwd)/.gpu
+W=/tmp/wmgpu
+SITE=(lerobot datasets dill draccus einx farama_notifications frozendict gymnasium loguru mergedeep multiprocess
+      _multiprocess torch_einops_utils vector_quantize_pytorch)
+
 if [ "$mode" = pack ]; then
-  O=$1; SP=.venv/lib/python3.12/site-packages
-  grep -qx '/.gpu/' .git/info/exclude || echo /.gpu/ >> .git/info/exclude
-  rm -rf .gpu && mkdir -p .gpu/site .gpu/stub/av .gpu/stub/av-15.1.0.dist-info .gpu/data/tokenizer
-  for p in lerobot datasets dill draccus einx farama_notifications frozendict gymnasium loguru mergedeep multiprocess \
-           _multiprocess torch_einops_utils vector_quantize_pytorch; do
-    cp -r $SP/$p .gpu/site/ && cp -r $SP/${p#_}-*.dist-info .gpu/site/ 2>/dev/null
-  done
-  find .gpu -name __pycache__ -prune -exec rm -rf {} +
+  RUN=$1; SP=.venv/lib/python3.12/site-packages
+  rm -rf .gpu && mkdir -p .gpu/stub/av .gpu/stub/av-15.1.0.dist-info
+  start=$(date +%s)
+  .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data || exit 1
+  names=(); for p in "${SITE[@]}"; do names+=("$p" $(cd $SP && ls -d ${p#_}-*.dist-info 2>/dev/null)); done
+  tar czf .gpu/site.tgz --exclude=__pycache__ -C $SP "${names[@]}"
   cat > .gpu/stub/av/__init__.py <<'PY'
 """Stand-in for PyAV on the device machine: attribute access succeeds (LeRobot's imports and annotations), calls fail."""
 
@@ -51,43 +58,92 @@ def __getattr__(name):
     return _Absent(f"av.{name}")
 PY
   printf 'Metadata-Version: 2.1\nName: av\nVersion: 15.1.0\n' > .gpu/stub/av-15.1.0.dist-info/METADATA
-  for d in demos explore; do
-    mkdir -p .gpu/data/$d && cp -r $O/$d/meta $O/$d/data .gpu/data/$d/
-    (cd $O/$d && find videos segmentation -type f -printf '%s %p\n' 2>/dev/null) > .gpu/data/$d.sizes.txt
-  done
-  cp -r $O/token_cache .gpu/data/ && cp -r $O/tokenizer/pretrained_model .gpu/data/tokenizer/
-  du -sh --apparent-size .gpu
+  echo "packed in $(( $(date +%s) - start )) s, $(du -b --apparent-size -s .gpu | cut -f1) bytes in all:"
+  find .gpu -maxdepth 2 -type f -printf '%10s %p\n' | sort -n
   exit 0
 fi
-OUT=$1; AS=$2; TS=$3; BS=$4; AL=$5; TL=$6; W=/tmp/wmgpu; PY=python3
-mkdir -p $W $OUT
-export PYTHONPATH=$G/stub:$G/site:$(pwd) PYTHONUNBUFFERED=1
-for d in demos explore; do
-  while read -r size path; do mkdir -p $G/data/$d/$(dirname $path); truncate -s $size $G/data/$d/$path; done < $G/data/$d.sizes.txt
-done
-$PY -c "import lerobot_roboscape.cli.train_wm, torch; print('imports ok', torch.cuda.get_device_name())" || exit 3
-D=$G/data
-common=(--tokenizer=$D/tokenizer/pretrained_model --wm.type=bench --cache_dir=$D/token_cache
-        --dataset.repo_id=local/roboscape_demos --dataset.root=$D/demos --train.batch_size=$BS
-        --train.mixed_precision=no --train.log_freq=250 --train.save_freq=1000)
-keep() { tr '\r' '\n' | awk '!/it\/s/ || /\| *[0-9]*000\//'; }
-start=$(date +%s)
-timeout $AL $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" --wm.control=action --train.steps=$AS \
-  --exploration.repo_id=local/roboscape_explore --exploration.root=$D/explore --exploration_share=0.25 \
-  --done_tuning_episodes=32 --output_dir=$W/action 2>&1 | keep > $OUT/action.log
-echo "ACTION rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - start ))" | tee -a $OUT/action.log
-if [ "$TS" != 0 ]; then
-  start=$(date +%s)
-  timeout $TL $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" --wm.control=text --train.steps=$TS \
-    --output_dir=$W/text 2>&1 | keep > $OUT/text.log
-  echo "TEXT rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - start ))" | tee -a $OUT/text.log
+
+if [ "$mode" = unpack ]; then  # here: a call's weight pieces -> a model folder that from_pretrained loads
+  DIR=$1; CONTROL=$2
+  mkdir -p "$DIR/$CONTROL" && tar xzf "$DIR/${CONTROL}_run.tgz" -C "$DIR/$CONTROL" || exit 1
+  cat "$DIR/${CONTROL}.bf16.part-"* > "$DIR/$CONTROL/model.bf16.safetensors"
+  .venv/bin/python - "$DIR/$CONTROL" <<'PY'
+import sys
+from pathlib import Path
+from safetensors.torch import load_file, save_file
+root = Path(sys.argv[1])
+tensors = {k: v.float() if v.is_floating_point() else v for k, v in load_file(root / "model.bf16.safetensors").items()}
+save_file(tensors, root / "pretrained_model" / "model.safetensors")
+(root / "model.bf16.safetensors").unlink()
+print(f"{root / 'pretrained_model'}: {len(tensors)} tensors")
+PY
+  exit $?
 fi
-cd $W
-tar czf $OUT/final.tar.gz --exclude=checkpoints action $(ls -d text 2>/dev/null)
-n=0
-for c in $(ls action/checkpoints | grep -v last); do
-  tar rf $OUT/ck$((n / 2)).tar action/checkpoints/$c/pretrained_model; n=$((n + 1))
-done
-t=$(ls text/checkpoints 2>/dev/null | grep -v last | tail -1)
-[ -n "$t" ] && tar cf $OUT/text_ck.tar text/checkpoints/$t/pretrained_model
-ls -la $OUT
+
+# ---- on the device machine ----------------------------------------------------------------------------------------
+export PYTHONPATH=$G/stub:$W/site:$(pwd) PYTHONUNBUFFERED=1
+PY=python3
+if [ ! -f $W/ready ]; then
+  mkdir -p $W/site $W/sets $W/caches
+  tar xzf $G/site.tgz -C $W/site || exit 3
+  for s in ind ood; do xz -dc $G/data/$s.safetensors.xz > $W/sets/$s.safetensors; done
+  $PY - <<PY || exit 3
+from lerobot_roboscape.tokenizer.token_cache import import_token_cache
+import torch
+for name in ("demos", "explore"):
+    path = import_token_cache("$G/data/" + name + ".xz", "$W/caches")
+    (path.parent / (name + ".path")).write_text(str(path))
+print("caches imported;", torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU", "torch", torch.__version__)
+PY
+  touch $W/ready
+fi
+D=$G/data
+common=(--tokenizer=$D/tokenizer --wm.type=gpu --dataset.repo_id=local/roboscape_demos
+        --token_cache=$(cat $W/caches/demos.path) --train.mixed_precision=bf16 --train.log_freq=50)
+action=(--wm.control=action --exploration.repo_id=local/roboscape_explore --exploration_share=0.25
+        --exploration_token_cache=$(cat $W/caches/explore.path) --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors]
+        --done_tuning_episodes=32)
+keep() { tr '\r' '\n' | awk '!/it\/s|s\/it/ || /\| *[0-9]*00\//'; }  # the progress bar every 100 steps
+
+case $mode in
+  bench)  # the bench preset over the batches, the GPU preset at the middle one
+    STEPS=$1; shift; mid=${@:$(( ($# + 1) / 2 )):1}
+    $PY scripts/benchmarks/benchmark_wm_training.py --presets bench --batch-sizes "$@" --steps $STEPS \
+      --episodes 2560 --json $OUT/benchmark.json 2>&1 | keep | tee $OUT/benchmark.md
+    $PY scripts/benchmarks/benchmark_wm_training.py --presets gpu --batch-sizes $mid --steps $STEPS --episodes 2560 \
+      --json $OUT/benchmark_gpu.json 2>&1 | keep | tee -a $OUT/benchmark.md ;;
+  sweep)
+    STEPS=$1; BS=$2; shift 2
+    for LR in "$@"; do
+      run=$W/sweep_lr$LR; rm -rf $run
+      $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" --train.steps=$STEPS --train.batch_size=$BS \
+        --train.lr=$LR --train.eval_freq=$STEPS --train.save_freq=$STEPS --done_tuning_steps=0 --output_dir=$run 2>&1 \
+        | keep > $OUT/sweep_lr$LR.log
+      $PY -c "import json,sys; c=[json.loads(l) for l in open('$run/heldout_curve.jsonl')][-1]; \
+t=[json.loads(l) for l in open('$run/train_log.jsonl')][-1]; print(json.dumps({**c, **t, 'lr': $LR, 'batch': $BS}))" \
+        | tee -a $OUT/sweep.jsonl
+    done ;;
+  train)
+    CONTROL=$1; STEPS=$2; BS=$3; LR=$4; LIMIT=$5; EVAL=${6:-500}
+    run=$W/$CONTROL; rm -rf $run
+    extra=(); [ "$CONTROL" = action ] && extra=("${action[@]}" --train.eval_freq=$EVAL) || extra=(--wm.control=text)
+    start=$(date +%s)
+    timeout $LIMIT $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${extra[@]}" --train.steps=$STEPS \
+      --train.batch_size=$BS --train.lr=$LR --train.save_freq=$EVAL --output_dir=$run 2>&1 | keep > $OUT/$CONTROL.log
+    echo "$CONTROL rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - start ))" | tee -a $OUT/$CONTROL.log
+    # The final model, or the last checkpoint of a run the limit stopped.
+    model=$run/pretrained_model; [ -f $model/model.safetensors ] || model=$(ls -d $run/checkpoints/*/pretrained_model | tail -1)
+    $PY - $model $W/$CONTROL.bf16.safetensors <<'PY'
+import sys
+from safetensors.torch import load_file, save_file
+tensors = {k: v.bfloat16() if v.is_floating_point() else v for k, v in load_file(sys.argv[1] + "/model.safetensors").items()}
+save_file(tensors, sys.argv[2])
+PY
+    split -b 15M $W/$CONTROL.bf16.safetensors $OUT/$CONTROL.bf16.part-
+    mkdir -p $W/pack/pretrained_model && cp $model/config.json $W/pack/pretrained_model/
+    cp -r $model/text_encoder $W/pack/pretrained_model/ 2>/dev/null
+    for f in train_log.jsonl heldout_curve.jsonl train_config.json done_tuning.json; do cp $run/$f $W/pack/ 2>/dev/null; done
+    tar czf $OUT/${CONTROL}_run.tgz -C $W/pack . && rm -rf $W/pack
+    ls -la $OUT ;;
+  *) echo "unknown mode $mode" >&2; exit 2 ;;
+esac

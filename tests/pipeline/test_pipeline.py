@@ -1,5 +1,7 @@
 """The pipeline's report: each target measured against its goal."""
 
+import pytest
+
 from lerobot_roboscape.pipeline import methods
 from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tokenizer_targets
 
@@ -192,3 +194,15 @@ def test_the_report_gives_each_cells_interval_width_and_the_evaluation_time():
     assert "0 [0, 7] (7)" in bench  # 0 of 50: the 95% Wilson interval [0, 7.1]
     assert "Each cell rests on 50 episodes; its 95% interval is 7 to 7 points wide" in bench
     assert "The evaluation took 2.0 min" in bench
+
+
+def test_a_run_stops_after_the_stage_it_names():
+    """The stage after stop_after raises StopAfter as it would begin: the stages before it ran whole."""
+    from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
+
+    clock, ran = StageClock(("collect", "tokenizer", "world models"), stop_after="tokenizer"), []
+    with pytest.raises(StopAfter):
+        for stage in clock.stages:
+            clock(stage, stage)
+            ran.append(stage)
+    assert ran == ["collect", "tokenizer"] and set(clock.seconds) == {"collect", "tokenizer"}
