@@ -67,23 +67,27 @@ def main():
         raise SystemExit(f"{tokenizer_dir} does not exist: run roboscape-demo --scale=bench on {run} first")
     shutil.copytree(tokenizer_dir, out / "tokenizer")
     sizes = {}
-    for name, repo_id, folder in (("demos", DEMOS_REPO_ID, DEMOS_DIR), ("explore", "local/roboscape_explore", EXPLORE_DIR)):
+    caches = (("demos", DEMOS_REPO_ID, DEMOS_DIR), ("explore", "local/roboscape_explore", EXPLORE_DIR))
+    for name, repo_id, folder in caches:
         cache, stats = prepare_token_cache(
             DatasetConfig(repo_id=repo_id, root=str(run / folder)), str(tokenizer_dir), run / TOKEN_CACHE_DIR
         )
         sizes[f"{name}.xz"] = export_token_cache(cache, out / f"{name}.xz", stats)
         sizes[f"{name} raw tokens"] = int(cache.tokens.nbytes)
-        print(f"{name}: {len(cache.episodes)} episodes, {len(cache.tokens)} frames -> {sizes[f'{name}.xz'] / 2**20:.1f} MiB")
+        packed = sizes[f"{name}.xz"] / 2**20
+        print(f"{name}: {len(cache.episodes)} episodes, {len(cache.tokens)} frames -> {packed:.1f} MiB")
     frame_skip = WorldModelConfig.get_choice_class(args.preset)().frame_skip
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_dir).eval()
     for name, folder, keep in (("ind", CONTROL_IND_DIR, args.ind_starts), ("ood", CONTROL_DIR, args.ood_starts)):
         dataset = open_dataset(f"local/{Path(folder).name}", run / folder)
         starts = read_control_set(dataset, tokenizer, frame_skip, args.horizon, "cpu")
-        picked = [starts[i] for i in np.unique(np.linspace(0, len(starts) - 1, min(keep, len(starts))).round().astype(int))]
+        spread = np.linspace(0, len(starts) - 1, min(keep, len(starts))).round().astype(int)
+        picked = [starts[i] for i in np.unique(spread)]
         save_control_starts(picked, out / f"{name}.safetensors", frame_skip)
         path = xz(out / f"{name}.safetensors")
         sizes[path.name] = path.stat().st_size
-        print(f"{name} controllability set: {len(picked)} of {len(starts)} starts -> {sizes[path.name] / 2**20:.1f} MiB")
+        packed = sizes[path.name] / 2**20
+        print(f"{name} controllability set: {len(picked)} of {len(starts)} starts -> {packed:.1f} MiB")
     sizes["tokenizer"] = sum(p.stat().st_size for p in (out / "tokenizer").rglob("*") if p.is_file())
     total = sum(v for k, v in sizes.items() if "raw" not in k)
     summary = {"bytes": sizes, "total_bytes": total, "seconds": round(time.time() - began, 1)}
