@@ -25,6 +25,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import psutil
 import torch
 
 from lerobot_roboscape.dataset.reader import (
@@ -44,6 +45,15 @@ from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
 
 logger = logging.getLogger(__name__)
+
+
+def free_memory_bytes(device: str) -> int:
+    """Bytes free for new tensors on `device`: the GPU's free memory, or the host's available memory."""
+    if torch.device(device).type == "cuda":
+        return torch.cuda.mem_get_info(torch.device(device))[0]
+    return psutil.virtual_memory().available
+
+
 # The episode index of a start made from given frames (`reset(options={"frames": ...})`), not from the dataset.
 FROM_FRAMES = -1
 
@@ -80,6 +90,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.precision = config.resolved_precision
         bf16 = self.precision == "bfloat16"
         self.autocast = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
+        self._check_cache_fits(torch.bfloat16 if bf16 else torch.float32)
         if self.text_model is not None and self.text_model.config.frame_skip != self.frame_skip:
             raise InvalidInputError(
                 f"the text world model {text_model} steps every {self.text_model.config.frame_skip} control steps but "
@@ -139,6 +150,17 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._rollout = None
 
     # ---- starts and goals ----------------------------------------------------------------------------------
+
+    def _check_cache_fits(self, dtype: torch.dtype) -> None:
+        """Refuse a batch whose key/value cache cannot fit in the device's free memory, before any generation."""
+        needed, free = self.action_model.cache_bytes(self.num_envs, dtype), free_memory_bytes(self.device)
+        if needed > free:
+            c = self.action_model.config
+            raise InvalidInputError(
+                f"roboscape_wm: {self.num_envs} episodes at once need {needed / 2**30:.2f} GiB of key/value cache "
+                f"(window {c.window}, {c.n_layer} layers, {c.tokens_per_frame} tokens a frame, {dtype}) but "
+                f"{free / 2**30:.2f} GiB are free on {self.device}: lower the number of envs"
+            )
 
     def _load_starts(self) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray]]:
         """The starts, the camera names and the per-dimension action range (low, high) of the dataset."""

@@ -90,9 +90,10 @@ class STWorldModel(
 
     # ---- the network ---------------------------------------------------------------------------------------
 
-    def compute_hidden(self, tokens_BTS, control: Control, cache: KVCache | None = None):
-        """Final hidden states (B, T, S, C) and the frames' keys/values per layer (with a cache, T = 1 and the new
-        frame's keys/values are written into it instead)."""
+    def compute_hidden(self, tokens_BTS, control: Control, cache: KVCache | None = None, fill: KVCache | None = None):
+        """Final hidden states (B, T, S, C) and the frames' keys/values per layer. With a cache, T = 1 and the new
+        frame's keys/values are written into it instead; with `fill` (an empty cache), the frames' are written into
+        that cache, block by block, and none is returned."""
         B, T, S = tokens_BTS.shape
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
@@ -101,10 +102,20 @@ class STWorldModel(
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         blocks = self._compiled_blocks if cache is None and self.training and self._compiled_blocks else self.blocks
         kvs = []
-        for block, layer_cache in zip(blocks, layer_caches, strict=True):
+        for i, (block, layer_cache) in enumerate(zip(blocks, layer_caches, strict=True)):
             x_BTSC, kv = block(x_BTSC, control, layer_cache)
+            if fill is not None:
+                fill.fill(i, *kv)
+                kv = None
             kvs.append(kv)
         return self.ln_f(x_BTSC), kvs
+
+    def cache_bytes(self, batch: int, dtype: torch.dtype = torch.float32) -> int:
+        """Bytes of the key/value cache a rollout of `batch` samples holds in `dtype` (guided: twice the samples),
+        the memory a generation needs beyond the weights and one frame's activations."""
+        rows = batch * (2 if self.config.guidance_scale != 1 else 1) * self.config.tokens_per_frame
+        itemsize = torch.finfo(dtype).bits // 8
+        return KVCache.nbytes(self.config.n_layer, rows, self.config.d_model, self.config.window, itemsize)
 
     def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
         """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""

@@ -48,8 +48,8 @@ class Rollout:
         if guided:
             prompt_BPS = torch.cat([prompt_BPS, prompt_BPS])
             control = Control.cat([control, model.null_control(control)], 0)
-        hidden_BTSC, kvs = model.compute_hidden(prompt_BPS, control)
-        cache = KVCache(kvs, model.config.window) if use_cache else None
+        cache = KVCache(model.config.n_layer, model.config.window) if use_cache else None
+        hidden_BTSC, _ = model.compute_hidden(prompt_BPS, control, fill=cache)
         done = torch.sigmoid(model.done_logits(hidden_BTSC[:B, -1:])[:, 0].float())
         features = hidden_BTSC[:B, -1].mean(dim=1)
         rollout = cls(model, prompt_BPS, control, cache, done, features, prompt_BPS.shape[1], guided)

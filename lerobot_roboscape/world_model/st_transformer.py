@@ -47,21 +47,41 @@ class LayerCache:
 class KVCache:
     """Every block's keys and values of the last `window` frames, in ring buffers. A new frame is written into its
     slot (overwriting the frame that leaves the window) and attends to the whole buffer, so generating a frame
-    costs the same at step 10 and step 10000, and nothing is copied. `layers[i]` is block i's view."""
+    costs the same at step 10 and step 10000, and nothing is copied. `layers[i]` is block i's view.
 
-    def __init__(self, kvs: list[KV], window: int):
-        """A cache holding the last window - 1 of the frames whose keys/values are `kvs` (T frames, from 0)."""
-        T = kvs[0][0].shape[2]
-        self.frames = T  # frames committed so far; the frame being computed is number `frames`
-        self.window = window
-        self.layers = []
-        for k, v in kvs:
-            keep = torch.arange(max(0, T - (window - 1)), T, device=k.device)
-            k_PHWD = k.new_zeros(*k.shape[:2], window, k.shape[3])
-            v_PHWD = torch.zeros_like(k_PHWD)
-            k_PHWD[:, :, keep % window], v_PHWD[:, :, keep % window] = k[:, :, keep], v[:, :, keep]
-            self.layers.append(LayerCache(k_PHWD, v_PHWD, self))
+    A cache starts empty. The prompt's pass writes each block's keys and values into its ring as the block computes
+    them (`fill`), in the dtype they were computed in, so no block's prompt keys outlive it: the cache's memory is
+    its rings (`nbytes`), allocated whole when the first block fills."""
+
+    def __init__(self, n_layer: int, window: int):
+        self.n_layer, self.window = n_layer, window
+        self.frames = 0  # frames committed so far; the frame being computed is number `frames`
+        self.layers: list[LayerCache] = []
         self._rotation = None
+
+    @staticmethod
+    def nbytes(n_layer: int, rows: int, d_model: int, window: int, itemsize: int) -> int:
+        """Bytes of the rings: keys and values of `window` frames, for every layer and row (token position)."""
+        return n_layer * 2 * rows * window * d_model * itemsize
+
+    def fill(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> None:
+        """Block `layer`'s keys and values (P, H, T, D) of the T prompt frames: the last window - 1 go to their
+        slots. After the last block, the cache holds T frames."""
+        P, H, T, D = k.shape
+        if layer == 0:
+            self.layers = [
+                LayerCache(k.new_zeros(P, H, self.window, D), k.new_zeros(P, H, self.window, D), self)
+                for _ in range(self.n_layer)
+            ]
+        keep = torch.arange(max(0, T - (self.window - 1)), T, device=k.device)
+        ring = self.layers[layer]
+        ring.k[:, :, keep % self.window], ring.v[:, :, keep % self.window] = k[:, :, keep], v[:, :, keep]
+        if layer == self.n_layer - 1:
+            self.frames = T
+
+    @property
+    def allocated_bytes(self) -> int:
+        return sum(t.numel() * t.element_size() for ring in self.layers for t in (ring.k, ring.v))
 
     @property
     def slot(self) -> int:

@@ -278,3 +278,17 @@ def test_reset_from_frames_refuses_a_wrong_camera_or_shape(env_config):
         RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame"), num_envs=1).reset(
             options={"frames": {"third_view": good, "wrist": good}, "task": ["push"]}
         )
+
+
+def test_a_batch_whose_cache_cannot_fit_is_refused_at_construction(env_config):
+    """The key/value cache of num_envs episodes is checked against the device's free memory before any generation,
+    and the refusal names the batch, the window, the bytes needed and those free."""
+    from lerobot_roboscape.envs.world_model_env import free_memory_bytes
+    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+    model = STWorldModel.from_pretrained(env_config().action_world_model)
+    per_episode = model.cache_bytes(1)
+    too_many = free_memory_bytes("cpu") // per_episode + 1
+    refusal = rf"{too_many} episodes at once need .* GiB of key/value cache \(window .* GiB are free on cpu"
+    with pytest.raises(InvalidInputError, match=refusal):
+        RoboscapeWorldModelEnv(env_config(precision="float32"), num_envs=too_many)

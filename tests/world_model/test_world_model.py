@@ -385,3 +385,22 @@ def test_flops_per_clip_are_the_matmuls_counted(control):
         model(batch)
     assert counter.get_total_flops() / 2 == model.forward_flops_per_clip()
     assert model.training_flops_per_clip() == 3 * model.forward_flops_per_clip()
+
+
+@pytest.mark.parametrize("guided", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_cache_holds_what_cache_bytes_says_in_the_compute_dtype(guided, dtype):
+    """A rollout's key/value cache is its rings alone, in the dtype the model computes in, of the size cache_bytes
+    estimates; a prompt longer than the window keeps its last window - 1 frames."""
+    from lerobot_roboscape.world_model.rollout import Rollout
+
+    overrides = dict(control_dropout=0.1, guidance_scale=2.0) if guided else {}
+    model = make_model(**overrides)
+    batch = random_batch(B=3, T=6)
+    control = model.episode_control(batch["actions"][:, :5, 0])
+    with torch.autocast("cpu", torch.bfloat16, enabled=dtype == torch.bfloat16):
+        rollout = Rollout.start(model, batch["tokens"], control)
+    cache = rollout.cache
+    assert {ring.k.dtype for ring in cache.layers} == {dtype} and len(cache.layers) == model.config.n_layer
+    assert cache.allocated_bytes == model.cache_bytes(3, dtype)
+    assert cache.frames == 6 and cache.layers[0].k.shape[2] == model.config.window
