@@ -12,6 +12,12 @@ steps are control steps, and the model makes a frame every k of them.
     python scripts/benchmarks/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
     python scripts/benchmarks/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40 \
         --precisions float32 bfloat16
+    # the world model alone (no simulator) from batch 1 up to the largest that fits, with peak GPU memory
+    python scripts/benchmarks/benchmark_envs.py --random-preset paper --no-simulator --batch-sizes 1 16 64 128 256 \
+        --precisions bfloat16
+
+A batch whose key/value cache cannot fit the device's free memory is refused by `roboscape_wm` at construction
+(its message is printed) and ends the sweep: the batches after it are larger.
 """
 
 import argparse
@@ -28,6 +34,7 @@ import torch
 from lerobot_roboscape.envs.configs import PRECISIONS, RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
@@ -81,6 +88,7 @@ def main():
     parser.add_argument(
         "--precisions", nargs="+", default=["auto"], choices=PRECISIONS, help="roboscape_wm's precision"
     )
+    parser.add_argument("--no-simulator", action="store_true", help="roboscape_wm alone, with its peak GPU memory")
     args = parser.parse_args()
     demo = args.demo_dir
     torch.manual_seed(0)
@@ -142,13 +150,23 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
         f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, {image_size} px, 2 cameras, "
         f"{args.steps} steps per measurement"
     )
+    simulator = not args.no_simulator
+    cuda = torch.device(wm_config.resolved_device).type == "cuda"
     print(
         f"{'batch':>6} {'precision':>9} {'roboscape_wm steps/s':>21} {'generate':>9} {'decode':>7} {'reward':>7} "
-        f"{'done':>7} {'roboscape_maniskill steps/s':>28} {'ratio':>7}"
-    )
+        f"{'done':>7}" + (f" {'peak GiB':>9}" if cuda else "")
+        + (f" {'roboscape_maniskill steps/s':>28} {'ratio':>7}" if simulator else "")
+    )  # fmt: skip
     predict_next_frame = Rollout.predict_next_frame
     for batch, precision in itertools.product(args.batch_sizes, args.precisions):
-        wm = RoboscapeWorldModelEnv(dataclasses.replace(wm_config, precision=precision), num_envs=batch)
+        if cuda:
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats()
+        try:
+            wm = RoboscapeWorldModelEnv(dataclasses.replace(wm_config, precision=precision), num_envs=batch)
+        except InvalidInputError as refusal:  # the cache cannot fit: nor can any larger batch
+            print(f"{batch:>6} {precision:>9} {refusal}")
+            break
         timers = {
             "generate": Timed(predict_next_frame),
             "decode": Timed(wm.decode),
@@ -157,12 +175,19 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
         }
         Rollout.predict_next_frame, wm.decode, wm.reward_fn.forward, wm.done_of = timers.values()
         wm_rate, wm_seconds = steps_per_second(wm, args.steps, list(timers.values()))
+        Rollout.predict_next_frame = predict_next_frame
         widths = (9, 7, 7, 7)  # of the generate, decode, reward and done columns
         shares = " ".join(f"{t.seconds / wm_seconds:>{w}.0%}" for t, w in zip(timers.values(), widths, strict=True))
-        ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
-        ms_rate, _ = steps_per_second(ms, args.steps)
-        ms.close()
-        print(f"{batch:>6} {wm.precision:>9} {wm_rate:>21.1f} {shares} {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x")
+        line = f"{batch:>6} {wm.precision:>9} {wm_rate:>21.1f} {shares}"
+        if cuda:
+            line += f" {torch.cuda.max_memory_allocated() / 2**30:>9.1f}"
+        del wm
+        if simulator:
+            ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
+            ms_rate, _ = steps_per_second(ms, args.steps)
+            ms.close()
+            line += f" {ms_rate:>28.1f} {wm_rate / ms_rate:>6.1f}x"
+        print(line, flush=True)
 
 
 if __name__ == "__main__":
