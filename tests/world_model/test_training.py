@@ -275,3 +275,18 @@ def test_done_head_tuned_on_its_own_open_loop_frames(demo_dataset, trained_token
     changed = {name for name, weight in saved.items() if not torch.equal(weight, trained[name])}
     assert changed and all(name.startswith("done_head.") for name in changed)
     assert all(torch.equal(model.state_dict()[name], weight) for name, weight in saved.items())
+
+
+def test_a_loss_gone_non_finite_stops_training_at_the_next_logging_step(tmp_path):
+    """The loss is read on logging steps only (no wait on the device in between): a NaN from step 3 stops the run
+    at step 4, the next logging step, with a message naming it."""
+    from lerobot_roboscape.training.loop import TrainingConfig, fit
+
+    def loss_fn(model, batch):
+        loss = model(batch["x"]).pow(2).mean() * (torch.nan if batch["step"] >= 2 else 1.0)
+        return loss, {"loss": loss.detach()}
+
+    batches = lambda step, process: {"x": torch.ones(2, 3), "step": step}  # noqa: E731
+    config = TrainingConfig(steps=8, batch_size=2, log_freq=4, warmup_steps=1, mixed_precision="no")
+    with pytest.raises(FloatingPointError, match="loss is nan at step 4; lower --train.lr"):
+        fit(torch.nn.Linear(3, 1), loss_fn, batches, config, tmp_path, {})
