@@ -277,9 +277,9 @@ def fit(
         optimizer.zero_grad(set_to_none=True)
         if (step + 1) % config.log_freq == 0 or step == start:
             logs = {name: float(value) for name, value in logs.items()}  # waits for the device
-            if not math.isfinite(logs["loss"] if "loss" in logs else float(loss)):
+            if not math.isfinite(logs["loss"] if "loss" in logs else loss.item()):
                 raise FloatingPointError(
-                    f"loss is {float(loss)} at step {step + 1}; lower --train.lr or check the data"
+                    f"loss is {loss.item()} at step {step + 1}; lower --train.lr or check the data"
                 )
             if step == start:
                 throughput.mark(step + 1)  # the first step (compilation, warm-up) is not throughput

@@ -110,7 +110,10 @@ def test_exported_cache_travels_whole_and_trains_without_its_dataset(
     assert imported.episodes == token_cache.episodes
     for name in ("tokens", "actions", "done", "rewards"):
         assert np.array_equal(getattr(imported, name), getattr(token_cache, name)), name
-    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "here", steps=3)
+    args = [
+        *train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "here", steps=3),
+        "--done_tuning_steps=0",
+    ]
     train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
     away = [a.replace(str(token_cache.root), str(imported.root)) for a in args if not a.startswith("--dataset.root")]
     away = [a.replace(str(tmp_path / "here"), str(tmp_path / "away")) for a in away] + [
