@@ -265,11 +265,11 @@ def import_token_cache(path: str | Path, cache_dir: str | Path) -> Path:
     target = Path(cache_dir) / name
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=target.parent))
-    coded = arrays.pop("tokens").astype(np.int32)
-    repeats = coded == 0
-    for row in range(1, len(coded)):  # undo the repeats in order: a run of them copies its first code
-        coded[row, repeats[row]] = coded[row - 1, repeats[row]]
-    np.save(tmp / "tokens.npy", (coded - 1).astype(np.uint16).reshape(header["token_shape"]))
+    coded = arrays.pop("tokens")
+    # A repeat takes the code of the last row at or above it that stored one (rows that store none: 0).
+    source = np.maximum.accumulate(np.where(coded != 0, np.arange(len(coded))[:, None], 0), axis=0)
+    tokens = np.take_along_axis(coded, source, axis=0).astype(np.int32) - 1
+    np.save(tmp / "tokens.npy", tokens.astype(np.uint16).reshape(header["token_shape"]))
     for name_, array in arrays.items():
         np.save(tmp / f"{name_}.npy", array)
     (tmp / "episodes.json").write_text(json.dumps(header["episodes"]))

@@ -128,14 +128,17 @@ class ClipMixture:
         self.offsets = np.cumsum([0] + [len(c.tokens) for c in self.caches[:-1]]).tolist()
 
     def __call__(self, step: int, process_index: int = 0) -> dict:
-        rng = np.random.default_rng([self.seed, step, process_index])
-        counts = rng.multinomial(self.batch_size, self.shares)
-        return collate_batches([gather(s.cache, s.draw(rng, n)) for s, n in zip(self.samplers, counts, strict=True)])
+        draws = self._draws(step, process_index)
+        return collate_batches([gather(s.cache, d) for s, d in zip(self.samplers, draws, strict=True)])
 
     def index(self, step: int, process_index: int = 0) -> ClipIndex:
+        return ClipIndex.cat(self._draws(step, process_index), self.offsets)
+
+    def _draws(self, step: int, process_index: int) -> list[ClipIndex]:
+        """Each sampler's clips of the step: how many, at the shares, then which."""
         rng = np.random.default_rng([self.seed, step, process_index])
         counts = rng.multinomial(self.batch_size, self.shares)
-        return ClipIndex.cat([s.draw(rng, n) for s, n in zip(self.samplers, counts, strict=True)], self.offsets)
+        return [sampler.draw(rng, n) for sampler, n in zip(self.samplers, counts, strict=True)]
 
 
 def gather(cache: TokenCache, index: ClipIndex) -> dict:

@@ -17,8 +17,6 @@ from torch import nn
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import Control
 
-KV = tuple[torch.Tensor, torch.Tensor]  # keys (rotary-rotated) and values of every frame: (P, H, T, D)
-
 
 def rotary(positions: torch.Tensor, width: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """cos and sin (T, width / 2) of the rotary embedding at integer frame `positions` (T,). Angles are computed in
