@@ -14,9 +14,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.dataset import EPISODES_SIDECAR
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
-from lerobot_roboscape.demos.collect import CollectConfig, collect
-from lerobot_roboscape.errors import OutputExistsError
+from lerobot_roboscape.demos.collect import JOBS, CollectConfig, collect, episodes_dir
+from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
+from lerobot_roboscape.pipeline import stages
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
@@ -65,6 +66,25 @@ def test_collect(tmp_path):
     rerun("collect", *args, f"--root={root}", "--resume=true")
     assert not work.exists()
     assert_same_dataset(tmp_path / "reference", root)
+
+
+def test_a_pipeline_rerun_continues_a_killed_collection_and_fresh_discards_it(tmp_path):
+    cfg = CollectConfig(
+        repo_id="test/demos",
+        root=str(tmp_path / "demos"),
+        families=["push"],
+        max_scenes=1,
+        episodes_per_scene=1,
+        image_size=IMAGE_SIZE,
+        workers=0,
+    )
+    work = episodes_dir(cfg.root)
+    work.mkdir()
+    (work / JOBS).write_text("[]")  # an interrupted collection of another plan
+    with pytest.raises(InvalidInputError, match="collected with other settings"):  # resumed, not refused
+        stages._collect(cfg, fresh=False)
+    stages._collect(cfg, fresh=True)
+    assert not work.exists() and LeRobotDataset("test/demos", root=cfg.root).num_episodes == 1
 
 
 def test_convert(tmp_path):

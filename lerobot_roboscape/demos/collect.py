@@ -24,6 +24,12 @@ from lerobot_roboscape.tasks.base import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 JOBS = "jobs.json"  # the planned episodes of an interrupted collection, which a resumed one must equal
 
 
+def episodes_dir(root: Path) -> Path:
+    """Where a collection into `root` saves each finished episode until the dataset is written."""
+    root = Path(root).resolve()
+    return root.parent / f".{root.name}.episodes"
+
+
 @dataclass
 class CollectConfig:
     """Args:
@@ -142,7 +148,7 @@ def collect(cfg: CollectConfig) -> LeRobotDataset:
     jobs = make_jobs(cfg)
     root = Path(cfg.root).resolve()
     check_target(root, cfg.overwrite)  # before hours of collection, not after
-    work = root.parent / f".{root.name}.episodes"
+    work = episodes_dir(root)
     plan = [asdict(job) for job in jobs]
     if work.exists():
         if not cfg.resume:

@@ -4,6 +4,7 @@ the settings it ran with; a rerun with the same settings skips it (so a killed r
 
 import json
 import logging
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset
-from lerobot_roboscape.demos.collect import CollectConfig, collect
+from lerobot_roboscape.demos.collect import CollectConfig, collect, episodes_dir
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
 from lerobot_roboscape.demos.record import record_maniskill_trajectories
@@ -92,7 +93,10 @@ class Datasets:
 
 def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
     folder = Path(cfg.root)
-    run_once(folder, cfg, fresh, lambda: collect(replace(cfg, overwrite=True)))
+    if fresh:
+        shutil.rmtree(episodes_dir(folder), ignore_errors=True)
+    # a killed collection continues from the episodes it saved (its planned jobs must match, or collect says so)
+    run_once(folder, cfg, fresh, lambda: collect(replace(cfg, overwrite=True, resume=True)))
     return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
 
 
