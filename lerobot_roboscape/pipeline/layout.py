@@ -19,6 +19,7 @@ TOKENIZER_DIR = "tokenizer"
 TOKENIZER_REPORT_DIR = "tokenizer_report"
 TOKEN_CACHE_DIR = "token_cache"
 FIDELITY_DIR = "fidelity"
+FIDELITY_IND_DIR = "fidelity_ind"  # the same report from new starts of the training scenes
 REWARD_REPORT_DIR = "reward_report"
 TABLES_DIR = "tables"
 GOAL_FILE = "rl/text_model_goals.safetensors"

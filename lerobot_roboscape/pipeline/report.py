@@ -22,6 +22,7 @@ from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     EVAL_DIR,
     FIDELITY_DIR,
+    FIDELITY_IND_DIR,
     HELDOUT_DIR,
     REWARD_REPORT_DIR,
     TABLES_DIR,
@@ -62,7 +63,7 @@ STAGE_FOLDERS = {
     "tokenizer report": [TOKENIZER_REPORT_DIR],
     "action world model (with the token cache)": [world_model_dir("action")],
     "text world model": [world_model_dir("text")],
-    "fidelity report": [FIDELITY_DIR],
+    "fidelity report": [FIDELITY_IND_DIR, FIDELITY_DIR],
     "reward models, success classifier, done and reward reports": [
         *map(reward_model_dir, (*REWARD_BASELINES, SUCCESS_CLASSIFIER)),
         DONE_REPORT_DIR,
@@ -78,11 +79,15 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     tokenizer = json.loads((out / TOKENIZER_REPORT_DIR / "tokenizer_report.json").read_text())
     fidelity = json.loads((out / FIDELITY_DIR / "fidelity.json").read_text())
+    ind = out / FIDELITY_IND_DIR / "fidelity.json"
+    fidelity_ind = json.loads(ind.read_text()) if ind.is_file() else None
     done = json.loads((out / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((out / REWARD_REPORT_DIR / "reward_report.json").read_text())
     table = json.loads((out / TABLES_DIR / "tables.json").read_text())
     curve = read_curve(out / world_model_dir("action"))
-    targets = tokenizer_targets(tokenizer) | measure_targets(fidelity, done, rewards, table, cfg.families, curve)
+    targets = tokenizer_targets(tokenizer) | measure_targets(
+        fidelity, done, rewards, table, cfg.families, curve, fidelity_ind
+    )
     times = stage_times(cfg, out)
     results = {
         "scale": cfg.scale,
@@ -95,6 +100,8 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "tokenizer": tokenizer["views"],
         **world_model_results(fidelity, done, rewards),
     }
+    if fidelity_ind is not None:
+        results["fidelity_ind"] = fidelity_results(fidelity_ind)
     (folder / "results.json").write_text(json.dumps(results, indent=2))
 
     shutil.copy2(out / TOKENIZER_REPORT_DIR / "reconstruction.png", folder / "tokenizer_reconstruction.png")
@@ -118,12 +125,15 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     return folder / "report.md"
 
 
+def fidelity_results(fidelity: dict) -> dict:
+    """What results.json keeps of a fidelity report."""
+    return {k: fidelity[k] for k in ("mean", "per_step", "controllability", "controllability_long") if k in fidelity}
+
+
 def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
     """What results.json keeps of the fidelity, done and reward reports."""
     return {
-        "fidelity": {
-            k: fidelity[k] for k in ("mean", "per_step", "controllability", "controllability_long") if k in fidelity
-        },
+        "fidelity": fidelity_results(fidelity),
         "done": {k: done[k] for k in ("chosen", "sources")},
         "reward": rewards["summary"],
         "goals": rewards["goals"],

@@ -71,18 +71,22 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
         f"{control} world model": Artifact(ArtifactKind.WORLD_MODEL, path) for control, path in models.items()
     }
 
-    clock("fidelity report", "fidelity report of the action world model on the held-out episodes")
-    fidelity = stages.fidelity(cfg, out, data, tokenizer, models)
-    mean = fidelity["mean"]
-    print(
-        f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
-        f"SSIM {mean['prediction_ssim']:.2f}"
-        + "".join(
-            f", retrieval {region} {m['retrieval']:.2f}"
-            for region, m in fidelity.get("controllability", {}).get("world_model", {}).items()
+    clock("fidelity report", "fidelity of the action world model: new starts of its training scenes, then OOD")
+    for domain, folder in (("ind", layout.FIDELITY_IND_DIR), ("ood", layout.FIDELITY_DIR)):
+        fidelity = stages.fidelity(cfg, out, data, tokenizer, models, domain)
+        if fidelity is None:
+            continue
+        mean = fidelity["mean"]
+        print(
+            f"{domain.upper()}: PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone "
+            f"{mean['reconstruction_psnr']:.1f}), SSIM {mean['prediction_ssim']:.2f}"
+            + "".join(
+                f", retrieval {region} {m['retrieval']:.2f}"
+                for region, m in fidelity.get("controllability", {}).get("world_model", {}).items()
+            )
         )
-    )
-    artifacts["fidelity report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.FIDELITY_DIR / "fidelity.md")
+        name = "fidelity report" + (" IND" if domain == "ind" else "")
+        artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / folder / "fidelity.md")
     artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
 
     clock("done and reward", "reward models, the done signal and the reward report (held-out episodes)")

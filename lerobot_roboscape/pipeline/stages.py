@@ -32,6 +32,7 @@ from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     EXPLORE_DIR,
     FIDELITY_DIR,
+    FIDELITY_IND_DIR,
     HELDOUT_DIR,
     REWARD_REPORT_DIR,
     TOKEN_CACHE_DIR,
@@ -375,17 +376,26 @@ def spread(dataset: DatasetConfig, k: int) -> DatasetConfig:
 # ---- reports on the models ---------------------------------------------------------------------------------------
 
 
-def fidelity(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]) -> dict:
-    """The action world model's fidelity report on the held-out episodes (PSNR per open-loop step against the
-    tokenizer's own reconstruction, done scores); returns the report."""
-    folder = out / FIDELITY_DIR
+def fidelity(
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path], domain: str = "ood"
+) -> dict | None:
+    """The action world model's fidelity report (PSNR per open-loop step against the tokenizer's own reconstruction,
+    with the controllability reading) on held-out OOD episodes or, `domain="ind"`, on the validation episodes and
+    the controllability set of new starts in the training scenes; returns the report (None: the scale has no IND
+    set)."""
+    if domain == "ind":
+        if data.controllability_ind is None:
+            return None
+        folder, episodes, control = out / FIDELITY_IND_DIR, data.validation, data.controllability_ind
+    else:
+        folder, episodes, control = out / FIDELITY_DIR, data.heldout, data.controllability
     report_cfg = FidelityConfig(
-        dataset=spread(data.heldout, cfg.report_episodes),
+        dataset=spread(episodes, cfg.report_episodes),
         tokenizer=str(tokenizer_path),
         world_model=str(models["action"]),
         output_dir=folder,
         max_episodes=cfg.report_episodes,
-        controllability=data.controllability,
+        controllability=control,
         allow_random_lpips=True,
         device=cfg.device,
     )

@@ -4,9 +4,12 @@ results.json, a targets table on stdout, and the figures copied beside them.
 
     python scripts/experiments/world_model_report.py --run-dir outputs/bench --out docs/results/world_model
 
-With --agreement (a `roboscape-eval-agreement` output folder, OOD) and --open-loop-rewards (a reward_report.json of
-`roboscape-reward-report --frames=open_loop`), the rows of whether the world model judges policies as the
-simulator does join the targets.
+The action model's fidelity from new starts of its training scenes (the run's fidelity_ind/, IND) comes first
+where the run has it; its figures are copied with an `ind_` prefix.
+
+With --agreement (a `roboscape-eval-agreement` output folder, OOD; --agreement-ind, the same IND) and
+--open-loop-rewards (a reward_report.json of `roboscape-reward-report --frames=open_loop`), the rows of whether the
+world model judges policies as the simulator does join the targets.
 
 With --gpu-run-dir, the same reports of models trained on a GPU (BENCH_ON_GPU) and evaluated here join results.json
 under "bench_on_gpu", and the table gains their column.
@@ -18,8 +21,14 @@ import shutil
 from pathlib import Path
 
 from lerobot_roboscape.pipeline.figures import world_model_figure
-from lerobot_roboscape.pipeline.layout import DONE_REPORT_DIR, FIDELITY_DIR, REWARD_REPORT_DIR, world_model_dir
-from lerobot_roboscape.pipeline.report import machine, world_model_results
+from lerobot_roboscape.pipeline.layout import (
+    DONE_REPORT_DIR,
+    FIDELITY_DIR,
+    FIDELITY_IND_DIR,
+    REWARD_REPORT_DIR,
+    world_model_dir,
+)
+from lerobot_roboscape.pipeline.report import fidelity_results, machine, world_model_results
 from lerobot_roboscape.pipeline.targets import agreement_targets, world_model_targets
 from lerobot_roboscape.training.loop import read_curve
 
@@ -41,11 +50,14 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("docs/results/world_model"))
     parser.add_argument("--gpu-run-dir", type=Path, default=None)
     parser.add_argument("--agreement", type=Path, default=None)
+    parser.add_argument("--agreement-ind", type=Path, default=None)
     parser.add_argument("--open-loop-rewards", type=Path, default=None)
     args = parser.parse_args()
     run, out = args.run_dir, args.out
     out.mkdir(parents=True, exist_ok=True)
     targets, measured = read_run(run)
+    if args.agreement_ind is not None:
+        targets |= agreement_targets(json.loads((args.agreement_ind / "ladder.json").read_text()), split="ind")
     if args.agreement is not None:
         ladder = json.loads((args.agreement / "ladder.json").read_text())
         open_loop = json.loads(args.open_loop_rewards.read_text()) if args.open_loop_rewards else None
@@ -60,6 +72,9 @@ def main():
         for name in names:
             if (run / folder / name).is_file():
                 shutil.copy2(run / folder / name, out / name)
+    for name in FIGURES[FIDELITY_DIR] + REPORTS[FIDELITY_DIR]:
+        if (run / FIDELITY_IND_DIR / name).is_file():
+            shutil.copy2(run / FIDELITY_IND_DIR / name, out / f"ind_{name}")
     world_model_figure(
         run / FIDELITY_DIR / "side_by_side.mp4",
         json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())["prompt_frames"],
@@ -82,8 +97,13 @@ def read_run(run: Path) -> tuple[dict, dict]:
     fidelity = json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())
     done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
     rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
-    targets = world_model_targets(fidelity, done, rewards, read_curve(run / world_model_dir("action")))
-    return targets, world_model_results(fidelity, done, rewards)
+    ind = run / FIDELITY_IND_DIR / "fidelity.json"
+    fidelity_ind = json.loads(ind.read_text()) if ind.is_file() else None
+    curve = read_curve(run / world_model_dir("action"))
+    measured = world_model_results(fidelity, done, rewards)
+    if fidelity_ind is not None:
+        measured["fidelity_ind"] = fidelity_results(fidelity_ind)
+    return world_model_targets(fidelity, done, rewards, curve, fidelity_ind), measured
 
 
 def _value(t: dict) -> str:
