@@ -89,6 +89,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             it, a CPU with AVX512-BF16 or AMX), else float32. On 2 CPU cores with AVX512-BF16, bf16 makes about
             1.35x the env steps/s at batch 16, and a trained model's rollouts keep 99.9% of their float32 tokens
             (docs/results/world_model/control_levers.md).
+        cuda_graphs: on a CUDA device, replay each frame's generation as a CUDA graph (one launch a frame instead
+            of hundreds: world_model/rollout.py); off, or on a CPU, every kernel is launched as it comes.
         seed: seed of the start sampling when reset() gets none.
     """
 
@@ -126,6 +128,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     allow_random_lpips: bool = False
     device: str = "auto"
     precision: str = "auto"
+    cuda_graphs: bool = True
     seed: int = 0
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(default_factory=dict)

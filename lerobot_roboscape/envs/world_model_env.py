@@ -269,7 +269,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         options = options or {}
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
-            self._generator = torch.Generator(self.device).manual_seed(seed)  # world-model sampling
+            self._generator.manual_seed(seed)  # world-model sampling; in place: a CUDA graph holds this generator
         if "frames" in options:  # new starts: their goals are made now (or given), not cached
             starts = self._starts_from_frames(options["frames"], options.get("task"), options.get("horizon"))
             if options.get("goal_frames") is not None:
@@ -292,7 +292,13 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
         with self.autocast():
-            self._rollout = Rollout.start(self.action_model, first[:, None], control)
+            self._rollout = Rollout.start(
+                self.action_model,
+                first[:, None],
+                control,
+                capture=self.config.cuda_graphs and torch.device(self.device).type == "cuda",
+                reuse=self._rollout,  # its cache's rings and CUDA graphs, when the shapes match
+            )
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
         self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step

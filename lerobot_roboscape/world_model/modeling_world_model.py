@@ -220,8 +220,10 @@ class STWorldModel(
         use_cache: bool = True,
         temperature: float = 0.0,
         generator=None,
+        capture: bool = False,
     ):
-        """Open-loop generation of `n_frames` frames after the prompt.
+        """Open-loop generation of `n_frames` frames after the prompt (`capture`: each frame replayed as a CUDA
+        graph, world_model/rollout.py).
 
         Action model: `actions` (B, (P + n_frames - 1) * k, A), one per control step, are the actions taken from the
         prompt frames and from each generated frame but the last (the control of frame t is the k actions from
@@ -236,7 +238,7 @@ class STWorldModel(
                 f"got {got}"
             )
         control = self.episode_control(actions, no_action, instructions)
-        rollout = Rollout.start(self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True)
+        rollout = Rollout.start(self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True, capture=capture)
         frames, dones = [], []
         for t in range(P, P + n_frames):
             frame, done = rollout.predict_next_frame(control.frames(slice(t, t + 1)), temperature, generator)

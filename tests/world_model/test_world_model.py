@@ -250,6 +250,52 @@ def test_cached_generation_on_gpu_equals_recomputing_the_window():
     torch.testing.assert_close(done_cached, done_full)
 
 
+def test_a_new_episode_refilling_a_used_cache_generates_what_a_fresh_cache_does():
+    """A reused cache's rings hold the last episode's frames past the new prompt: none may leak in."""
+    model = make_model("action", **CONTROL_PATH)
+    batch = random_batch(T=4)
+    control = model.episode_control(batch["actions"][:, :6, 0].repeat(1, 2, 1))
+
+    def episode(reuse=None):
+        rollout = Rollout.start(model, batch["tokens"][:, :1], control.frames(slice(0, 1)), reuse=reuse)
+        frames = [rollout.predict_next_frame(control.frames(slice(t, t + 1)))[0] for t in range(1, 6)]
+        return rollout, torch.stack(frames, 1)
+
+    first, reference = episode()
+    rings = [layer.k for layer in first.cache.layers]
+    second, again = episode(reuse=first)
+    assert second.cache is first.cache
+    assert all(a is b.k for a, b in zip(rings, second.cache.layers, strict=True))  # the same rings, refilled
+    assert torch.equal(again, reference)
+
+
+def test_capture_needs_the_cache_on_a_cuda_device():
+    model = make_model("action")
+    batch = random_batch()
+    with pytest.raises(ValueError, match="capture needs the key/value cache on a CUDA device"):
+        model.generate(batch["tokens"][:, :1], 2, capture=True, **control_kwargs(model, batch, 2))
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("control,overrides", VARIANTS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_captured_generation_on_gpu_gives_the_uncaptured_tokens(control, overrides, dtype):
+    """Past the window (the ring wraps), guided or not, each decoding order, under autocast or not."""
+    model = make_model(control, **overrides).cuda()
+    batch = random_batch(T=4)
+    prompt = batch["tokens"][:, :1].cuda()
+    kw = {k: v.cuda() if torch.is_tensor(v) else v for k, v in control_kwargs(model, batch, 1).items()}
+    if control == "action":
+        kw["actions"] = (torch.rand(2, 9, 7, generator=torch.Generator().manual_seed(2)) * 2 - 1).cuda()
+    runs = []
+    for capture in (False, True):
+        generator = torch.Generator("cuda").manual_seed(0)
+        with torch.autocast("cuda", torch.bfloat16, enabled=dtype == torch.bfloat16):
+            runs.append(model.generate(prompt, 9, capture=capture, generator=generator, **kw))
+    assert torch.equal(runs[0][0], runs[1][0])
+    torch.testing.assert_close(runs[0][1], runs[1][1])
+
+
 def test_long_rollout_stays_finite_with_a_bounded_cache():
     model = make_model("action")
     g = torch.Generator().manual_seed(1)
