@@ -11,10 +11,19 @@ Two references, measured in the same run as ours:
 Each starts from a full window (window - 1 prompt frames for ours) and the rate is that of the frames after the first
 (`marginal_rate`): the steady state of a long rollout, without the one-time reading of the prompt.
 
+On a GPU the paper preset runs with one 16 x 16 view (1xgpt needs a square grid; `--views 2`: the env's frame, ours
+alone), ours also as CUDA graphs
+(`captured`), over the batches given and, with `max` among them, the largest that fits (doubling until out of
+memory), each with its peak GPU memory. `--memory-snapshot FILE` records one cached generation at the first batch
+(PyTorch's memory snapshot, for https://pytorch.org/memory_viz) and prints what it held: weights, the key/value
+cache (`cache_bytes`) and the rest.
+
     # the tiny preset at window 16 on CPU (and the paper preset on a GPU)
     python scripts/benchmarks/benchmark_world_model.py
     python scripts/benchmarks/benchmark_world_model.py --paper-code ~/1xgpt --batch-sizes 1 16 --config \
         '{"n_layer": 4, "n_head": 4, "d_model": 256, "n_cameras": 1, "tokens_per_side": 16, "window": 16}'
+    # on a GPU: the race at the paper preset, one view
+    python scripts/benchmarks/benchmark_world_model.py --paper-code ~/1xgpt --batch-sizes 1 16 64 max
 """
 
 import argparse
@@ -57,7 +66,9 @@ def marginal_rate(generate, batch: int, frames: int, device: str, repeats: int =
     return batch * frames / (seconds[1] - seconds[0])
 
 
-def frames_per_second(model: STWorldModel, batch: int, frames: int, use_cache: bool, device: str, dtype) -> float:
+def frames_per_second(
+    model: STWorldModel, batch: int, frames: int, use_cache: bool, device: str, dtype, capture: bool = False
+) -> float:
     cfg = model.config
     prompt_len = cfg.window - 1
     g = torch.Generator(device="cpu").manual_seed(0)
@@ -66,11 +77,45 @@ def frames_per_second(model: STWorldModel, batch: int, frames: int, use_cache: b
     actions = (torch.rand(batch, (prompt_len + frames) * k, cfg.action_dim, generator=g) * 2 - 1).to(device)
 
     def generate(n: int):
-        model.generate(prompt, n, actions=actions[:, : (prompt_len + n - 1) * k], use_cache=use_cache)
+        actions_n = actions[:, : (prompt_len + n - 1) * k]
+        model.generate(prompt, n, actions=actions_n, use_cache=use_cache, capture=capture)
 
     with torch.autocast(device_type=device, dtype=dtype, enabled=dtype != torch.float32):
         generate(1)  # warm-up
         return marginal_rate(generate, batch, frames, device, repeats=3 if use_cache else 1)
+
+
+def peak_gib(device: str) -> float | None:
+    return torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
+
+
+def largest_batch(model: STWorldModel, start: int, frames: int, device: str, dtype) -> int:
+    """The largest batch, doubling from `start`, whose cached generation runs without running out of memory."""
+    batch = start
+    while True:
+        try:
+            frames_per_second(model, batch * 2, 1, True, device, dtype)
+        except torch.OutOfMemoryError:
+            torch.cuda.empty_cache()
+            return batch
+        batch *= 2
+
+
+def memory_snapshot(model: STWorldModel, batch: int, frames: int, dtype, path: Path) -> None:
+    """One cached generation at `batch` recorded by PyTorch's allocator history; prints weights, the cache's bytes
+    as `cache_bytes` counts them and the peak, in GiB."""
+    torch.cuda.empty_cache()
+    torch.cuda.reset_peak_memory_stats()
+    weights = sum(p.numel() * p.element_size() for p in model.parameters())
+    torch.cuda.memory._record_memory_history(max_entries=200_000)
+    frames_per_second(model, batch, frames, True, "cuda", dtype)
+    torch.cuda.memory._dump_snapshot(str(path))
+    torch.cuda.memory._record_memory_history(enabled=None)
+    peak, cache = torch.cuda.max_memory_allocated(), model.cache_bytes(batch, dtype)
+    print(
+        f"memory at batch {batch}: peak {peak / 2**30:.2f} GiB = weights {weights / 2**30:.2f} + key/value cache "
+        f"{cache / 2**30:.2f} + the rest {(peak - weights - cache) / 2**30:.2f} (snapshot: {path})"
+    )
 
 
 def load_paper_code(checkout: Path):
@@ -119,7 +164,9 @@ def paper_frames_per_second(paper, cfg: WorldModelConfig, batch: int, frames: in
         return marginal_rate(generate, batch, frames, device, repeats=1)
 
 
-def run(name: str, cfg, device: str, dtype, batch_sizes: list[int], frames: int, paper=None) -> None:
+def run(
+    name: str, cfg, device: str, dtype, batch_sizes: list[str], frames: int, paper=None, snapshot: Path | None = None
+) -> None:
     torch.manual_seed(0)
     model = STWorldModel(cfg).to(device).eval()
     params = sum(p.numel() for p in model.parameters()) / 1e6
@@ -128,23 +175,41 @@ def run(name: str, cfg, device: str, dtype, batch_sizes: list[int], frames: int,
         f"{cfg.tokens_per_frame} tokens/frame, vocabulary {cfg.vocab_size}, window {cfg.window}, "
         f"{cfg.maskgit_steps} MaskGIT steps, greedy, {device}, {str(dtype).removeprefix('torch.')}"
     )
-    header = f"{'batch':>6} {'ours frames/s':>14} {'recompute frames/s':>19} {'speed-up':>9}"
+    gpu = device == "cuda"
+    if snapshot is not None and gpu:
+        memory_snapshot(model, int(batch_sizes[0]), frames, dtype, snapshot)
+    header = f"{'batch':>6} {'ours frames/s':>14}"
+    header += f" {'captured':>9} {'peak GiB':>9}" if gpu else ""
+    header += f" {'recompute frames/s':>19} {'speed-up':>9}"
     if paper:
         header += f" {'paper code frames/s':>20} {'speed-up':>9}"
     print(header)
-    for batch in batch_sizes:
+    batches = [int(b) for b in batch_sizes if b != "max"]
+    if "max" in batch_sizes:
+        batches.append(largest_batch(model, max(batches, default=1), frames, device, dtype))
+    for batch in batches:
+        if gpu:
+            torch.cuda.reset_peak_memory_stats()
         ours = frames_per_second(model, batch, frames, True, device, dtype)
+        best = ours
+        line = f"{batch:>6} {ours:>14.2f}"
+        if gpu:
+            peak = peak_gib(device)
+            best = max(ours, captured := frames_per_second(model, batch, frames, True, device, dtype, capture=True))
+            line += f" {captured:>9.2f} {peak:>9.2f}"
         recompute = frames_per_second(model, batch, frames, False, device, dtype)
-        line = f"{batch:>6} {ours:>14.2f} {recompute:>19.2f} {ours / recompute:>8.1f}x"
+        line += f" {recompute:>19.2f} {best / recompute:>8.1f}x"
         if paper:
             reference = paper_frames_per_second(paper, cfg, batch, frames, device, dtype)
-            line += f" {reference:>20.2f} {ours / reference:>8.1f}x"
+            line += f" {reference:>20.2f} {best / reference:>8.1f}x"
         print(line, flush=True)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64])
+    parser.add_argument(
+        "--batch-sizes", nargs="+", default=["1", "16", "64"], help="batches; `max`: the largest that fits (GPU)"
+    )
     parser.add_argument("--frames", type=int, default=8, help="generated frames per measurement")
     parser.add_argument(
         "--config", type=json.loads, default=None, help="WorldModelConfig fields as JSON (default: the tiny preset)"
@@ -152,17 +217,32 @@ def main():
     parser.add_argument("--window", type=int, default=16, help="window of the tiny preset (the paper's is 16)")
     parser.add_argument("--paper-code", type=Path, default=None, help="a checkout of 1xgpt, measured beside ours")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's choice)")
+    parser.add_argument("--memory-snapshot", type=Path, default=None, help="GPU: record one generation's memory")
+    parser.add_argument("--gpu-only", action="store_true", help="skip the CPU figures")
+    parser.add_argument("--views", type=int, default=1, help="GPU: camera views of the paper preset's frame")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     paper = load_paper_code(args.paper_code) if args.paper_code else None
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
-    cpu_cfg = WorldModelConfig(**args.config) if args.config else TinyWorldModelConfig(window=args.window)
-    run("config" if args.config else "tiny preset", cpu_cfg, "cpu", torch.float32, args.batch_sizes, args.frames, paper)
+    if not args.gpu_only:
+        cpu_cfg = WorldModelConfig(**args.config) if args.config else TinyWorldModelConfig(window=args.window)
+        cpu_batches = [b for b in args.batch_sizes if b != "max"]
+        run("config" if args.config else "tiny preset", cpu_cfg, "cpu", torch.float32, cpu_batches, args.frames, paper)
     if torch.cuda.is_available():
         print(f"GPU: {torch.cuda.get_device_name()}")
-        gpu_cfg = PaperWorldModelConfig(text_encoder=None)
-        run("paper preset", gpu_cfg, "cuda", torch.bfloat16, args.batch_sizes, args.frames, paper)
+        # One 16 x 16 view: the grid 1xgpt can build; --views 2, the env's frame, races ours alone.
+        gpu_cfg = PaperWorldModelConfig(text_encoder=None, n_cameras=args.views)
+        run(
+            f"paper preset, {args.views} view(s)",
+            gpu_cfg,
+            "cuda",
+            torch.bfloat16,
+            args.batch_sizes,
+            args.frames,
+            paper if args.views == 1 else None,
+            args.memory_snapshot,
+        )
 
 
 if __name__ == "__main__":

@@ -3,11 +3,13 @@
 #
 # Here:
 #   bash scripts/experiments/device_world_models.sh pack outputs/bench   # .gpu/ (carry it): caches, sets, packages
+#   bash scripts/experiments/device_world_models.sh pack -              # the same without a run's data (generation)
 #   bash scripts/experiments/device_world_models.sh unpack DIR CONTROL   # DIR: the call's files; -> DIR/CONTROL/pretrained_model
 # There (each mode prepares the machine first, once; its files land in $OUT):
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
+#   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
 #
 # The GPU image has PyTorch but not LeRobot's data stack: `pack` takes the pure-Python packages training imports from
 # .venv (2.5 MB compressed) and a stand-in for PyAV, never called (training reads token caches, not videos). The
@@ -24,7 +26,11 @@ if [ "$mode" = pack ]; then
   RUN=$1; SP=.venv/lib/python3.12/site-packages
   rm -rf .gpu && mkdir -p .gpu/stub/av .gpu/stub/av-15.1.0.dist-info
   start=$(date +%s)
-  .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data || exit 1
+  if [ "$RUN" != - ]; then .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data || exit 1; fi
+  # The generation race's references: 1xgpt's model code (fetched here) and our package before the cache was
+  # filled block by block (benchmark_cache_memory.py's reference).
+  git --git-dir=/work/.mirror/1x-technologies+1xgpt/repo archive HEAD genie | gzip > .gpu/1xgpt.tgz || exit 1
+  git archive da043e0 lerobot_roboscape | gzip > .gpu/before.tgz || exit 1
   names=(); for p in "${SITE[@]}"; do names+=("$p" $(cd $SP && ls -d ${p#_}-*.dist-info 2>/dev/null)); done
   tar czf .gpu/site.tgz --exclude=__pycache__ -C $SP "${names[@]}"
   cat > .gpu/stub/av/__init__.py <<'PY'
@@ -83,9 +89,25 @@ fi
 # ---- on the device machine ----------------------------------------------------------------------------------------
 export PYTHONPATH=$G/stub:$W/site:$(pwd) PYTHONUNBUFFERED=1
 PY=python3
-if [ ! -f $W/ready ]; then
-  mkdir -p $W/site $W/sets $W/caches
+if [ ! -f $W/unpacked ]; then
+  mkdir -p $W/site $W/sets $W/caches $W/1xgpt $W/before
   tar xzf $G/site.tgz -C $W/site || exit 3
+  tar xzf $G/1xgpt.tgz -C $W/1xgpt && tar xzf $G/before.tgz -C $W/before && touch $W/unpacked || exit 3
+fi
+if [ "$mode" = generation ]; then
+  $PY -m pytest -p no:cacheprovider --noconftest -q -m gpu tests/world_model/test_world_model.py 2>&1 | tail -25 \
+    | tee $OUT/gpu_tests.txt
+  for code in $W/before ""; do  # what a generation holds after its prompt: before, then now
+    PYTHONPATH=$code${code:+:}$PYTHONPATH $PY scripts/benchmarks/benchmark_cache_memory.py --batch 64 2>&1 | tail -4
+  done | tee $OUT/cache_memory.txt
+  $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --paper-code $W/1xgpt --batch-sizes 1 16 64 max \
+    --memory-snapshot $W/snapshot.pickle 2>&1 | tee $OUT/race.txt
+  # The env's frame (two views): memory and frames/s of ours alone, batch 1 to the largest that fits.
+  $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --views 2 --batch-sizes 1 16 64 128 max 2>&1 \
+    | tee $OUT/two_views.txt
+  gzip -c $W/snapshot.pickle > $OUT/snapshot.pickle.gz; ls -la $OUT; exit 0
+fi
+if [ ! -f $W/ready ]; then
   for s in ind ood; do xz -dc $G/data/$s.safetensors.xz > $W/sets/$s.safetensors; done
   $PY - <<PY || exit 3
 from lerobot_roboscape.tokenizer.token_cache import import_token_cache
