@@ -18,8 +18,8 @@ from lerobot_roboscape.demos.planner import KINDS
 from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
 from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.io.atomic import make_tmp_dir
+from lerobot_roboscape.robot import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
-from lerobot_roboscape.tasks.base import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 
 JOBS = "jobs.json"  # the planned episodes of an interrupted collection, which a resumed one must equal
 

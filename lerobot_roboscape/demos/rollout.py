@@ -10,7 +10,8 @@ from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.segmentation import label_image
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS, explore_episode
 from lerobot_roboscape.demos.planner import FailureConfig, SuboptimalConfig, plan_episode
-from lerobot_roboscape.tasks.base import CAMERA_NAMES, RoboscapeTabletopEnv
+from lerobot_roboscape.robot import CAMERA_NAMES
+from lerobot_roboscape.tasks.base import RoboscapeTabletopEnv
 from lerobot_roboscape.tasks.make import make_task_env
 
 SETTLE_STEPS = 3  # control steps after the plan ends, so the last frames show the finished task at rest

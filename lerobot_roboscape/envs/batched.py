@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from lerobot_roboscape.tasks.base import CONTROL_FREQ
+from lerobot_roboscape.robot import CONTROL_FREQ
 
 
 class BatchedEnv(gym.vector.VectorEnv):

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_roboscape.demos.rollout import observation_images, observation_state
-from lerobot_roboscape.tasks.base import STATE_DIM
+from lerobot_roboscape.robot import STATE_DIM
 from lerobot_roboscape.tasks.make import make_task_env
 
 

@@ -28,7 +28,7 @@ from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.tasks.base import CONTROL_FREQ
+from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video

@@ -34,7 +34,7 @@ from lerobot_roboscape.rl.policy_loading import (
     load_policy,
 )
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
-from lerobot_roboscape.tasks.base import CONTROL_FREQ
+from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import (
     CHECKPOINTS,
     FINAL,

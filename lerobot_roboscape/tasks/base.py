@@ -22,19 +22,6 @@ from transforms3d.euler import euler2quat
 from lerobot_roboscape.tasks.scenes import SCENES, ContainerSpec, ObjectSpec, TableSpec, get_scene
 from lerobot_roboscape.tasks.wrist_camera_mesh import lighten_wrist_camera
 
-# The robot's interface, as datasets record it and policies see it.
-# ManiSkill sensor uid -> camera name used in datasets and env observations.
-CAMERA_NAMES: dict[str, str] = {"third_view": "third_view", "hand_camera": "wrist"}
-# `observation.state`: joint positions (7 arm + 2 fingers), then the TCP pose (position, quaternion wxyz).
-STATE_NAMES = (
-    [f"joint_{i}" for i in range(7)]
-    + ["finger_left", "finger_right"]
-    + ["tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
-)
-STATE_DIM = len(STATE_NAMES)
-# `action` of the pd_ee_delta_pose controller, each in [-1, 1]: position and rotation deltas, gripper.
-ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
-CONTROL_FREQ = 20  # Hz, ManiSkill's tabletop default: the fps of datasets, envs and videos
 ROBOT_BASE_XYZ = (-0.615, 0.0, 0.0)
 # Panda rest pose with the gripper pointing down; the wrist camera variant is rotated by -pi/4 on joint 7.
 PANDA_REST_QPOS = np.array([0.0, np.pi / 8, 0, -np.pi * 5 / 8, 0, np.pi * 3 / 4, -np.pi / 4, 0.04, 0.04])

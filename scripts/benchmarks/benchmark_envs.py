@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.envs.configs import PRECISIONS, RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
@@ -183,6 +182,8 @@ def measure(args, wm_config: RoboscapeWorldModelEnvConfig) -> None:
             line += f" {torch.cuda.max_memory_allocated() / 2**30:>9.1f}"
         del wm
         if simulator:
+            from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv  # ManiSkill: only when timed
+
             ms = RoboscapeManiSkillEnv(ms_config, num_envs=batch)
             ms_rate, _ = steps_per_second(ms, args.steps)
             ms.close()

@@ -3,7 +3,7 @@
 #
 # Here:
 #   bash scripts/experiments/device_world_models.sh pack outputs/bench   # .gpu/ (carry it): caches, sets, packages
-#   bash scripts/experiments/device_world_models.sh pack -              # the same without a run's data (generation)
+#   bash scripts/experiments/device_world_models.sh pack - env          # no run's data; PyAV and starts for roboscape_wm
 #   bash scripts/experiments/device_world_models.sh unpack DIR CONTROL   # DIR: the call's files; -> DIR/CONTROL/pretrained_model
 # There (each mode prepares the machine first, once; its files land in $OUT):
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
@@ -31,6 +31,11 @@ if [ "$mode" = pack ]; then
   # filled block by block (benchmark_cache_memory.py's reference).
   git --git-dir=/work/.mirror/1x-technologies+1xgpt/repo archive HEAD genie | gzip > .gpu/1xgpt.tgz || exit 1
   git archive da043e0 lerobot_roboscape | gzip > .gpu/before.tgz || exit 1
+  if [ "${2:-}" = env ]; then  # roboscape_wm timed there: PyAV (40 MB: the image lacks it) and 128 px starts
+    tar czf .gpu/av.tgz -C $SP av av.libs $(cd $SP && ls -d av-*.dist-info) || exit 1
+    .venv/bin/roboscape-collect --repo_id=local/roboscape_demos --root=.gpu/envdemo/datasets/roboscape_demos \
+      --families='[push]' --max_scenes=1 --episodes_per_scene=2 --image_size=128 --workers=0 > /dev/null || exit 1
+  fi
   names=(); for p in "${SITE[@]}"; do names+=("$p" $(cd $SP && ls -d ${p#_}-*.dist-info 2>/dev/null)); done
   tar czf .gpu/site.tgz --exclude=__pycache__ -C $SP "${names[@]}"
   cat > .gpu/stub/av/__init__.py <<'PY'
@@ -105,6 +110,12 @@ if [ "$mode" = generation ]; then
   # The env's frame (two views): memory and frames/s of ours alone, batch 1 to the largest that fits.
   $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --views 2 --batch-sizes 1 16 64 128 max 2>&1 \
     | tee $OUT/two_views.txt
+  if [ -f $G/av.tgz ]; then  # roboscape_wm itself (generation, decoding, reward), on a 128 px dataset's starts
+    mkdir -p $W/av && tar xzf $G/av.tgz -C $W/av
+    PYTHONPATH=$W/av:$PYTHONPATH $PY scripts/benchmarks/benchmark_envs.py --random-preset paper --no-simulator \
+      --demo-dir $G/envdemo --batch-sizes 1 16 64 128 256 512 --precisions bfloat16 --steps 40 2>&1 \
+      | grep -v "^Loading weights" | tee $OUT/env.txt
+  fi
   gzip -c $W/snapshot.pickle > $OUT/snapshot.pickle.gz; ls -la $OUT; exit 0
 fi
 if [ ! -f $W/ready ]; then
