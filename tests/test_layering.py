@@ -1,6 +1,8 @@
 """Data moves forward through the stages: no module of the library imports from a later stage."""
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import lerobot_roboscape
@@ -10,6 +12,7 @@ STAGES = [
     "errors",
     "io",
     "training",  # shared foundations
+    "robot",  # the robot's interface: cameras, state, actions, rate
     "tasks",
     "dataset",
     "demos",
@@ -44,3 +47,12 @@ def test_no_module_imports_from_a_later_stage():
                     backwards.append(f"{path.relative_to(root)} imports {node.module}")
     assert not unknown, f"place these in STAGES: {sorted(unknown)}"
     assert not backwards, "\n".join(sorted(backwards))
+
+
+def test_the_world_model_env_imports_without_the_simulator():
+    """A GPU machine without ManiSkill (scripts/experiments/device_world_models.sh) runs roboscape_wm."""
+    code = (
+        "import sys, lerobot_roboscape.envs.world_model_env; print(sorted({'mani_skill', 'sapien'} & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
