@@ -27,6 +27,13 @@ RL_DIR = "rl"
 EVAL_DIR = "eval"
 
 
+def fidelity_dir(domain: str) -> str:
+    """The action model's fidelity report from new starts of its training scenes ("ind") or OOD starts ("ood")."""
+    if domain not in ("ind", "ood"):
+        raise ValueError(f"domain must be 'ind' or 'ood', got {domain!r}")
+    return FIDELITY_IND_DIR if domain == "ind" else FIDELITY_DIR
+
+
 def world_model_dir(control: str) -> str:
     return f"world_model_{control}"
 

@@ -72,7 +72,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     }
 
     clock("fidelity report", "fidelity of the action world model: new starts of its training scenes, then OOD")
-    for domain, folder in (("ind", layout.FIDELITY_IND_DIR), ("ood", layout.FIDELITY_DIR)):
+    for domain in ("ind", "ood"):
         fidelity = stages.fidelity(cfg, out, data, tokenizer, models, domain)
         if fidelity is None:
             continue
@@ -86,7 +86,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
             )
         )
         name = "fidelity report" + (" IND" if domain == "ind" else "")
-        artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / folder / "fidelity.md")
+        artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / layout.fidelity_dir(domain) / "fidelity.md")
     artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
 
     clock("done and reward", "reward models, the done signal and the reward report (held-out episodes)")

@@ -31,8 +31,6 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_REPO_ID,
     DONE_REPORT_DIR,
     EXPLORE_DIR,
-    FIDELITY_DIR,
-    FIDELITY_IND_DIR,
     HELDOUT_DIR,
     REWARD_REPORT_DIR,
     TOKEN_CACHE_DIR,
@@ -40,6 +38,7 @@ from lerobot_roboscape.pipeline.layout import (
     TOKENIZER_REPORT_DIR,
     TRAJECTORIES_DIR,
     VALIDATION_DIR,
+    fidelity_dir,
     reward_model_dir,
     world_model_dir,
 )
@@ -383,12 +382,13 @@ def fidelity(
     with the controllability reading) on held-out OOD episodes or, `domain="ind"`, on the validation episodes and
     the controllability set of new starts in the training scenes; returns the report (None: the scale has no IND
     set)."""
+    folder = out / fidelity_dir(domain)
     if domain == "ind":
         if data.controllability_ind is None:
             return None
-        folder, episodes, control = out / FIDELITY_IND_DIR, data.validation, data.controllability_ind
+        episodes, control = data.validation, data.controllability_ind
     else:
-        folder, episodes, control = out / FIDELITY_DIR, data.heldout, data.controllability
+        episodes, control = data.heldout, data.controllability
     report_cfg = FidelityConfig(
         dataset=spread(episodes, cfg.report_episodes),
         tokenizer=str(tokenizer_path),

@@ -52,7 +52,7 @@ class KVCache:
     its rings (`nbytes`), allocated whole when the first block fills. Filling again with the same shapes (a new
     episode) reuses them.
 
-    Where the frame being computed sits (its slot, which slots hold a frame, its rotary angles) lives in tensors on
+    Where the frame being computed sits (its slot, which slots hold no frame yet, its rotary angles) lives in tensors on
     the rings' device, updated in place by `advance`: a frame's work reads no Python state that changes from frame
     to frame, so it can be captured once as a CUDA graph and replayed (world_model/rollout.py)."""
 
@@ -78,7 +78,7 @@ class KVCache:
             ]
             self.position = torch.zeros(1, dtype=torch.long, device=k.device)  # the frame being computed
             self.slot = torch.zeros_like(self.position)
-            self.valid = torch.zeros(self.window, dtype=torch.bool, device=k.device)  # slots holding a frame
+            self.empty = torch.zeros(self.window, dtype=torch.bool, device=k.device)  # slots holding no frame yet
             self.cos, self.sin = rotary(self.position, D, k.dtype)
             self.graphs = {}
         keep = torch.arange(max(0, T - (self.window - 1)), T, device=k.device)
@@ -107,7 +107,7 @@ class KVCache:
         torch.remainder(self.position, self.window, out=self.slot)
         slots = torch.arange(self.window, device=self.position.device)
         # Until the window has filled, the slots after the new frame's hold nothing yet.
-        self.valid.copy_((slots <= self.position) | (self.position >= self.window - 1))
+        self.empty.copy_((slots > self.position) & (self.position < self.window - 1))
         cos, sin = rotary(self.position, self.cos.shape[-1] * 2, self.cos.dtype)
         self.cos.copy_(cos)
         self.sin.copy_(sin)
@@ -172,7 +172,7 @@ class TemporalAttention(Attention):
         # One query against `window` keys per row: two small matmuls beat the fused kernel here (a frame at batch 16
         # on 2 CPU cores: 1.5 s against 1.75 s, measured).
         scores = (q @ cache.k.transpose(-1, -2)) * q.shape[-1] ** -0.5
-        scores = scores.masked_fill(~ring.valid, -math.inf)
+        scores = scores.masked_fill(ring.empty, -math.inf)
         return self.merge(scores.softmax(-1) @ cache.v), None
 
 
