@@ -158,13 +158,17 @@ def successful_episodes(dataset: LeRobotDataset) -> list[int]:
     return successful
 
 
-def demonstrations_per_scene(dataset: LeRobotDataset, per_scene: int | None) -> list[int]:
-    """The first `per_scene` successful episodes of each (task family, scene), in index order (None: all of them):
-    the demonstrations an SFT run of that data size imitates."""
+def demonstrations_per_scene(
+    dataset: LeRobotDataset, per_scene: int | None, scenes: list[str] | None = None
+) -> list[int]:
+    """The first `per_scene` successful episodes of each (task family, scene), in index order (None: all of them),
+    of the `scenes` given (None: every scene): the demonstrations an SFT run of that data imitates."""
     kept, counts = [], {}
     for index in successful_episodes(dataset):
         facts = episode_facts(dataset, index)
         key = (facts.get("task_family"), facts.get("scene"))
+        if scenes is not None and key[1] not in scenes:
+            continue
         if per_scene is None or counts.get(key, 0) < per_scene:
             counts[key] = counts.get(key, 0) + 1
             kept.append(index)

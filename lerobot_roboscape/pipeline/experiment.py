@@ -10,7 +10,7 @@ what a run with the same settings completed, so a killed run resumes.
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -45,8 +45,13 @@ class ExperimentConfig:
     pipeline: the `roboscape-demo` run whose trained stages the experiment reads, as it was given
         (`--pipeline.scale`, `--pipeline.output_dir`), and the sizes of PPO and of the table
         (`--pipeline.ppo_minutes`, `--pipeline.table_episodes`, ...).
+    protocol: "paper": SFT on the demonstrations of the initial scene only, PPO in the world model from starts in
+        every scene it learned, PPO in the simulator in the initial scene and (the stronger baseline the paper
+        lacks) in every training scene; "all_scenes": the same PPO runs from SFT on every training scene. Each
+        protocol's policy runs go in their own folder of output_dir (layout.protocol_dir); the world models, their
+        goals and the data are shared.
     sft_checkpoint: the SFT'd policy PPO starts from (a pretrained_model directory); null: SFT with lerobot-train
-        on `sft_dataset_root` (or the run's demonstrations).
+        on `sft_dataset_root` (or the run's demonstrations), of the protocol's scenes.
     sft_dataset_repo_id: demonstrations SFT imitates, when it runs.
     sft_dataset_root: their local root (null: the run's demonstrations).
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
@@ -56,6 +61,7 @@ class ExperimentConfig:
     """
 
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    protocol: str = methods.PAPER_PROTOCOL
     sft_checkpoint: str | None = None
     sft_dataset_repo_id: str = "local/roboscape_sft_demos"
     sft_dataset_root: str | None = None
@@ -65,6 +71,8 @@ class ExperimentConfig:
     readme: str | None = "README.md"
 
     def __post_init__(self):
+        if self.protocol not in methods.PROTOCOLS:
+            raise InvalidInputError(f"--protocol must be one of {list(methods.PROTOCOLS)}, got {self.protocol!r}")
         for name in ("curve_episodes", "replay_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
@@ -103,13 +111,15 @@ def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
 
 
 def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[str, Path]:
-    """{policy: SFT checkpoint}: the one given, or lerobot-train's on the SFT demonstrations."""
+    """{policy: SFT checkpoint}: the one given, or lerobot-train's on the SFT demonstrations of the protocol's
+    scenes (the initial scene under the paper's)."""
     if cfg.sft_checkpoint:
         return {"roboscape_mlp": Path(cfg.sft_checkpoint).resolve()}
     dataset = data.train
     if cfg.sft_dataset_root:
         dataset = DatasetConfig(repo_id=cfg.sft_dataset_repo_id, root=str(Path(cfg.sft_dataset_root).resolve()))
-    return policy_stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()))
+    scenes = [methods.initial_scene()] if cfg.protocol == methods.PAPER_PROTOCOL else None
+    return policy_stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()), scenes)
 
 
 def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, policy: str, sft: Path) -> list[dict]:
@@ -218,15 +228,18 @@ STEPS = ("world-model env", "SFT", "PPO", "Table 1", "checkpoint curve", "replay
 
 
 def run_experiment(cfg: ExperimentConfig) -> Path:
-    """Run every step (skipping those complete); returns the report."""
-    p, out = cfg.pipeline, Path(cfg.pipeline.output_dir).resolve()
-    trained = trained_stages(p, out)
+    """Run every step of the protocol (skipping those complete); returns the report."""
+    p, run = cfg.pipeline, Path(cfg.pipeline.output_dir).resolve()
+    trained = trained_stages(p, run)
+    out = run / layout.protocol_dir(cfg.protocol)  # this protocol's policy runs
     clock = StageClock(STEPS)
     clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
     wm_env = stages.world_model_env(
         p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )
-    clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or 'SFT with lerobot-train'}")
+    wm_env = replace(wm_env, goal_file=str(run / layout.GOAL_FILE))  # one set of goals for every protocol
+    sft_data = "the initial scene" if cfg.protocol == methods.PAPER_PROTOCOL else "every training scene"
+    clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or f'SFT with lerobot-train on {sft_data}'}")
     sft = sft_policy(cfg, out, trained.data)
     clock(
         "PPO",

@@ -19,11 +19,13 @@ from lerobot_roboscape.pipeline.config import SCALES
 from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
 from lerobot_roboscape.pipeline.methods import (
+    PAPER_PROTOCOL,
     REWARD_ABLATION,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
     SFT,
+    initial_scene,
 )
 from lerobot_roboscape.pipeline.report import machine, render_report
 from lerobot_roboscape.pipeline.resume import stage_seconds
@@ -104,8 +106,9 @@ def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], re
     policies = list(table)
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION]
     runs = ppo_runs(out, policies, methods)
-    times = step_times(out, runs)
+    times = step_times(out, runs, Path(p.output_dir).resolve() / GOAL_FILE)
     summary = {
+        "protocol": cfg.protocol,
         "scale": p.scale,
         "families": p.families,
         "date": date.today().isoformat(),
@@ -138,11 +141,11 @@ def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], re
     return folder / "report.md"
 
 
-def step_times(out: Path, runs: list[dict]) -> dict[str, float]:
+def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]:
     """Seconds of each step of the experiment, from the stage records in `out`. A PPO run's wall-clock holds its
     setup too: the first world-model run's holds the generation of every start's goal."""
     times = {}
-    goals = goal_generation_seconds(out / GOAL_FILE)
+    goals = goal_generation_seconds(goal_file)
     if goals is not None:
         times["goals of the world-model starts (the text model, once, before PPO's clock)"] = goals
     for run in runs:
@@ -176,7 +179,18 @@ FILTERS = {"cell": cell, "difference": difference}  # beside the run report's
 
 def protocol(cfg) -> str:
     p = cfg.pipeline
-    sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`" if cfg.sft_checkpoint else "SFT with lerobot-train"
+    if cfg.sft_checkpoint:
+        sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`"
+    elif cfg.protocol == PAPER_PROTOCOL:
+        sft = f"SFT with lerobot-train on the demonstrations of the initial scene only (`{initial_scene()}`)"
+    else:
+        sft = "SFT with lerobot-train on the demonstrations of every training scene"
+    name = (
+        "The paper's protocol (`--protocol=paper`): the policy learned one scene; RL in the world model meets "
+        "every training scene. "
+        if cfg.protocol == PAPER_PROTOCOL
+        else "The all-scene protocol (`--protocol=all_scenes`): the policy learned every training scene. "
+    )
     budget = (
         f"the same {p.ppo_minutes:g} min of PPO's clock (rollouts and updates)"
         if p.ppo_minutes
@@ -189,11 +203,11 @@ def protocol(cfg) -> str:
     )
     if p.ppo_one_scene:
         envs += (
-            ", `roboscape_maniskill` in one scene per family (the paper's baseline, which \"only initializes a "
-            'single type of environment")'
+            f", `roboscape_maniskill` in the initial scene `{initial_scene()}` (the paper's baseline, which "
+            '"only initializes a single type of environment")'
         )
     envs += " and `roboscape_maniskill` in every training scene"
-    return (
+    return name + (
         f"Task families {', '.join(p.families)}. PPO starts from {sft}, one multi-task run per env, "
         f"{p.ppo_envs} parallel episodes of {steps} per iteration, for {budget} on the same machine, one run at a "
         f"time: {envs}. The world model's reward is the paper's: alpha x the sparse done reward + beta x the "
@@ -249,7 +263,8 @@ def markdown(cfg, summary: dict) -> str:
 def command(cfg) -> str:
     """The command that regenerates the report: the scale, and every pipeline setting that differs from it."""
     p = cfg.pipeline
-    parts = [f"roboscape-experiment --pipeline.scale={p.scale} --pipeline.output_dir={p.output_dir}"]
+    parts = [f"roboscape-experiment --protocol={cfg.protocol} --pipeline.scale={p.scale}"]
+    parts.append(f"--pipeline.output_dir={p.output_dir}")
     preset = SCALES[p.scale]
     for name in preset:
         value = getattr(p, name)

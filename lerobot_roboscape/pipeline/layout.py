@@ -3,7 +3,7 @@ there)."""
 
 from pathlib import Path
 
-from lerobot_roboscape.pipeline.methods import method_tag
+from lerobot_roboscape.pipeline.methods import ALL_SCENES_PROTOCOL, PROTOCOLS, method_tag
 
 DEMOS_DIR = "datasets/roboscape_demos"
 DEMOS_REPO_ID = "local/roboscape_demos"
@@ -32,6 +32,14 @@ def fidelity_dir(domain: str) -> str:
     if domain not in ("ind", "ood"):
         raise ValueError(f"domain must be 'ind' or 'ood', got {domain!r}")
     return FIDELITY_IND_DIR if domain == "ind" else FIDELITY_DIR
+
+
+def protocol_dir(protocol: str) -> str:
+    """The folder of a claim protocol's policy runs (SFT, PPO, evaluations): the all-scene protocol's are the
+    pipeline's own, in output_dir itself."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
+    return "" if protocol == ALL_SCENES_PROTOCOL else f"protocol_{protocol}"
 
 
 def world_model_dir(control: str) -> str:

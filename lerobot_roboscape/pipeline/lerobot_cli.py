@@ -20,12 +20,13 @@ def run_lerobot(script: str, args: list[str]) -> None:
         raise RuntimeError(f"{script} {' '.join(args)} failed with exit code {result.returncode}")
 
 
-def sft_episodes(dataset: DatasetConfig, per_scene: int | None = None) -> list[int]:
+def sft_episodes(dataset: DatasetConfig, per_scene: int | None = None, scenes: list[str] | None = None) -> list[int]:
     """The episodes SFT imitates: the successful ones (the failed attempts are there for the world model), the
-    first `per_scene` of each family and scene (None: all)."""
-    episodes = demonstrations_per_scene(open_dataset(dataset.repo_id, dataset.root), per_scene)
+    first `per_scene` of each family and scene (None: all), in `scenes` (None: every scene)."""
+    episodes = demonstrations_per_scene(open_dataset(dataset.repo_id, dataset.root), per_scene, scenes)
     if not episodes:
-        raise InvalidInputError(f"no successful episode in dataset {dataset.root or dataset.repo_id} to imitate")
+        where = f" in scenes {scenes}" if scenes is not None else ""
+        raise InvalidInputError(f"no successful episode{where} in dataset {dataset.root or dataset.repo_id} to imitate")
     return episodes
 
 
@@ -39,11 +40,12 @@ def lerobot_sft(
     fresh: bool = False,
     per_scene: int | None = None,
     save_freq: int | None = None,
+    scenes: list[str] | None = None,
 ) -> Path:
     """SFT with `lerobot-train` on the dataset's successful episodes (the first `per_scene` of each family and
-    scene; None: all), a checkpoint every `save_freq` steps (None: at the end); returns the final
-    pretrained_model directory."""
-    episodes = sft_episodes(dataset, per_scene)
+    scene; None: all) in `scenes` (None: every scene), a checkpoint every `save_freq` steps (None: at the end);
+    returns the final pretrained_model directory."""
+    episodes = sft_episodes(dataset, per_scene, scenes)
     args = [
         f"--dataset.repo_id={dataset.repo_id}",
         *([f"--dataset.root={dataset.root}"] if dataset.root else []),

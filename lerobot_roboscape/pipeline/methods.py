@@ -1,5 +1,7 @@
-"""The methods a policy is trained by, as Table 1 names them, the reward models beside the world model's own
-reward, and the methods' names in folders and Hub repos."""
+"""The methods a policy is trained by, as Table 1 names them, the protocols they are compared under, the reward
+models beside the world model's own reward, and the methods' names in folders and Hub repos."""
+
+from lerobot_roboscape.tasks import select_scenes
 
 SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
     "Supervised finetune",
@@ -28,3 +30,15 @@ def method_tag(method: str) -> str:
         RL_WORLD_MODEL_SPARSE: "ppo_world_model_sparse",
         RL_WORLD_MODEL_DENSE: "ppo_world_model_dense",
     }[method]
+
+
+# The claim's protocols. "paper": the policy's SFT sees the demonstrations of the initial scene only (and PPO in the
+# simulator's one-scene baseline runs there), while PPO in the world model starts in every scene the world model
+# learned (section 3.2). "all_scenes": SFT on every training scene, which leaves RL less room.
+PAPER_PROTOCOL, ALL_SCENES_PROTOCOL = "paper", "all_scenes"
+PROTOCOLS = (PAPER_PROTOCOL, ALL_SCENES_PROTOCOL)
+
+
+def initial_scene() -> str:
+    """The one IND scene of the one-scene methods (SFT under the paper's protocol, PPO in one simulator scene)."""
+    return select_scenes("ind")[0].id

@@ -32,12 +32,12 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     RL_WORLD_MODEL_DENSE,
     RL_WORLD_MODEL_SPARSE,
+    initial_scene,
 )
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
 from lerobot_roboscape.pipeline.stages import Datasets
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
-from lerobot_roboscape.tasks import select_scenes
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 
 # ---- policies ----------------------------------------------------------------------------------------------------
@@ -52,8 +52,9 @@ def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
     return specs
 
 
-def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
-    """SFT of each policy with `lerobot-train`; returns {policy name: checkpoint}."""
+def sft(cfg: PipelineConfig, out: Path, data: Datasets, scenes: list[str] | None = None) -> dict[str, Path]:
+    """SFT of each policy with `lerobot-train` on the demonstrations of `scenes` (None: all); returns
+    {policy name: checkpoint}."""
     steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
     return {
         name: lerobot_sft(
@@ -63,6 +64,7 @@ def sft(cfg: PipelineConfig, out: Path, data: Datasets) -> dict[str, Path]:
             *steps[name],
             num_workers=cfg.loader_workers,
             fresh=cfg.fresh,
+            scenes=scenes,
         )
         for name, args in policy_specs(cfg).items()
     }
@@ -113,7 +115,8 @@ def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWor
     """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
     training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
     environment"), the simulator in one scene; with `reward_ablation`, the world model paid only its sparse and
-    only its dense reward."""
+    only its dense reward. The world model's goals are generated once into `wm_env.goal_file` (default: the run's
+    own, in `out`), before PPO's clock starts, and shared by its runs."""
     sim = RoboscapeManiSkillEnvConfig(
         families=cfg.families,
         split="ind",
@@ -122,17 +125,16 @@ def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWor
         dataset_repo_id=data.train.repo_id,
         dataset_root=data.train.root,
     )
-    # The goals are generated once, before PPO's clock starts, and shared by the world-model runs.
     wm = replace(
         wm_env,
         split="ind",
         episode_length=cfg.ppo_episode_length,
         starts_per_scene=cfg.wm_starts_per_scene,
-        goal_file=str(out / GOAL_FILE),
+        goal_file=wm_env.goal_file or str(out / GOAL_FILE),
     )
     envs = {RL_WORLD_MODEL: wm, RL_MANISKILL: sim}
     if cfg.ppo_one_scene:
-        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[select_scenes("ind")[0].id])
+        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[initial_scene()])
     if cfg.reward_ablation:
         envs |= {RL_WORLD_MODEL_SPARSE: replace(wm, beta=0.0), RL_WORLD_MODEL_DENSE: replace(wm, alpha=0.0)}
     return envs

@@ -58,6 +58,10 @@ class PPOConfig:
     target_kl: stop the iteration's update at the first minibatch whose approximate KL divergence from the rollout's
         policy exceeds this (null: never; as Stable-Baselines3). A narrow Gaussian over a chunk of actions moves
         far in KL for a small step of its mean.
+    kl_coef: weight of a penalty on the policy's KL divergence from the policy PPO started from (`policy_path`,
+        the SFT checkpoint), estimated on the rollout's samples (Schulman's k3 estimator: non-negative, unbiased).
+        It keeps PPO where the SFT policy, and so the world model's data, went (issue 49); 0: none. A second copy
+        of the starting policy is held, frozen.
     norm_adv: normalise advantages over the iteration's samples.
     normalize_reward: divide rewards by the running standard deviation of the discounted return (as gymnasium's
         NormalizeReward in CleanRL), so the critic's targets stay near unit scale whatever the reward's weights.
@@ -92,6 +96,7 @@ class PPOConfig:
     value_clip_coef: float | None = None
     ent_coef: float = 0.0
     target_kl: float | None = None
+    kl_coef: float = 0.0
     norm_adv: bool = True
     normalize_reward: bool = True
     critic_warmup_iterations: int | None = None
@@ -120,6 +125,8 @@ class PPOConfig:
                 f"num_envs, iterations and save_freq must be >= 1, got {self.num_envs}, "
                 f"{self.iterations}, {self.save_freq}"
             )
+        if self.kl_coef < 0:
+            raise InvalidInputError(f"kl_coef must be >= 0, got {self.kl_coef}")
         if self.value_loss not in (None, "mse", "huber"):
             raise InvalidInputError(f"value_loss must be mse or huber, got {self.value_loss!r}")
         self.output_dir = Path(self.output_dir)

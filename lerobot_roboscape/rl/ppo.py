@@ -115,6 +115,14 @@ def ppo_losses(
     return PPOLosses(policy_loss, value_loss.mean(), entropy.mean(), approx_kl, clip_fraction)
 
 
+def kl_to_reference(log_prob: Tensor, reference_log_prob: Tensor) -> Tensor:
+    """KL(policy || reference) estimated on actions the rollout's policy sampled: Schulman's k3, `r - 1 - log r` with
+    r = reference / policy, non-negative per sample (so no sample rewards drifting) and unbiased when the samples
+    are the policy's own. Averaged over the samples."""
+    log_ratio = reference_log_prob - log_prob
+    return (log_ratio.exp() - 1 - log_ratio).mean()
+
+
 # Rollout.
 
 
@@ -219,7 +227,9 @@ def update(
     generator: torch.Generator,
     return_stats: RunningReturnStats,
     critic_only: bool,
+    reference=None,
 ) -> dict[str, float]:
+    """PPO's epochs over one rollout; with a `reference` policy (the SFT checkpoint), its KL penalty too."""
     rewards = rollout.rewards
     if cfg.normalize_reward:
         rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
@@ -258,6 +268,13 @@ def update(
                 loss = cfg.vf_coef * losses.value
                 if not critic_only:
                     loss = loss + losses.policy - cfg.ent_coef * losses.entropy
+                if reference is not None:
+                    with torch.no_grad():
+                        reference_log_prob = reference.evaluate_actions(batch, rollout.raw_actions[t, b]).log_prob
+                    kl = kl_to_reference(evaluation.log_prob, reference_log_prob)
+                    stats.append({"losses/kl_to_reference": float(kl.detach())})
+                    if not critic_only:
+                        loss = loss + cfg.kl_coef * kl
             stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
             if not critic_only and cfg.target_kl is not None and losses.approx_kl > cfg.target_kl:
                 optimizer.zero_grad(set_to_none=True)  # the policy moved far enough: drop what is accumulated
@@ -325,6 +342,9 @@ def train_ppo(cfg: PPOConfig) -> Path:
     check_policy_fits_env(policy, cfg.env, start_path)
     cfg.with_policy_defaults(policy.name)
     io = PolicyIO(preprocessor, postprocessor)
+    reference = None
+    if cfg.kl_coef > 0:  # always the starting policy, also when resuming from a later checkpoint
+        reference = load_policy(cfg.policy_path, device)[0].eval().requires_grad_(False)
     optimizer = make_optimizer(policy, cfg)
     if checkpoint is not None:
         load_optimizer_state(optimizer, checkpoint / "training_state")
@@ -367,6 +387,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
             torch.Generator().manual_seed(stream),
             return_stats,
             critic_only=iteration < cfg.critic_warmup_iterations,
+            reference=reference,
         )
         episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
         successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()

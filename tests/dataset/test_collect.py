@@ -9,6 +9,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect, make_jobs
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.pipeline.lerobot_cli import sft_episodes
 from tests.conftest import IMAGE_SIZE
 
@@ -160,6 +161,12 @@ def test_sft_takes_the_first_successful_demonstrations_of_each_family_and_scene(
     assert len(first) == 2  # one scene, two families
     assert demonstrations_per_scene(demos, None) == demonstrations_per_scene(demos, 3) == successful
     assert sft_episodes(DatasetConfig(repo_id="test/demos", root=str(root)), per_scene=1) == sorted(first.values())
+    # The paper's protocol: SFT on the initial scene's demonstrations only.
+    (scene,) = {scene for _, scene in first}
+    assert demonstrations_per_scene(demos, None, scenes=[scene]) == successful
+    assert demonstrations_per_scene(demos, None, scenes=["no_such_scene"]) == []
+    with pytest.raises(InvalidInputError, match="no successful episode in scenes \\['no_such_scene'\\]"):
+        sft_episodes(DatasetConfig(repo_id="test/demos", root=str(root)), scenes=["no_such_scene"])
 
 
 def test_successful_episodes_without_facts(demo_dataset, tmp_path):

@@ -4,6 +4,7 @@ interval that straddles 0, a method not run); the differences' intervals; the re
 import draccus
 import pytest
 
+from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
@@ -80,6 +81,7 @@ def test_regenerate_command_gives_back_the_same_settings():
         pipeline=PipelineConfig(
             scale="bench", output_dir="outputs/x", scenes=8, ppo_minutes=6, reward_ablation=False, device="cpu"
         ),
+        protocol="all_scenes",
         sft_checkpoint="outputs/sft/pretrained_model",
         report_dir="docs/results/x",
         readme=None,
@@ -87,3 +89,6 @@ def test_regenerate_command_gives_back_the_same_settings():
     args = command(cfg).split()[1:]
     assert "--pipeline.scenes=8" in args and "--pipeline.reward_ablation=false" in args
     assert draccus.parse(ExperimentConfig, args=args) == cfg
+    assert ExperimentConfig().protocol == "paper"  # the paper's protocol unless told otherwise
+    with pytest.raises(InvalidInputError, match="--protocol must be one of \\['paper', 'all_scenes'\\], got 'one'"):
+        ExperimentConfig(protocol="one")

@@ -63,6 +63,7 @@ def experiment(demo):
     README's, the steps run again after a kill, what differs between the two runs' outputs)."""
     base = demo[0]
     args = [
+        "--protocol=all_scenes",  # the pipeline's own SFT: the experiment reuses its PPO runs and evaluations
         "--pipeline.scale=smoke",
         f"--pipeline.output_dir={base / 'demo'}",
         "--curve_episodes=1",

@@ -10,7 +10,7 @@ from safetensors.torch import load_file
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import collect_rollout, compute_gae, ppo_losses, train_ppo
+from lerobot_roboscape.rl.ppo import collect_rollout, compute_gae, kl_to_reference, ppo_losses, train_ppo
 from lerobot_roboscape.training.records import read_history
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
@@ -134,6 +134,26 @@ def logged(output_dir, tag: str = "charts/episode_return") -> list[float]:
     events = EventAccumulator(str(next(output_dir.glob("ppo/events*")).parent))
     events.Reload()
     return [event.value for event in events.Scalars(tag)]
+
+
+def test_kl_to_reference_estimates_the_kl_of_two_gaussians():
+    policy = torch.distributions.Normal(0.0, 1.0)
+    reference = torch.distributions.Normal(0.5, 1.2)
+    torch.manual_seed(0)
+    samples = policy.sample((200_000,))
+    exact = torch.distributions.kl_divergence(policy, reference)
+    estimate = kl_to_reference(policy.log_prob(samples), reference.log_prob(samples))
+    assert abs(float(estimate - exact)) < 0.01 * float(exact) + 2e-3
+    assert kl_to_reference(policy.log_prob(samples), policy.log_prob(samples)) == 0
+
+
+def test_kl_penalty_keeps_the_policy_near_the_one_ppo_started_from(fresh_mlp, tmp_path):
+    kwargs = dict(iterations=4, critic_warmup_iterations=0)
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "free", kl_coef=1e-9, **kwargs))  # measured, not penalised
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "held", kl_coef=30.0, **kwargs))
+    free, held = (logged(tmp_path / run, "losses/kl_to_reference") for run in ("free", "held"))
+    assert min(free + held) >= 0
+    assert max(held) < max(free) / 3 and held[-1] < free[-1] / 10
 
 
 def test_ppo_improves_the_return_on_a_certain_task(fresh_mlp, tmp_path):
