@@ -71,6 +71,7 @@ class EpisodeBook:
         n = len(self.horizons)
         self.steps = 0
         self.succeeded = np.zeros(n, dtype=bool)
+        self.halted = np.zeros(n, dtype=bool)
         self.terminated = np.zeros(n, dtype=bool)
         self.truncated = np.zeros(n, dtype=bool)
 
@@ -78,9 +79,10 @@ class EpisodeBook:
     def finished(self) -> np.ndarray:
         return self.terminated | self.truncated
 
-    def step(self, reward: np.ndarray, success: np.ndarray) -> np.ndarray:
+    def step(self, reward: np.ndarray, success: np.ndarray, halt: np.ndarray | None = None) -> np.ndarray:
         """Book one step of every episode (reward and success of the episodes still running; the finished ones
-        are ignored). Returns the rewards to hand out: 0 for episodes that had already ended."""
+        are ignored); `halt`: episodes that end here, terminated, whatever their horizon (MOReL's absorbing state).
+        Returns the rewards to hand out: 0 for episodes that had already ended."""
         live = ~self.finished
         self.steps += 1
         success = np.asarray(success, dtype=bool) & live
@@ -89,6 +91,9 @@ class EpisodeBook:
         if self.terminate_on_success:
             reward += np.where(success, self.max_step_reward * (self.horizons - self.steps), 0.0).astype(np.float32)
             self.terminated |= success
+        if halt is not None:
+            self.halted |= live & ~self.terminated & np.asarray(halt, dtype=bool)
+            self.terminated |= self.halted
         self.truncated |= live & ~self.terminated & (self.steps >= self.horizons)
         return reward
 

@@ -72,6 +72,13 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         terminate_on_success: end an episode when done >= theta, paying the rest of its horizon at the most a step
             can earn (the default runs the fixed horizon, as Algorithm 1).
         clip_actions: clip actions to the per-dimension range seen in the dataset (`env.action_range`).
+        ensemble: more action world models (local directories or Hub repo ids), trained as `action_world_model`
+            was but apart (another seed): with them, each frame's disagreement of all the action models (their
+            mutual information per token, in nats: envs/ensemble.py) is reported, and penalised or halts the
+            episode as the next two say. Each member costs about two passes of its model per frame.
+        disagreement_penalty: MOPO's lambda: each frame's reward minus this x its disagreement (0: none).
+        disagreement_threshold: MOReL's halt: an episode ends (terminated, nothing paid after it) at the first frame
+            whose disagreement passes this, where the world models no longer know what follows (null: never).
         max_goal_steps: control steps the text model may generate while looking for the goal (a frame per frame_skip).
         goal_file: a file of generated goals (safetensors): the env reads it when made, generates every start's
             missing goal then (once, before any episode) and writes them back. A file made with other models or
@@ -119,6 +126,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     episode_length: int | None = None
     terminate_on_success: bool = False
     clip_actions: bool = False
+    ensemble: list[str] = field(default_factory=list)
+    disagreement_penalty: float = 0.0
+    disagreement_threshold: float | None = None
     max_goal_steps: int = 100
     goal_file: str | None = None
     starts_per_scene: int | None = None
@@ -159,6 +169,17 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             )
         if self.goal_source == "text_model" and not self.text_world_model:
             raise InvalidInputError("goal_source=text_model needs text_world_model")
+        threshold = self.disagreement_threshold
+        if self.disagreement_penalty < 0 or (threshold is not None and threshold <= 0):
+            raise InvalidInputError(
+                f"disagreement_penalty must be >= 0 and disagreement_threshold > 0 (or null), got "
+                f"{self.disagreement_penalty}, {self.disagreement_threshold}"
+            )
+        if (self.disagreement_penalty or self.disagreement_threshold is not None) and not self.ensemble:
+            raise InvalidInputError(
+                "disagreement_penalty and disagreement_threshold need ensemble: more action world models "
+                "(roboscape-train-wm --wm.control=action with other --train.seed values)"
+            )
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
             raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
         self.features, self.features_map = camera_features(self.image_size)

@@ -60,6 +60,13 @@ def load_models(tokenizer: str, action_model: str, text_model: str | None, devic
 
 
 @lru_cache(maxsize=4)
+def load_ensemble(refs: tuple[str, ...], device: str) -> tuple[STWorldModel, ...]:
+    """The action world models of an ensemble, loaded once per process."""
+    command = "roboscape-train-wm --wm.control=action --train.seed=<another seed>"
+    return tuple(load_pretrained(STWorldModel, ref, "ensemble member", command).to(device).eval() for ref in refs)
+
+
+@lru_cache(maxsize=4)
 def load_reward_model(ref: str | None, device: str) -> RewardModel:
     if not ref:
         raise InvalidInputError(

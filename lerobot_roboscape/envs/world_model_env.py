@@ -17,6 +17,8 @@ B episodes run side by side on one device, stepped by one batched call of the ac
   family) and does not terminate at done; `is_success` is true once done crossed theta
   at any step. `terminate_on_success` ends episodes at success instead, with a terminal bonus (see `EpisodeBook`).
   A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
+- With an **ensemble** of action models (`envs/ensemble.py`), each frame's disagreement is reported, and penalised
+  (MOPO) or halts the episode (MOReL) where the world models no longer know what follows.
 """
 
 import logging
@@ -38,8 +40,15 @@ from lerobot_roboscape.dataset.reader import (
     read_frames,
 )
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.envs.ensemble import Ensemble
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
-from lerobot_roboscape.envs.loading import load_models, load_reward_distance, load_reward_model, model_refs
+from lerobot_roboscape.envs.loading import (
+    load_ensemble,
+    load_models,
+    load_reward_distance,
+    load_reward_model,
+    model_refs,
+)
 from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
@@ -87,6 +96,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{action_model} is a {self.action_model.config.control} world model, not an action world model"
             )
         self.frame_skip = self.action_model.config.frame_skip
+        self.ensemble = self._load_ensemble()
         self.precision = config.resolved_precision
         bf16 = self.precision == "bfloat16"
         self.autocast = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
@@ -110,7 +120,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self.reward_description = (
             f"world models: {config.alpha} x {config.sparse_reward} while done >= {config.theta_sps} + {config.beta} "
             f"x (1 - {self.similarity} distance to the goal frame)"
-        )
+        ) + (f" - {config.disagreement_penalty} x the ensemble's disagreement" if config.disagreement_penalty else "")
         logger.info("roboscape_wm reward: %s", self.reward_description)
         self.reward_model = None
         if config.reward_type != "world_model":
@@ -150,6 +160,23 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._rollout = None
 
     # ---- starts and goals ----------------------------------------------------------------------------------
+
+    def _load_ensemble(self) -> Ensemble | None:
+        """The ensemble's members, checked against the env's action model (None without one)."""
+        if not self.config.ensemble:
+            return None
+        members = load_ensemble(tuple(self.config.ensemble), self.device)
+        ours = self.action_model.config
+        for ref, member in zip(self.config.ensemble, members, strict=True):
+            c = member.config
+            theirs = (c.control, c.frame_skip, c.tokens_per_frame, c.vocab_size, c.action_dim)
+            if theirs != (ours.control, ours.frame_skip, ours.tokens_per_frame, ours.vocab_size, ours.action_dim):
+                raise InvalidInputError(
+                    f"ensemble member {ref} (control, frame_skip, tokens per frame, vocabulary, action_dim = "
+                    f"{theirs}) does not match the action world model "
+                    f"{(ours.control, ours.frame_skip, ours.tokens_per_frame, ours.vocab_size, ours.action_dim)}"
+                )
+        return Ensemble(list(members))
 
     def _check_cache_fits(self, dtype: torch.dtype) -> None:
         """Refuse a batch whose key/value cache cannot fit in the device's free memory, before any generation."""
@@ -296,9 +323,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 self.action_model,
                 first[:, None],
                 control,
-                capture=self.config.cuda_graphs and torch.device(self.device).type == "cuda",
+                # The ensemble's eager passes read the rollout's cache between frames: no graph then.
+                capture=self.config.cuda_graphs and torch.device(self.device).type == "cuda" and not self.ensemble,
                 reuse=self._rollout,  # its cache's rings and CUDA graphs, when the shapes match
             )
+            if self.ensemble is not None:
+                self.ensemble.start(first[:, None])
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
         self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step
@@ -332,12 +362,18 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             reward = self._book.step(np.zeros(self.num_envs, np.float32), self._succeeding())
             zeros = np.zeros(self.num_envs, np.float32)
             parts = {"reward_sparse": zeros, "reward_dense": zeros, "distance_to_goal": self._distance}
+            parts["disagreement"] = zeros
         else:
             self._substep = 0
             chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
             control = self.action_model.encode_control(chunk)
+            disagreement = np.zeros(self.num_envs, np.float32)
             with self.autocast():
+                if self.ensemble is not None:  # every model's prediction, before the env's model decodes
+                    disagreement = self.ensemble.disagreement(self._rollout, chunk).cpu().numpy() * live
                 tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
+                if self.ensemble is not None:
+                    self.ensemble.observe(tokens, chunk)
             frames = self.decode(tokens)
             done = self.done_of(tokens, done, frames)
             self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync
@@ -346,15 +382,20 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             self._frames = torch.where(
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
             )
-            reward = self._book.step(self.compute_reward(paid, frames).cpu().numpy(), self._succeeding())
+            reward = self.compute_reward(paid, frames).cpu().numpy() - self.config.disagreement_penalty * disagreement
+            threshold = self.config.disagreement_threshold
+            halt = None if threshold is None else disagreement > threshold
+            reward = self._book.step(reward, self._succeeding(), halt)
             self._distance = paid.distance.cpu().numpy()
             parts = {
                 "reward_sparse": paid.sparse.cpu().numpy() * live,
                 "reward_dense": paid.dense.cpu().numpy() * live,
                 "distance_to_goal": self._distance,
+                "disagreement": disagreement,
             }
         info = {
             "is_success": self._book.succeeded.copy(),
+            "halted": self._book.halted.copy(),
             "done_probability": self._done.copy(),
             **parts,
             "clipped_actions": clipped,

@@ -100,6 +100,18 @@ class Rollout:
         self._remember(frame_B1S, control, done, features)
         return frame_B1S[:, 0], done
 
+    @torch.no_grad()
+    def next_frame_logits(self, control: Control) -> torch.Tensor:
+        """Logits (B, S, V) of the next frame under `control` ((B, 1, L, C)) before any of its tokens is decoded
+        (MaskGIT's first pass): the model's prediction of every token, which an ensemble compares. The rollout is
+        left as it was."""
+        config = self.model.config
+        B = self.done.shape[0]
+        masked_B1S = torch.full(
+            (B, 1, config.tokens_per_frame), config.mask_token_id, dtype=torch.long, device=self.tokens.device
+        )
+        return self._logits_of_new_frame(masked_B1S, self._paired(control)).float()
+
     def _decode(self, control: Control, temperature: float, generator) -> torch.Tensor:
         """The new frame's tokens (B, 1, S) by MaskGIT decoding under `control` (paired when guided)."""
         config = self.model.config

@@ -292,3 +292,53 @@ def test_a_batch_whose_cache_cannot_fit_is_refused_at_construction(env_config):
     refusal = rf"{too_many} episodes at once need .* GiB of key/value cache \(window .* GiB are free on cpu"
     with pytest.raises(InvalidInputError, match=refusal):
         RoboscapeWorldModelEnv(env_config(precision="float32"), num_envs=too_many)
+
+
+def test_an_ensemble_that_agrees_changes_nothing_and_one_that_parts_penalises_and_halts(env_config, tmp_path):
+    """The env's own model as the ensemble's member agrees everywhere: the rewards are those of no ensemble. A member
+    with other weights disagrees: the reward drops by exactly lambda x the reported disagreement, and a threshold
+    below it halts every episode at its first frame (terminated, nothing paid after)."""
+    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+    own = env_config().action_world_model
+    other = STWorldModel.from_pretrained(own)
+    with torch.no_grad():
+        torch.manual_seed(0)
+        for p in other.parameters():
+            p.add_(p.abs().mean() * torch.randn_like(p))
+    other.save_pretrained(tmp_path / "other")
+
+    def run(**overrides):
+        env = RoboscapeWorldModelEnv(env_config(precision="float32", episode_length=8, **overrides), num_envs=2)
+        env.reset(seed=0)
+        steps = [env.step(np.full((2, 7), 0.3, np.float32)) for _ in range(8)]
+        return [(reward, terminated, info) for _, reward, terminated, _, info in steps]
+
+    plain, same = run(), run(ensemble=[own], disagreement_penalty=5.0)
+    for (reward, _, _), (reward_same, _, info) in zip(plain, same, strict=True):
+        np.testing.assert_allclose(reward_same, reward, atol=1e-4)
+        assert (info["disagreement"] < 1e-4).all()
+    other = [str(tmp_path / "other")]
+    free, paid = run(ensemble=other), run(ensemble=other, disagreement_penalty=2)
+    parted = np.stack([info["disagreement"] for _, _, info in free])
+    assert parted.max() > 1e-3 and parted.max() <= np.log(2) + 1e-4  # two models: log 2 nats at most
+    for (reward, _, _), (reward_paid, _, info) in zip(free, paid, strict=True):
+        np.testing.assert_allclose(reward_paid, reward - 2 * info["disagreement"], atol=1e-4)
+    first = next(t for t, (_, _, info) in enumerate(free) if (info["disagreement"] > 0).all())
+    halted = run(ensemble=other, disagreement_threshold=float(parted[first].min()) / 2)
+    _, terminated, info = halted[first]
+    assert terminated.all() and info["halted"].all() and not info["is_success"].any()
+    assert all((reward == 0).all() for reward, _, _ in halted[first + 1 :])
+    with pytest.raises(InvalidInputError, match="need ensemble"):
+        env_config(disagreement_penalty=1.0)
+
+
+def test_mutual_information_of_models_that_agree_and_of_models_sure_of_different_tokens():
+    from lerobot_roboscape.envs.ensemble import mutual_information
+
+    logits = torch.randn(3, 5, 16)
+    assert torch.allclose(mutual_information([logits, logits, logits]), torch.zeros(3), atol=1e-6)
+    sure = torch.full((1, 5, 16), -1e4)
+    a, b = sure.clone(), sure.clone()
+    a[..., 0], b[..., 1] = 0.0, 0.0  # each certain, of another token
+    torch.testing.assert_close(mutual_information([a, b]), torch.tensor([np.log(2)], dtype=torch.float32))
