@@ -85,6 +85,10 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             settings is an error. Null: each goal is generated when its start first comes up.
         starts_per_scene: the episodes whose first frames are the starts, per task family and scene (the first
             ones in the dataset; null: all).
+        branches_per_episode: starts per dataset episode: its first frame and, evenly along its recorded frames, the
+            real frames after it (MBPO's branched rollouts: with a short `episode_length`, every episode begins in
+            a real state and ends before the world model drifts far from the data). Each start of an episode
+            shares the episode's goal. 1: the first frame only.
         temperature: sampling temperature of the world model (0: greedy, deterministic).
         image_size: camera image side (must match the tokenizer).
         lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
@@ -132,6 +136,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     max_goal_steps: int = 100
     goal_file: str | None = None
     starts_per_scene: int | None = None
+    branches_per_episode: int = 1
     temperature: float = 0.0
     image_size: int = 64
     lpips_weights: str | None = None
@@ -169,6 +174,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             )
         if self.goal_source == "text_model" and not self.text_world_model:
             raise InvalidInputError("goal_source=text_model needs text_world_model")
+        if self.branches_per_episode < 1:
+            raise InvalidInputError(f"branches_per_episode must be >= 1, got {self.branches_per_episode}")
         threshold = self.disagreement_threshold
         if self.disagreement_penalty < 0 or (threshold is not None and threshold <= 0):
             raise InvalidInputError(

@@ -47,10 +47,18 @@ class Goal(NamedTuple):
 class EpisodeStart:
     episode_index: int
     task: str
-    first_tokens: torch.Tensor  # (S,)
+    first_tokens: torch.Tensor  # (S,) the frame an episode from this start begins with
     last_tokens: torch.Tensor  # (S,)
     facts: dict
     horizon: int  # steps of an episode from this start
+    frame: int = 0  # where in its recorded episode the start is (a branched start: later than 0)
+    episode_first_tokens: torch.Tensor | None = None  # (S,) its episode's first frame, for a branched start
+
+    @property
+    def goal_prompt(self) -> torch.Tensor:
+        """The frame the start's goal is generated from: its episode's first, so every start of an episode shares
+        the episode's goal."""
+        return self.first_tokens if self.episode_first_tokens is None else self.episode_first_tokens
 
 
 class GoalBank:
@@ -106,7 +114,7 @@ class GoalBank:
                 reached, steps = f.get_tensor("reached").tolist(), f.get_tensor("steps").tolist()
             for i, index in enumerate(indices):
                 self.cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
-        missing = [s for s in starts if s.episode_index not in self.cache]
+        missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self.cache]
         if not missing:
             return
         started = time.perf_counter()
@@ -143,7 +151,7 @@ class GoalBank:
     def _generate_batch(self, starts: list[EpisodeStart]) -> list[Goal]:
         model, theta = self.text_model, self.config.theta
         padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
-        prompt = torch.stack([s.first_tokens for s in padded])[:, None]
+        prompt = torch.stack([s.goal_prompt for s in padded])[:, None]
         control = model.encode_control(instructions=[s.task for s in padded])
         rollout = Rollout.start(model, prompt, control)
         goal = prompt[:, 0].clone()

@@ -213,11 +213,17 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             if cfg.starts_per_scene is not None and per_scene[scene] >= cfg.starts_per_scene:
                 continue
             per_scene[scene] += 1
-            frames = read_frames(dataset, index, [0, -1])
-            tokens = self.encode(frames)  # (2, S)
+            length = dataset.meta.episodes[index]["length"]
+            branches = sorted(
+                {round(j * (length - 1) / cfg.branches_per_episode) for j in range(cfg.branches_per_episode)}
+            )
+            tokens = self.encode(read_frames(dataset, index, [*branches, -1]))  # (branches + 1, S)
             task = dataset.meta.episodes[index]["tasks"][0]
             horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
-            starts.append(EpisodeStart(index, task, tokens[0], tokens[1], facts, horizon))
+            starts += [
+                EpisodeStart(index, task, tokens[j], tokens[-1], facts, horizon, frame, tokens[0] if frame else None)
+                for j, frame in enumerate(branches)
+            ]
         if not starts:
             raise InvalidInputError(
                 f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} scenes={cfg.scenes}"
@@ -307,7 +313,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         else:
             if "episode_index" in options:
                 wanted = list(np.broadcast_to(options["episode_index"], (self.num_envs,)))
-                by_index = {s.episode_index: s for s in self.starts}
+                by_index = {s.episode_index: s for s in self.starts if s.frame == 0}
                 if missing := sorted(set(int(i) for i in wanted) - set(by_index)):
                     raise ValueError(f"episodes {missing} are not among this env's starts")
                 starts = [by_index[int(i)] for i in wanted]
@@ -344,6 +350,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         info = {
             "task": [s.task for s in starts],
             "episode_index": np.array([s.episode_index for s in starts]),
+            "start_frame": np.array([s.frame for s in starts]),
             "goal_from_text_model": np.array(reached),
             "goal": self._pixels(self._goals),
         }

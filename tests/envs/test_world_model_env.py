@@ -5,7 +5,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode, read_frames
 from lerobot_roboscape.envs.batched import SingleEnv
 from lerobot_roboscape.envs.goal_bank import GoalBank, goal_generation_seconds
 from lerobot_roboscape.envs.reward_report import replay_rewards
@@ -137,6 +137,23 @@ def test_starts_per_scene_keeps_the_first_episodes_of_each_scene(env_config, dem
     scenes = [(s.facts["task_family"], s.facts["scene"]) for s in env.starts]
     assert len(scenes) == len(set(scenes)) == len({(s.facts["task_family"], s.facts["scene"]) for s in every.starts})
     assert len(every.starts) > len(env.starts)
+
+
+def test_branched_starts_begin_at_real_frames_along_an_episode_and_share_its_goal(env_config, demo_dataset):
+    env = RoboscapeWorldModelEnv(env_config(starts_per_scene=1, branches_per_episode=3), num_envs=4)
+    by_episode = {}
+    for start in env.starts:
+        by_episode.setdefault(start.episode_index, []).append(start)
+    demos, _ = demo_dataset
+    for index, starts in by_episode.items():
+        length = demos.meta.episodes[index]["length"]
+        assert [s.frame for s in starts] == [0, round((length - 1) / 3), round(2 * (length - 1) / 3)]
+        real = env.encode(read_frames(demos, index, [s.frame for s in starts]))
+        assert torch.equal(torch.stack([s.first_tokens for s in starts]), real)  # real states, as recorded
+        goals, _ = env.goal_bank.goals_for(starts)
+        assert (goals == goals[0]).all()  # the episode's goal, made from its first frame
+    _, info = env.reset(seed=0)
+    assert set(info["start_frame"]) <= {s.frame for s in env.starts}
 
 
 def test_goal_from_the_dataset_episode(env_config, token_cache):
