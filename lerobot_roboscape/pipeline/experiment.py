@@ -54,6 +54,17 @@ class ExperimentConfig:
         on `sft_dataset_root` (or the run's demonstrations), of the protocol's scenes.
     sft_dataset_repo_id: demonstrations SFT imitates, when it runs.
     sft_dataset_root: their local root (null: the run's demonstrations).
+    levers: guards against a policy that games the world model, each its own PPO run in the world model beside the
+        plain one, judged by the simulator success of its checkpoints (OOD): "kl" (a KL penalty to the SFT
+        policy), "ensemble" (the disagreement of `ensemble_members` more action models, trained here from other
+        seeds, penalised and/or halting episodes), "branched" (short episodes from real frames along the
+        demonstrations). The settings below are starting points; what each lever measured goes in the report.
+    kl_coef: the KL lever's weight (PPO's --kl_coef).
+    ensemble_members: action world models beside the run's own in the ensemble lever (trained like it, seeds 1..n).
+    disagreement_penalty: the ensemble lever's lambda (roboscape_wm's --env.disagreement_penalty).
+    disagreement_threshold: the ensemble lever's halt (--env.disagreement_threshold; null: never halts).
+    branches_per_episode: the branched lever's starts per demonstration (--env.branches_per_episode).
+    branch_episode_length: the branched lever's episode length, in control steps.
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
     report_dir: where the report (report.md, results.json, figures, videos) goes.
@@ -65,6 +76,13 @@ class ExperimentConfig:
     sft_checkpoint: str | None = None
     sft_dataset_repo_id: str = "local/roboscape_sft_demos"
     sft_dataset_root: str | None = None
+    levers: list[str] = field(default_factory=list)
+    kl_coef: float = 0.1
+    ensemble_members: int = 2
+    disagreement_penalty: float = 1.0
+    disagreement_threshold: float | None = None
+    branches_per_episode: int = 4
+    branch_episode_length: int = 24
     curve_episodes: int = 10
     replay_episodes: int = 8
     report_dir: str = "docs/results/bench"
@@ -73,7 +91,9 @@ class ExperimentConfig:
     def __post_init__(self):
         if self.protocol not in methods.PROTOCOLS:
             raise InvalidInputError(f"--protocol must be one of {list(methods.PROTOCOLS)}, got {self.protocol!r}")
-        for name in ("curve_episodes", "replay_episodes"):
+        if unknown := [lever for lever in self.levers if lever not in methods.LEVERS]:
+            raise InvalidInputError(f"--levers {unknown} unknown; choose from {list(methods.LEVERS)}")
+        for name in ("curve_episodes", "replay_episodes", "ensemble_members"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
 
@@ -122,10 +142,42 @@ def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[
     return policy_stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()), scenes)
 
 
-def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, policy: str, sft: Path) -> list[dict]:
-    """OOD simulator success of the SFT checkpoint (iteration 0) and of every checkpoint PPO in the world model
+def lever_runs(
+    cfg: ExperimentConfig, run: Path, trained: TrainedStages, wm_env: RoboscapeWorldModelEnvConfig
+) -> dict[str, tuple]:
+    """{method: (its env, PPO's settings)} of the levers asked for, beside PPO in the world model's own env."""
+    p = cfg.pipeline
+    wm = policy_stages.rl_envs(p, run, trained.data, wm_env)[methods.RL_WORLD_MODEL]
+    runs = {}
+    if "kl" in cfg.levers:
+        runs[methods.RL_WORLD_MODEL_KL] = (wm, {"kl_coef": cfg.kl_coef})
+    if "ensemble" in cfg.levers:
+        data = stages.demonstrations(p, run)  # complete: found, not collected again
+        members = stages.ensemble_members(p, run, data, trained.tokenizer, cfg.ensemble_members)
+        env = replace(
+            wm,
+            ensemble=[str(m) for m in members],
+            disagreement_penalty=cfg.disagreement_penalty,
+            disagreement_threshold=cfg.disagreement_threshold,
+        )
+        runs[methods.RL_WORLD_MODEL_ENSEMBLE] = (env, {})
+    if "branched" in cfg.levers:
+        env = replace(wm, branches_per_episode=cfg.branches_per_episode, episode_length=cfg.branch_episode_length)
+        runs[methods.RL_WORLD_MODEL_BRANCHED] = (env, {})
+    return runs
+
+
+def checkpoint_curve(
+    cfg: ExperimentConfig,
+    out: Path,
+    data: stages.Datasets,
+    policy: str,
+    sft: Path,
+    method: str = methods.RL_WORLD_MODEL,
+) -> list[dict]:
+    """OOD simulator success of the SFT checkpoint (iteration 0) and of every checkpoint the PPO run of `method`
     saved, `curve_episodes` per family, on initial states apart from Table 1's: [{iteration, seconds, cell}]."""
-    run = out / layout.rl_dir(policy, methods.RL_WORLD_MODEL) / CHECKPOINTS
+    run = out / layout.rl_dir(policy, method) / CHECKPOINTS
     points = [(0, 0.0, sft)]
     for folder in sorted(f for f in run.iterdir() if f.name.isdigit()):
         seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
@@ -136,7 +188,7 @@ def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, po
             data,
             path,
             ("ood",),
-            out / CURVE_DIR / policy / f"{iteration:08d}",
+            out / CURVE_DIR / policy / curve_tag(method) / f"{iteration:08d}",
             episodes=cfg.curve_episodes,
             seed=CURVE_SEED,
             videos=0,
@@ -152,6 +204,11 @@ def checkpoint_curve(cfg: ExperimentConfig, out: Path, data: stages.Datasets, po
         }
         for (iteration, seconds, _), job in zip(points, jobs, strict=True)
     ]
+
+
+def curve_tag(method: str) -> str:
+    """The folder of a method's checkpoint curve (PPO in the world model's: the curve folder itself, as before)."""
+    return "" if method == methods.RL_WORLD_MODEL else methods.method_tag(method)
 
 
 def replay_in_simulator(
@@ -224,7 +281,7 @@ def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:
 
 
 # The experiment's steps, in order; each header names one.
-STEPS = ("world-model env", "SFT", "PPO", "Table 1", "checkpoint curve", "replay", "report")
+STEPS = ("world-model env", "SFT", "levers", "PPO", "Table 1", "checkpoint curve", "replay", "report")
 
 
 def run_experiment(cfg: ExperimentConfig) -> Path:
@@ -241,21 +298,26 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     sft_data = "the initial scene" if cfg.protocol == methods.PAPER_PROTOCOL else "every training scene"
     clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or f'SFT with lerobot-train on {sft_data}'}")
     sft = sft_policy(cfg, out, trained.data)
+    clock("levers", f"the guards against gaming the world model: {', '.join(cfg.levers) or 'none'}")
+    levers = lever_runs(cfg, run, trained, wm_env)
     clock(
         "PPO",
-        "PPO in roboscape_wm and in roboscape_maniskill" + (" (and the reward ablation)" if p.reward_ablation else ""),
+        "PPO in roboscape_wm and in roboscape_maniskill"
+        + (" (and the reward ablation)" if p.reward_ablation else "")
+        + (" (and each lever)" if levers else ""),
     )
-    rl = policy_stages.rl(p, out, trained.data, wm_env, sft)
+    rl = policy_stages.rl(p, out, trained.data, wm_env, sft, levers)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     results = policy_stages.simulator_eval(p, out, trained.data, checkpoints)
     policy = next(iter(sft))
     clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")
     curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
+    lever_curves = {m: checkpoint_curve(cfg, out, trained.data, policy, sft[policy], m) for m in levers}
     clock("replay", "world-model rollouts replayed in the simulator")
     ppo_env = policy_stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
     replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
     clock("report", "the claim's report")
-    report = write_experiment_report(cfg, out, results, curve, replays)
+    report = write_experiment_report(cfg, out, results, curve, replays, lever_curves)
     clock.done()
     return report

@@ -6,6 +6,7 @@ results.json, figures, videos), and the README's results block."""
 import json
 import re
 import shutil
+from dataclasses import fields
 from datetime import date
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from lerobot_roboscape.pipeline.config import SCALES
 from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
 from lerobot_roboscape.pipeline.methods import (
+    OOD_ONLY,
     PAPER_PROTOCOL,
     REWARD_ABLATION,
     RL_MANISKILL,
@@ -91,20 +93,22 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
     return rows
 
 
-def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], replays: list[dict]) -> Path:
+def write_experiment_report(
+    cfg, out: Path, results: dict, curve: list[dict], replays: list[dict], lever_curves: dict | None = None
+) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
-    results block; returns report.md."""
+    results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}."""
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    table = {
-        policy: {m: s for m, s in methods.items() if m not in REWARD_ABLATION} for policy, methods in results.items()
-    }
+    lever_curves = lever_curves or {}
+    table = {policy: {m: s for m, s in methods.items() if m not in OOD_ONLY} for policy, methods in results.items()}
     ablation = {
         policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
     }
+    levers = {policy: {m: s for m, s in methods.items() if m in lever_curves} for policy, methods in results.items()}
     targets = claim_targets(table, p.families)
     policies = list(table)
-    methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION]
+    methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
     times = step_times(out, runs, Path(p.output_dir).resolve() / GOAL_FILE)
     summary = {
@@ -118,8 +122,10 @@ def write_experiment_report(cfg, out: Path, results: dict, curve: list[dict], re
         "table": table,
         "differences": differences(table, p.families),
         "reward_ablation": ablation,
+        "levers": levers,
         "ppo_runs": runs,
         "curve": curve,
+        "lever_curves": lever_curves,
         "replays": replays,
         "seconds": times,
     }
@@ -154,7 +160,8 @@ def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]
             times[f"PPO {run['method']}: wall-clock with its setup"] = run["wall_seconds"]
     evaluations = [stage_seconds(f.parent) or 0.0 for f in (out / EVAL_DIR).glob("*/*/*/stage.json")]
     times[f"simulator evaluation, Table 1 and the ablation ({len(evaluations)} jobs)"] = sum(evaluations)
-    points = [stage_seconds(f.parent) or 0.0 for f in (out / "curve").glob("*/*/stage.json")]
+    curves = (out / "curve").glob("*/**/stage.json")  # a folder per policy (and per lever), then per checkpoint
+    points = [stage_seconds(f.parent) or 0.0 for f in curves]
     times[f"simulator evaluation of PPO's checkpoints ({len(points)} points)"] = sum(points)
     times["world-model rollouts replayed in the simulator"] = stage_seconds(out / "replay") or 0.0
     return {k: round(v, 1) for k, v in times.items()}
@@ -241,6 +248,11 @@ def markdown(cfg, summary: dict) -> str:
                 m.split(", ")[1]: s["ood"] for m, s in methods.items()
             }
             ablation_rows += [(name, [cells[f] for f in [*p.families, "all"]]) for name, cells in rows.items()]
+    lever_rows = [
+        (method, [cells["ood"][f] for f in [*p.families, "all"]], summary["lever_curves"][method])
+        for methods in summary["levers"].values()
+        for method, cells in methods.items()
+    ]
     replays = summary["replays"]
     return render_report(
         "claim_report.md",
@@ -255,34 +267,38 @@ def markdown(cfg, summary: dict) -> str:
         short=SHORT,
         difference_rows=difference_rows,
         ablation_rows=ablation_rows,
+        lever_rows=lever_rows,
         replays=replays,
         agree=sum(r["world_model_success"] == r["simulator_success"] for r in replays),
     )
 
 
 def command(cfg) -> str:
-    """The command that regenerates the report: the scale, and every pipeline setting that differs from it."""
+    """The command that regenerates the report: the scale, and every setting that differs from its default."""
     p = cfg.pipeline
     parts = [f"roboscape-experiment --protocol={cfg.protocol} --pipeline.scale={p.scale}"]
     parts.append(f"--pipeline.output_dir={p.output_dir}")
     preset = SCALES[p.scale]
-    for name in preset:
-        value = getattr(p, name)
-        if value != preset[name]:
-            shown = (
-                f"[{','.join(value)}]"
-                if isinstance(value, list)
-                else str(value).lower()
-                if isinstance(value, bool)
-                else value
-            )
-            parts.append(f"--pipeline.{name}={shown}")
-    if cfg.sft_checkpoint:
-        parts.append(f"--sft_checkpoint={cfg.sft_checkpoint}")
+    parts += [f"--pipeline.{name}={_flag(getattr(p, name))}" for name in preset if getattr(p, name) != preset[name]]
+    default = type(cfg)()
+    for f in fields(cfg):
+        if f.name not in ("pipeline", "protocol", "report_dir", "readme") and getattr(cfg, f.name) != getattr(
+            default, f.name
+        ):
+            parts.append(f"--{f.name}={_flag(getattr(cfg, f.name))}")
     parts.append(f"--report_dir={cfg.report_dir}")
     if cfg.readme != "README.md":
         parts.append(f"--readme={cfg.readme or 'null'}")
     return " ".join(parts)
+
+
+def _flag(value) -> str:
+    """A value as draccus parses it back."""
+    if isinstance(value, list):
+        return f"[{','.join(map(str, value))}]"
+    if isinstance(value, bool) or value is None:
+        return str(value).lower() if value is not None else "null"
+    return str(value)
 
 
 def _relative(path: str, report_dir: str) -> str:

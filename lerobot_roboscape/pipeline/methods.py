@@ -15,6 +15,15 @@ RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE = (
     "RL w. World Model, dense reward only",
 )
 REWARD_ABLATION = (RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE)
+# The guards against a policy that games the world model (issue 49), each a run of PPO in the world model, judged
+# by the simulator success of its checkpoints (OOD), not by its own return.
+RL_WORLD_MODEL_KL, RL_WORLD_MODEL_ENSEMBLE, RL_WORLD_MODEL_BRANCHED = (
+    "RL w. World Model, KL to SFT",
+    "RL w. World Model, ensemble disagreement",
+    "RL w. World Model, branched short rollouts",
+)
+LEVERS = {"kl": RL_WORLD_MODEL_KL, "ensemble": RL_WORLD_MODEL_ENSEMBLE, "branched": RL_WORLD_MODEL_BRANCHED}
+OOD_ONLY = (*REWARD_ABLATION, *LEVERS.values())  # the methods evaluated out of domain only
 POLICIES = ("roboscape_mlp", "openvla")
 REWARD_BASELINES = ("embedding", "proxy")
 SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classifier (a done source)
@@ -29,6 +38,9 @@ def method_tag(method: str) -> str:
         RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene",
         RL_WORLD_MODEL_SPARSE: "ppo_world_model_sparse",
         RL_WORLD_MODEL_DENSE: "ppo_world_model_dense",
+        RL_WORLD_MODEL_KL: "ppo_world_model_kl",
+        RL_WORLD_MODEL_ENSEMBLE: "ppo_world_model_ensemble",
+        RL_WORLD_MODEL_BRANCHED: "ppo_world_model_branched",
     }[method]
 
 

@@ -26,7 +26,7 @@ from lerobot_roboscape.pipeline.layout import (
 )
 from lerobot_roboscape.pipeline.lerobot_cli import lerobot_eval, lerobot_sft
 from lerobot_roboscape.pipeline.methods import (
-    REWARD_ABLATION,
+    OOD_ONLY,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
@@ -153,14 +153,20 @@ def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
 
 
 def rl(
-    cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig, checkpoints: dict[str, Path]
+    cfg: PipelineConfig,
+    out: Path,
+    data: Datasets,
+    wm_env: RoboscapeWorldModelEnvConfig,
+    checkpoints: dict[str, Path],
+    levers: dict[str, tuple] | None = None,
 ) -> dict[str, dict[str, Path]]:
-    """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock);
-    returns {policy: {method: checkpoint}}."""
+    """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock), and
+    the runs of `levers` ({method: (its env, PPO's settings beside these)}); returns {policy: {method: checkpoint}}."""
     runs = {}
+    envs = {method: (env, {}) for method, env in rl_envs(cfg, out, data, wm_env).items()} | (levers or {})
     for name, sft_checkpoint in checkpoints.items():
         runs[name] = {}
-        for method, env in rl_envs(cfg, out, data, wm_env).items():
+        for method, (env, settings) in envs.items():
             runs[name][method] = ppo(
                 PPOConfig(
                     policy_path=str(sft_checkpoint),
@@ -172,6 +178,7 @@ def rl(
                     time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
                     save_freq=max(min(cfg.ppo_iterations, 5), 1),
                     device=cfg.device,
+                    **settings,
                 ),
                 cfg.fresh,
             )
@@ -229,12 +236,13 @@ def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
 
 
 def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
-    """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's OOD only; 95% Wilson
-    intervals), one evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
+    """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's and the levers' OOD only;
+    95% Wilson intervals), one evaluation per (checkpoint, split). Returns
+    {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            for split in ("ood",) if method in REWARD_ABLATION else ("ind", "ood"):
+            for split in ("ood",) if method in OOD_ONLY else ("ind", "ood"):
                 jobs[name, method, split] = eval_job(
                     cfg, data, checkpoint, (split,), out / eval_dir(name, method) / split
                 )

@@ -259,35 +259,51 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     """Train the action and the text world models (each with its done head); returns {control: directory}. The
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
     controllability set as it trains."""
-    models = {}
-    for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps)):
-        folder = out / world_model_dir(control)
-        action = control == "action"
-        train = TrainWorldModelConfig(
-            dataset=data.train,
-            tokenizer=str(tokenizer_path),
-            wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
-            train=WorldModelTrainingConfig(
-                steps=steps,
-                batch_size=cfg.wm_batch_size,
-                save_freq=max(steps // 4, 1),
-                eval_freq=max(steps // 10, 1),
-            ),
-            output_dir=folder,
-            cache_dir=out / TOKEN_CACHE_DIR,
-            exploration=data.exploration if action else None,
-            exploration_share=cfg.exploration_share,
-            heldout_control=data.controllability if action else None,
-            device=cfg.device,
-        )
-        train_once(
-            folder,
-            train,
-            cfg.fresh,
-            lambda resume, t=train: train_world_model(replace(t, train=replace(t.train, resume=resume))),
-        )
-        models[control] = folder / FINAL
-    return models
+    return {
+        control: _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, steps)
+        for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps))
+    }
+
+
+def ensemble_members(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, n: int) -> list[Path]:
+    """`n` more action world models, trained as the run's own but from other seeds (1..n): an ensemble whose
+    disagreement guards PPO in the world model (envs/ensemble.py)."""
+    folders = [out / world_model_dir(f"action_seed{seed}") for seed in range(1, n + 1)]
+    return [
+        _world_model(cfg, folder, data, tokenizer_path, "action", cfg.wm_steps, seed)
+        for seed, folder in enumerate(folders, start=1)
+    ]
+
+
+def _world_model(
+    cfg: PipelineConfig, folder: Path, data: Datasets, tokenizer_path: Path, control: str, steps: int, seed: int = 0
+) -> Path:
+    action = control == "action"
+    train = TrainWorldModelConfig(
+        dataset=data.train,
+        tokenizer=str(tokenizer_path),
+        wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
+        train=WorldModelTrainingConfig(
+            steps=steps,
+            batch_size=cfg.wm_batch_size,
+            save_freq=max(steps // 4, 1),
+            eval_freq=max(steps // 10, 1),
+            seed=seed,
+        ),
+        output_dir=folder,
+        cache_dir=folder.parent / TOKEN_CACHE_DIR,
+        exploration=data.exploration if action else None,
+        exploration_share=cfg.exploration_share,
+        heldout_control=data.controllability if action else None,
+        device=cfg.device,
+    )
+    train_once(
+        folder,
+        train,
+        cfg.fresh,
+        lambda resume: train_world_model(replace(train, train=replace(train.train, resume=resume))),
+    )
+    return folder / FINAL
 
 
 def reward_models(

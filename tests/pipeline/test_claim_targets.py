@@ -8,8 +8,8 @@ from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import command, differences
-from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
+from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown
+from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
 from lerobot_roboscape.pipeline.targets import claim_targets
 
 
@@ -83,12 +83,47 @@ def test_regenerate_command_gives_back_the_same_settings():
         ),
         protocol="all_scenes",
         sft_checkpoint="outputs/sft/pretrained_model",
+        levers=["kl", "branched"],
+        kl_coef=0.3,
+        disagreement_threshold=0.5,
         report_dir="docs/results/x",
         readme=None,
     )
     args = command(cfg).split()[1:]
     assert "--pipeline.scenes=8" in args and "--pipeline.reward_ablation=false" in args
+    assert "--levers=[kl,branched]" in args and "--kl_coef=0.3" in args
     assert draccus.parse(ExperimentConfig, args=args) == cfg
     assert ExperimentConfig().protocol == "paper"  # the paper's protocol unless told otherwise
     with pytest.raises(InvalidInputError, match="--protocol must be one of \\['paper', 'all_scenes'\\], got 'one'"):
         ExperimentConfig(protocol="one")
+    with pytest.raises(
+        InvalidInputError, match="--levers \\['gravity'\\] unknown; choose from \\['kl', 'ensemble', 'branched'\\]"
+    ):
+        ExperimentConfig(levers=["gravity"])
+
+
+def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_curve():
+    cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), levers=["kl"], readme=None)
+    results = table(40, 10, 30, 25, 30)
+    curve = [{"iteration": i, "seconds": 60.0 * i, **cell(n, 20)} for i, n in ((0, 4), (5, 6), (10, 9))]
+    summary = {
+        "machine": "a test",
+        "date": "2026-11-26",
+        "table": results,
+        "targets": claim_targets(results, ["push"]),
+        "differences": differences(results, ["push"]),
+        "reward_ablation": {"mlp": {}},
+        "levers": {"mlp": {RL_WORLD_MODEL_KL: {"ood": {"push": cell(12), "all": cell(12)}}}},
+        "lever_curves": {RL_WORLD_MODEL_KL: curve},
+        "ppo_runs": [],
+        "curve": curve,
+        "replays": [],
+        "seconds": {},
+    }
+    text = markdown(cfg, summary)
+    assert "The paper's protocol (`--protocol=paper`)" in text and "initial scene only" in text
+    row = next(line for line in text.splitlines() if line.startswith(f"| {RL_WORLD_MODEL_KL} |"))
+    assert "12/50 (24% [" in row and "0: 4/20 (20% [" in row and "10: 9/20 (45% [" in row
+    cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), protocol="all_scenes", readme=None)
+    text = markdown(cfg, summary | {"levers": {"mlp": {}}, "lever_curves": {}})
+    assert "The all-scene protocol" in text and "Guards against gaming" not in text
