@@ -230,13 +230,7 @@ def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
         num_workers=min(cfg.workers, 2),
         allow_random_lpips=True,
     )
-    train_once(
-        folder,
-        train,
-        cfg.fresh,
-        lambda resume: train_tokenizer(replace(train, train=replace(train.train, resume=resume))),
-    )
-    return folder / FINAL
+    return _train(folder, train, train_tokenizer, cfg.fresh)
 
 
 def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict:
@@ -297,12 +291,13 @@ def _world_model(
         heldout_control=data.controllability if action else None,
         device=cfg.device,
     )
-    train_once(
-        folder,
-        train,
-        cfg.fresh,
-        lambda resume: train_world_model(replace(train, train=replace(train.train, resume=resume))),
-    )
+    return _train(folder, train, train_world_model, cfg.fresh)
+
+
+def _train(folder: Path, train, trainer, fresh: bool) -> Path:
+    """Run `trainer` on its config `train` into `folder` unless done, resuming a killed run of the same settings
+    from its checkpoints; returns the final model."""
+    train_once(folder, train, fresh, lambda resume: trainer(replace(train, train=replace(train.train, resume=resume))))
     return folder / FINAL
 
 
