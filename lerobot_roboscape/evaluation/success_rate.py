@@ -147,6 +147,49 @@ def play(env, policy, io: PolicyIO, observation: dict, record: bool = False) -> 
     return success, returns, frames
 
 
+@dataclass
+class RecordedEpisode:
+    """One simulator episode of a policy, frame-aligned like a token cache's rows: frame t is the observation before
+    action t (the last frame, after the last action, repeats that action), done[t] whether the task was accomplished
+    by frame t."""
+
+    images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
+    action: np.ndarray  # (T, A) float32
+    done: np.ndarray  # (T,) float32
+    task: str
+
+
+@torch.no_grad()
+def record_episodes(env, policy, io: PolicyIO, seed: int) -> list[RecordedEpisode]:
+    """One batch of episodes of the deterministic policy, each recorded until it ended."""
+    observation, _ = env.reset(seed=seed)
+    policy.reset()
+    tasks = list(env.call("task"))
+    frames, actions, done = [observation["pixels"]], [], [np.zeros(env.num_envs, dtype=np.float32)]
+    lengths = np.zeros(env.num_envs, dtype=int)  # actions taken while running
+    ended = np.zeros(env.num_envs, dtype=bool)
+    for _ in range(env.call("_max_episode_steps")[0]):
+        action = io.env_action(policy.select_action(io.batch(observation["pixels"], tasks)))
+        observation, _, terminated, truncated, info = env.step(action)
+        lengths += ~ended
+        ended |= terminated | truncated
+        frames.append(observation["pixels"])
+        actions.append(action)
+        done.append(np.asarray(info["is_success"], dtype=np.float32))
+        if ended.all():
+            break
+    actions.append(actions[-1])
+    return [
+        RecordedEpisode(
+            images={cam: np.stack([f[cam][i] for f in frames[: n + 1]]) for cam in frames[0]},
+            action=np.stack([a[i] for a in actions[: n + 1]]).astype(np.float32),
+            done=np.array([d[i] for d in done[: n + 1]], dtype=np.float32),
+            task=tasks[i],
+        )
+        for i, n in enumerate(lengths)
+    ]
+
+
 def eval_env_config(cfg: EvalConfig, split: str, image_size: int) -> RoboscapeManiSkillEnvConfig:
     # Success at any step is what counts, so an episode can stop at its first success.
     return RoboscapeManiSkillEnvConfig(

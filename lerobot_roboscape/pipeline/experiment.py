@@ -26,6 +26,7 @@ from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.done_refresh import DoneRefresh
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.robot import CONTROL_FREQ
@@ -58,13 +59,18 @@ class ExperimentConfig:
         plain one, judged by the simulator success of its checkpoints (OOD): "kl" (a KL penalty to the SFT
         policy), "ensemble" (the disagreement of `ensemble_members` more action models, trained here from other
         seeds, penalised and/or halting episodes), "branched" (short episodes from real frames along the
-        demonstrations). The settings below are starting points; what each lever measured goes in the report.
+        demonstrations), "refresh" (the done head refitted on simulator rollouts of the current policy,
+        Dyna-style: it uses the simulator, so its row says how much). The settings below are starting points;
+        what each lever measured goes in the report.
     kl_coef: the KL lever's weight (PPO's --kl_coef).
     ensemble_members: action world models beside the run's own in the ensemble lever (trained like it, seeds 1..n).
     disagreement_penalty: the ensemble lever's lambda (roboscape_wm's --env.disagreement_penalty).
     disagreement_threshold: the ensemble lever's halt (--env.disagreement_threshold; null: never halts).
     branches_per_episode: the branched lever's starts per demonstration (--env.branches_per_episode).
     branch_episode_length: the branched lever's episode length, in control steps.
+    refresh_rounds: the done-refresh lever's slices of PPO's clock (its done head refitted before each after the
+        first, on simulator rollouts of the current policy in the training scenes).
+    refresh_episodes: simulator episodes of the policy per refit.
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
     report_dir: where the report (report.md, results.json, figures, videos) goes.
@@ -83,6 +89,8 @@ class ExperimentConfig:
     disagreement_threshold: float | None = None
     branches_per_episode: int = 4
     branch_episode_length: int = 24
+    refresh_rounds: int = 3
+    refresh_episodes: int = 16
     curve_episodes: int = 10
     replay_episodes: int = 8
     report_dir: str = "docs/results/bench"
@@ -93,7 +101,7 @@ class ExperimentConfig:
             raise InvalidInputError(f"--protocol must be one of {list(methods.PROTOCOLS)}, got {self.protocol!r}")
         if unknown := [lever for lever in self.levers if lever not in methods.LEVERS]:
             raise InvalidInputError(f"--levers {unknown} unknown; choose from {list(methods.LEVERS)}")
-        for name in ("curve_episodes", "replay_episodes", "ensemble_members"):
+        for name in ("curve_episodes", "replay_episodes", "ensemble_members", "refresh_rounds", "refresh_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
 
@@ -164,6 +172,18 @@ def lever_runs(
     if "branched" in cfg.levers:
         env = replace(wm, branches_per_episode=cfg.branches_per_episode, episode_length=cfg.branch_episode_length)
         runs[methods.RL_WORLD_MODEL_BRANCHED] = (env, {})
+    if "refresh" in cfg.levers:
+        refresh = DoneRefresh(
+            sim=policy_stages.rl_envs(p, run, trained.data, wm_env)[methods.RL_MANISKILL],
+            tokenizer=str(trained.tokenizer),
+            demonstrations_repo_id=trained.data.train.repo_id,
+            demonstrations_root=trained.data.train.root,
+            cache_dir=str(run / layout.TOKEN_CACHE_DIR),
+            rounds=cfg.refresh_rounds,
+            episodes=cfg.refresh_episodes,
+            device=p.device,
+        )
+        runs[methods.RL_WORLD_MODEL_REFRESH] = (wm, {"done_refresh": refresh})
     return runs
 
 

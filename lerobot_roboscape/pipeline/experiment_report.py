@@ -17,6 +17,7 @@ from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES
+from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
 from lerobot_roboscape.pipeline.methods import (
@@ -88,6 +89,9 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
                     "first_success": round(history[0]["charts/success"], 3),
                     "last_success": round(float(np.mean([row["charts/success"] for row in last])), 3),
                     "wall_seconds": stage_seconds(out / rl_dir(policy, method)),
+                    "simulator_steps_beside_ppo": sum(
+                        r["simulator_steps"] for r in refresh_rounds(out / rl_dir(policy, method))
+                    ),
                 }
             )
     return rows
@@ -248,9 +252,15 @@ def markdown(cfg, summary: dict) -> str:
                 m.split(", ")[1]: s["ood"] for m, s in methods.items()
             }
             ablation_rows += [(name, [cells[f] for f in [*p.families, "all"]]) for name, cells in rows.items()]
+    beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary["ppo_runs"]}
     lever_rows = [
-        (method, [cells["ood"][f] for f in [*p.families, "all"]], summary["lever_curves"][method])
-        for methods in summary["levers"].values()
+        (
+            method,
+            [cells["ood"][f] for f in [*p.families, "all"]],
+            summary["lever_curves"][method],
+            beside.get((policy, method), 0),
+        )
+        for policy, methods in summary["levers"].items()
         for method, cells in methods.items()
     ]
     replays = summary["replays"]

@@ -17,12 +17,18 @@ RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE = (
 REWARD_ABLATION = (RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE)
 # The guards against a policy that games the world model (issue 49), each a run of PPO in the world model, judged
 # by the simulator success of its checkpoints (OOD), not by its own return.
-RL_WORLD_MODEL_KL, RL_WORLD_MODEL_ENSEMBLE, RL_WORLD_MODEL_BRANCHED = (
+RL_WORLD_MODEL_KL, RL_WORLD_MODEL_ENSEMBLE, RL_WORLD_MODEL_BRANCHED, RL_WORLD_MODEL_REFRESH = (
     "RL w. World Model, KL to SFT",
     "RL w. World Model, ensemble disagreement",
     "RL w. World Model, branched short rollouts",
+    "RL w. World Model, done refreshed in the simulator",  # uses simulator rollouts: its own row
 )
-LEVERS = {"kl": RL_WORLD_MODEL_KL, "ensemble": RL_WORLD_MODEL_ENSEMBLE, "branched": RL_WORLD_MODEL_BRANCHED}
+LEVERS = {
+    "kl": RL_WORLD_MODEL_KL,
+    "ensemble": RL_WORLD_MODEL_ENSEMBLE,
+    "branched": RL_WORLD_MODEL_BRANCHED,
+    "refresh": RL_WORLD_MODEL_REFRESH,
+}
 OOD_ONLY = (*REWARD_ABLATION, *LEVERS.values())  # the methods evaluated out of domain only
 POLICIES = ("roboscape_mlp", "openvla")
 REWARD_BASELINES = ("embedding", "proxy")
@@ -41,6 +47,7 @@ def method_tag(method: str) -> str:
         RL_WORLD_MODEL_KL: "ppo_world_model_kl",
         RL_WORLD_MODEL_ENSEMBLE: "ppo_world_model_ensemble",
         RL_WORLD_MODEL_BRANCHED: "ppo_world_model_branched",
+        RL_WORLD_MODEL_REFRESH: "ppo_world_model_done_refresh",
     }[method]
 
 

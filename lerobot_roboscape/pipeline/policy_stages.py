@@ -4,6 +4,7 @@ simulator evaluation behind Table 1. Each resumes as the others do (`resume.py`)
 
 import json
 from dataclasses import asdict, replace
+from functools import partial
 from pathlib import Path
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
@@ -17,6 +18,7 @@ from lerobot_roboscape.evaluation.success_rate import (
 )
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
 from lerobot_roboscape.pipeline.layout import (
     GOAL_FILE,
     eval_dir,
@@ -161,13 +163,17 @@ def rl(
     levers: dict[str, tuple] | None = None,
 ) -> dict[str, dict[str, Path]]:
     """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock), and
-    the runs of `levers` ({method: (its env, PPO's settings beside these)}); returns {policy: {method: checkpoint}}."""
+    the runs of `levers` ({method: (its env, PPO's settings beside these; "done_refresh": a `DoneRefresh` runs it
+    with the done refresh)}); returns {policy: {method: checkpoint}}."""
     runs = {}
     envs = {method: (env, {}) for method, env in rl_envs(cfg, out, data, wm_env).items()} | (levers or {})
     for name, sft_checkpoint in checkpoints.items():
         runs[name] = {}
         for method, (env, settings) in envs.items():
-            runs[name][method] = ppo(
+            settings = dict(settings)
+            refresh = settings.pop("done_refresh", None)
+            run = partial(ppo_with_done_refresh, refresh=refresh) if refresh is not None else ppo
+            runs[name][method] = run(
                 PPOConfig(
                     policy_path=str(sft_checkpoint),
                     env=env,

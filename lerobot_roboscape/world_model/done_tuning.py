@@ -84,3 +84,59 @@ def tune_done_head(
         losses.append(loss.item())
     head.eval()
     return losses
+
+
+@torch.no_grad()
+def tokenize_episodes(tokenizer, episodes: list, cameras: list[str], batch_size: int = 64) -> TokenCache:
+    """An in-memory token cache of recorded episodes (`evaluation.success_rate.RecordedEpisode`: images, action,
+    done), its rows laid out as `build_token_cache` lays a dataset's, for `done_features`."""
+    device = next(tokenizer.parameters()).device
+    tokens, rows, start = [], [], 0
+    for episode in episodes:
+        views = []
+        for camera in cameras:
+            frames = torch.from_numpy(episode.images[camera]).permute(0, 3, 1, 2)
+            codes = [tokenizer.encode(frames[s : s + batch_size].to(device)) for s in range(0, len(frames), batch_size)]
+            views.append(torch.cat(codes).cpu().numpy().astype(np.uint16))
+        tokens.append(np.stack(views, axis=1))
+        rows.append({"start": start, "length": len(episode.action), "task": episode.task})
+        start += len(episode.action)
+    done = np.concatenate([e.done for e in episodes]).astype(np.float32)
+    return TokenCache(
+        root=None,
+        manifest={"cameras": cameras},
+        tokens=np.concatenate(tokens),
+        actions=np.concatenate([e.action for e in episodes]).astype(np.float32),
+        done=done,
+        rewards=np.zeros_like(done),
+        episodes=rows,
+    )
+
+
+def refit_done_head(
+    model: STWorldModel,
+    sources: list[tuple[TokenCache, list[dict]]],
+    steps: int,
+) -> dict:
+    """Refit the done head on the open-loop and real frames of the episodes of every (cache, episodes) source (the
+    policy's simulator rollouts beside demonstrations, so the head keeps what it knew); returns the fit's figures
+    per source: frames, positives, and the head's mean output on open-loop positives / negatives after the fit."""
+    model.eval()
+    parts = [done_features(model, cache, episodes) for cache, episodes in sources]
+    features, labels = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    losses = tune_done_head(model, features, labels, steps)
+    device = next(model.parameters()).device
+    figures = []
+    with torch.no_grad():
+        for source_features, source_labels, open_loop in parts:
+            after = torch.sigmoid(model.done_head(source_features.to(device)).squeeze(-1)).cpu()
+            positive, negative = open_loop & (source_labels > 0.5), open_loop & (source_labels <= 0.5)
+            figures.append(
+                {
+                    "frames": len(source_labels),
+                    "positives": int((source_labels > 0.5).sum()),
+                    "done_of_open_loop_positives": float(after[positive].mean()) if positive.any() else None,
+                    "done_of_open_loop_negatives": float(after[negative].mean()) if negative.any() else None,
+                }
+            )
+    return {"loss": {"first": losses[0], "last": losses[-1]}, "sources": figures}

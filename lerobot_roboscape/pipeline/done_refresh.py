@@ -1,0 +1,152 @@
+"""The done-refresh lever (Dyna-style, issue 49): PPO in the world model whose done head is refitted, between slices
+of the PPO clock, on simulator rollouts of the current policy.
+
+A policy that games the world model drives it to frames its done head calls success although the task is not
+done. Refitting the head on what the current policy does in the simulator (labelled by the simulator's success)
+takes that exploit away as soon as the policy finds it. It uses the simulator, so its row says how many simulator
+steps it spent beside PPO's clock; the demonstrations go into every refit so the head keeps what it learned.
+"""
+
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lerobot_roboscape.dataset.reader import open_dataset
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
+from lerobot_roboscape.errors import InvalidInputError
+from lerobot_roboscape.evaluation.success_rate import record_episodes
+from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+from lerobot_roboscape.rl.ppo import train_ppo
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.token_cache import load_or_build_token_cache
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.training.loop import resolve_device, save_atomically
+from lerobot_roboscape.world_model.done_tuning import refit_done_head, tokenize_episodes
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+
+REFRESH_DIR = "done_refresh"  # in the PPO run's folder: round_<r>/ (the refitted model and its figures)
+REFRESH_SEED = 300_000  # the rollouts' initial states, apart from Table 1's and the curve's
+BATCH = 8  # simulator episodes played at once
+
+
+@dataclass
+class DoneRefresh:
+    """Args:
+    sim: the simulator env the policy's rollouts run in (the training scenes).
+    tokenizer: the tokenizer the world model reads.
+    demonstrations_repo_id, demonstrations_root: the demonstrations whose episodes are refitted on beside the
+        rollouts (their token cache is found in `cache_dir`, as the world model's training left it).
+    cache_dir: the run's token caches.
+    rounds: equal slices of PPO's clock; the head is refitted before each slice after the first, from the last
+        refit's head.
+    episodes: simulator episodes of the current policy per refit.
+    demonstrations: demonstration episodes (spread over the dataset) per refit.
+    steps: full-batch steps of the head's fit.
+    """
+
+    sim: RoboscapeManiSkillEnvConfig
+    tokenizer: str
+    demonstrations_repo_id: str
+    demonstrations_root: str
+    cache_dir: str
+    rounds: int = 3
+    episodes: int = 16
+    demonstrations: int = 16
+    steps: int = 300
+    device: str = "auto"
+
+
+def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneRefresh) -> Path:
+    """PPO in the world model of `cfg.env` over `refresh.rounds` slices of `cfg.time_budget_s`, its done head
+    refitted before each slice after the first; one run folder (so its checkpoints form one curve), resumed from
+    its last checkpoint and round when interrupted. Returns the final checkpoint."""
+    folder = Path(cfg.output_dir)
+    if cfg.time_budget_s is None:
+        raise InvalidInputError("the done refresh slices PPO's clock: give PPO a time budget (--ppo_minutes)")
+    train_once(folder, {"ppo": cfg, "refresh": refresh}, fresh, lambda resume: _rounds(cfg, refresh, resume))
+    return last_checkpoint(folder) / FINAL
+
+
+def _rounds(cfg: PPOConfig, refresh: DoneRefresh, resume: bool) -> None:
+    folder, env = Path(cfg.output_dir), cfg.env
+    for r in range(refresh.rounds):
+        if r:
+            # each refit starts from the last one's head: the rollouts of earlier rounds stay in it
+            model = refreshed_world_model(refresh, env.action_world_model, last_checkpoint(folder) / FINAL, r, folder)
+            env = replace(env, action_world_model=str(model))
+        budget = cfg.time_budget_s * (r + 1) / refresh.rounds
+        if _ppo_seconds(folder) >= budget:  # this slice ran before an interruption
+            continue
+        train_ppo(replace(cfg, env=env, time_budget_s=budget, resume=resume or last_checkpoint(folder) is not None))
+
+
+def _ppo_seconds(folder: Path) -> float:
+    checkpoint = last_checkpoint(folder)
+    if checkpoint is None:
+        return 0.0
+    return json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
+
+
+def refresh_rounds(folder: Path) -> list[dict]:
+    """The figures of each refit of a run (round, simulator steps, success of the rollouts, the head's outputs)."""
+    return [json.loads(p.read_text()) for p in sorted(Path(folder).glob(f"{REFRESH_DIR}/round_*/refresh.json"))]
+
+
+def refreshed_world_model(refresh: DoneRefresh, base: str, policy: Path, round_: int, run: Path) -> Path:
+    """Round `round_`'s action model: the base model with its done head refitted on `refresh.episodes` simulator
+    rollouts of `policy` and on demonstrations. Done once per round: a resumed run reads it back."""
+    folder = run / REFRESH_DIR / f"round_{round_}"
+    settings = {"base": base, "refresh": asdict(refresh), "round": round_}
+    if not is_done(folder, settings, fresh=False):
+        start(folder).mkdir(parents=True)
+        _refit(refresh, base, policy, round_, folder)
+        mark_done(folder, settings)
+    return folder / FINAL
+
+
+def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, folder: Path) -> None:
+    device = resolve_device(refresh.device)
+    rollouts = _simulator_rollouts(refresh, policy_path, round_, device)
+    tokenizer = VisualTokenizer.from_pretrained(refresh.tokenizer).to(device).eval()
+    model = STWorldModel.from_pretrained(base).to(device)
+    demos = open_dataset(refresh.demonstrations_repo_id, refresh.demonstrations_root)
+    demo_cache = load_or_build_token_cache(demos, tokenizer, refresh.cache_dir, device=device)
+    picks = np.linspace(0, len(demo_cache.episodes) - 1, min(refresh.demonstrations, len(demo_cache.episodes)))
+    demo_episodes = [demo_cache.episodes[int(i)] for i in picks.round()]
+    policy_cache = tokenize_episodes(tokenizer, rollouts, demo_cache.cameras)
+    sources = [(policy_cache, policy_cache.episodes), (demo_cache, demo_episodes)]
+    figures = refit_done_head(model, sources, refresh.steps)
+    save_atomically(model, folder / FINAL)
+    summary = {
+        "round": round_,
+        "policy": str(policy_path),
+        "simulator_steps": int(sum(len(e.action) - 1 for e in rollouts)),
+        "rollout_success": float(np.mean([e.done[-1] > 0.5 for e in rollouts])),
+        "loss": figures["loss"],
+        "rollouts": figures["sources"][0],
+        "demonstrations": figures["sources"][1],
+    }
+    write_text_atomically(folder / "refresh.json", json.dumps(summary, indent=2))
+
+
+@torch.no_grad()
+def _simulator_rollouts(refresh: DoneRefresh, policy_path: Path, round_: int, device: str) -> list:
+    policy, preprocessor, postprocessor = load_policy(policy_path, device)
+    policy.eval()
+    io = PolicyIO(preprocessor, postprocessor)
+    env = RoboscapeManiSkillEnv(refresh.sim, num_envs=min(BATCH, refresh.episodes))
+    try:
+        batches = math.ceil(refresh.episodes / env.num_envs)
+        seed = REFRESH_SEED + 7919 * round_
+        episodes = [e for k in range(batches) for e in record_episodes(env, policy, io, seed + k)]
+    finally:
+        env.close()
+    return episodes[: refresh.episodes]

@@ -1,0 +1,65 @@
+"""The done-refresh lever: PPO in the world model over slices of its clock, the action model's done head refitted
+between them on simulator rollouts of the policy as it is then."""
+
+import json
+from dataclasses import replace
+
+import draccus
+import torch
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.pipeline.done_refresh import REFRESH_DIR, DoneRefresh, ppo_with_done_refresh, refresh_rounds
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from tests.conftest import IMAGE_SIZE
+from tests.rl.test_ppo_world_model import ppo_args  # noqa: F401 (a fixture)
+
+SIM_STEPS = 4
+
+
+def test_the_done_head_is_refitted_on_the_policys_rollouts_between_slices_of_ppo(
+    ppo_args,  # noqa: F811
+    demo_dataset,
+    trained_tokenizer,
+    token_cache,
+    world_models,
+    tmp_path,
+):
+    _, root = demo_dataset
+    run = tmp_path / "run"
+    cfg = draccus.parse(PPOConfig, args=[*ppo_args, f"--output_dir={run}", "--iterations=1000"])
+    cfg = replace(cfg, time_budget_s=2.0)
+    refresh = DoneRefresh(
+        sim=RoboscapeManiSkillEnvConfig(
+            families=["pick_place", "push"], split="ind", image_size=IMAGE_SIZE, episode_length=SIM_STEPS, workers=1
+        ),
+        tokenizer=str(trained_tokenizer),
+        demonstrations_repo_id="test/demos",
+        demonstrations_root=str(root),
+        cache_dir=str(token_cache.root.parent),
+        rounds=2,
+        episodes=2,
+        demonstrations=4,
+        steps=50,
+        device="cpu",
+    )
+    final = ppo_with_done_refresh(cfg, refresh=refresh)
+
+    # One refit, after the first slice, on 2 simulator episodes of the policy as it was then.
+    (figures,) = refresh_rounds(run)
+    assert figures["round"] == 1 and figures["simulator_steps"] == 2 * SIM_STEPS
+    assert figures["rollouts"]["frames"] > 0 and figures["demonstrations"]["positives"] > 0
+    assert figures["loss"]["last"] < figures["loss"]["first"]
+    # The refitted model is the base one but for its done head.
+    refitted = run / REFRESH_DIR / "round_1" / FINAL
+    base = STWorldModel.from_pretrained(world_models["action"]).state_dict()
+    new = STWorldModel.from_pretrained(refitted).state_dict()
+    changed = {name for name, weight in new.items() if not torch.equal(weight, base[name])}
+    assert changed and all(name.startswith("done_head.") for name in changed)
+    # The second slice trained in the world model with the refitted head, to the whole clock.
+    assert final == last_checkpoint(run) / FINAL
+    saved = json.loads((last_checkpoint(run) / "ppo_config.json").read_text())
+    assert saved["env"]["action_world_model"] == str(refitted)
+    assert json.loads((last_checkpoint(run) / "training_state" / "clock.json").read_text())["seconds"] >= 2.0
+    assert str(figures["policy"]) != str(final)  # the rollouts were played by the first slice's policy
