@@ -110,7 +110,7 @@ def write_experiment_report(
         policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
     }
     levers = {policy: {m: s for m, s in methods.items() if m in lever_curves} for policy, methods in results.items()}
-    targets = claim_targets(table, p.families)
+    targets = claim_targets(table, p.families, curve)
     policies = list(table)
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
@@ -235,6 +235,41 @@ def protocol(cfg) -> str:
     )
 
 
+def answer(summary: dict) -> list[str]:
+    """The report's first lines: did PPO in the world model lift SFT out of domain (all families), by how much
+    against SFT and each PPO in the simulator (paired intervals where kept), and how often the world model agreed
+    with the simulator on that policy's replayed rollouts."""
+    lines = []
+    by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
+    for policy, methods in summary["table"].items():
+        sft, wm = methods[SFT]["ood"]["all"], methods[RL_WORLD_MODEL]["ood"]["all"]
+        row = by[policy, SFT, "ood", "all"]
+        low, high = row["paired_ci95"] or row["ci95"]
+        verdict = "**Yes**" if low > 0 else "**No, it made it worse**" if high < 0 else "**Not shown**"
+        lines.append(
+            f"{verdict} ({policy}): PPO in the world model took the SFT policy from {sft['success_rate']:.0%} to "
+            f"{wm['success_rate']:.0%} success out of domain ({wm['episodes']} episodes per family): " + _points(row)
+        )
+        for other in (RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
+            if (policy, other, "ood", "all") in by:
+                rate = methods[other]["ood"]["all"]["success_rate"]
+                lines.append(f"Against {other} ({rate:.0%} OOD): " + _points(by[policy, other, "ood", "all"]))
+    replays = summary["replays"]
+    agree = sum(r["world_model_success"] == r["simulator_success"] for r in replays)
+    lines.append(
+        f"The world model agreed with the simulator on the outcome of {agree} of {len(replays)} of this policy's "
+        f"rollouts replayed there (successes: {sum(r['world_model_success'] for r in replays)} in the world model, "
+        f"{sum(r['simulator_success'] for r in replays)} in the simulator)."
+    )
+    return lines
+
+
+def _points(row: dict) -> str:
+    low, high = row["paired_ci95"] or row["ci95"]
+    kind = "paired" if row["paired_ci95"] else "unpaired"
+    return f"{100 * row['difference']:+.0f} points, {kind} 95% interval [{100 * low:+.0f}, {100 * high:+.0f}]."
+
+
 def markdown(cfg, summary: dict) -> str:
     p, table = cfg.pipeline, summary["table"]
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
@@ -273,6 +308,7 @@ def markdown(cfg, summary: dict) -> str:
         command=command(cfg),
         upstream={name: _relative(path, cfg.report_dir) for name, path in UPSTREAM_REPORTS.items()},
         protocol=protocol(cfg),
+        answer=answer(summary),
         table=format_table(table, p.families, f"{p.scale} scale", with_paper=True),
         short=SHORT,
         difference_rows=difference_rows,

@@ -325,30 +325,46 @@ def format_value(value) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
-def claim_targets(table: dict, families: list[str]) -> dict:
+def claim_targets(table: dict, families: list[str], curve: list[dict] | None = None) -> dict:
     """The claim's targets, per policy and family: PPO in the world model against SFT out of domain (the 95%
     interval of the difference above 0), against PPO in ManiSkill in one scene out of domain (at least as well),
-    and in domain within SFT's interval or above. The unpaired interval decides, as it always has; the paired one
-    (where the cells hold their episodes) stands beside it."""
+    and in domain within SFT's interval or above; with the checkpoint `curve` of the world-model run (OOD, from
+    SFT at iteration 0), its last checkpoint within the first's interval or above. The paired interval decides
+    where both cells hold their episodes (the same initial states for every method), the unpaired one where not."""
     targets = {}
     for policy, methods in table.items():
         wm, sft, one_scene = methods[RL_WORLD_MODEL], methods[SFT], methods.get(RL_MANISKILL_ONE_SCENE)
         for family in [*families, "all"]:
             name = SHORT.get(family, family)
-            d, low, high = difference_interval(wm["ood"][family], sft["ood"][family])
+            d, low, high = _deciding_interval(wm["ood"][family], sft["ood"][family])
             targets[f"{policy}, OOD {name}: PPO in WM minus SFT"] = target_row(
-                d, "95% interval above 0", low > 0, _intervals(wm["ood"][family], sft["ood"][family], low, high)
+                d, "95% interval above 0", low > 0, _intervals(wm["ood"][family], sft["ood"][family])
             )
             if one_scene is not None:
-                d, low, high = difference_interval(wm["ood"][family], one_scene["ood"][family])
+                d, low, high = _deciding_interval(wm["ood"][family], one_scene["ood"][family])
                 targets[f"{policy}, OOD {name}: PPO in WM minus PPO in ManiSkill (one scene)"] = target_row(
-                    d, ">= 0", d >= 0, _intervals(wm["ood"][family], one_scene["ood"][family], low, high)
+                    d, ">= 0", d >= 0, _intervals(wm["ood"][family], one_scene["ood"][family])
                 )
             rate, floor = wm["ind"][family]["success_rate"], sft["ind"][family]["ci95"][0]
             targets[f"{policy}, IND {name}: PPO in WM, within SFT's interval or above"] = target_row(
                 rate, f">= {floor:.2f} (SFT's 95% lower bound)", rate >= floor
             )
+    if curve:
+        first, last = curve[0], curve[-1]
+        targets["OOD all: PPO in WM's last checkpoint, within its first's interval or above (checkpoint curve)"] = (
+            target_row(
+                last["success_rate"],
+                f">= {first['ci95'][0]:.2f} (iteration {first['iteration']}'s 95% lower bound)",
+                last["success_rate"] >= first["ci95"][0],
+                f"iteration {last['iteration']}, {last['episodes']} episodes",
+            )
+        )
     return targets
+
+
+def _deciding_interval(ours: dict, theirs: dict) -> tuple[float, float, float]:
+    """The difference and the 95% interval that decides a target: paired where both cells kept their episodes."""
+    return paired_interval(ours, theirs) or difference_interval(ours, theirs)
 
 
 def paired_interval(ours: dict, theirs: dict) -> tuple[float, float, float] | None:
@@ -359,9 +375,10 @@ def paired_interval(ours: dict, theirs: dict) -> tuple[float, float, float] | No
     return paired_difference_interval([bool(x) for x in ours["outcomes"]], [bool(x) for x in theirs["outcomes"]])
 
 
-def _intervals(ours: dict, theirs: dict, low: float, high: float) -> str:
-    """Both 95% intervals of a difference: the unpaired one given (Newcombe's hybrid score) and the paired one
-    (where known)."""
+def _intervals(ours: dict, theirs: dict) -> str:
+    """Both 95% intervals of a difference: the unpaired one (Newcombe's hybrid score) and the paired one (where
+    known)."""
+    _, low, high = difference_interval(ours, theirs)
     text = f"interval [{low:+.2f}, {high:+.2f}]"
     paired = paired_interval(ours, theirs)
     return text if paired is None else text + f"; paired [{paired[1]:+.2f}, {paired[2]:+.2f}]"

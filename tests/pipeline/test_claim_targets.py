@@ -13,17 +13,22 @@ from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_
 from lerobot_roboscape.pipeline.targets import claim_targets
 
 
-def cell(successes: int, episodes: int = 50) -> dict:
-    return summarise([True] * successes + [False] * (episodes - successes))
+def cell(successes: int, episodes: int = 50, first: int = 0) -> dict:
+    """`successes` of `episodes` on the same initial states, solved from state `first` on (wrapping round)."""
+    outcomes = [(i - first) % episodes < successes for i in range(episodes)]
+    return summarise(outcomes)
 
 
 def table(wm_ood: int, sft_ood: int, wm_ind: int, sft_ind: int, one_scene_ood: int | None) -> dict:
-    def method(ood, ind):
-        return {"ood": {"push": cell(ood), "all": cell(ood)}, "ind": {"push": cell(ind), "all": cell(ind)}}
+    # Each method solves its own run of states, so a pair of methods shares few successes (the paired interval,
+    # which decides, is about as wide as the unpaired one).
+    def method(ood, ind, first):
+        ood_cell, ind_cell = cell(ood, first=first), cell(ind, first=first)
+        return {"ood": {"push": ood_cell, "all": ood_cell}, "ind": {"push": ind_cell, "all": ind_cell}}
 
-    methods = {RL_WORLD_MODEL: method(wm_ood, wm_ind), SFT: method(sft_ood, sft_ind)}
+    methods = {RL_WORLD_MODEL: method(wm_ood, wm_ind, 0), SFT: method(sft_ood, sft_ind, 25)}
     if one_scene_ood is not None:
-        methods[RL_MANISKILL_ONE_SCENE] = method(one_scene_ood, 0)
+        methods[RL_MANISKILL_ONE_SCENE] = method(one_scene_ood, 0, 10)
     return {"mlp": methods}
 
 
@@ -67,13 +72,29 @@ def test_differences_give_the_paired_interval_beside_the_unpaired():
     row = next(r for r in rows if (r["split"], r["family"]) == ("ood", "push"))
     assert row["difference"] == pytest.approx(0.1)
     assert row["ci95"][0] < 0 < row["paired_ci95"][0]
-    # Cells written before the episodes were kept have no paired interval, and the target still decides unpaired.
+    # The paired interval decides the target: the same initial states for every method.
+    target = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])[
+        "mlp, OOD Push: PPO in WM minus SFT"
+    ]
+    assert target["met"] and "paired [+" in target["detail"]
+    # Cells written before the episodes were kept have no paired interval: the unpaired one decides.
     old = {k: v for k, v in sft.items() if k != "outcomes"}
-    rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: {s: {"push": old, "all": old} for s in theirs}}}, ["push"])
+    unpaired = {s: {"push": old, "all": old} for s in theirs}
+    rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: unpaired}}, ["push"])
     assert all(r["paired_ci95"] is None for r in rows)
-    targets = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])
-    target = targets["mlp, OOD Push: PPO in WM minus SFT"]
-    assert not target["met"] and "paired [+" in target["detail"]
+    target = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: unpaired}}, ["push"])[
+        "mlp, OOD Push: PPO in WM minus SFT"
+    ]
+    assert not target["met"] and "paired" not in target["detail"]
+
+
+@pytest.mark.parametrize(("first", "last", "met"), [(20, 20, True), (20, 14, True), (20, 13, False), (5, 30, True)])
+def test_the_checkpoint_curve_target_holds_the_last_checkpoint_within_the_firsts_interval(first, last, met):
+    # 20/50 has the 95% lower bound 0.276: 14/50 (0.28) is within it, 13/50 (0.26) below.
+    curve = [{"iteration": 0, **cell(first)}, {"iteration": 5, **cell(25)}, {"iteration": 10, **cell(last)}]
+    targets = claim_targets(table(40, 10, 30, 25, None), ["push"], curve)
+    (name,) = [n for n in targets if "checkpoint curve" in n]
+    assert targets[name]["met"] == met and targets[name]["value"] == pytest.approx(last / 50)
 
 
 def test_regenerate_command_gives_back_the_same_settings():
@@ -97,7 +118,8 @@ def test_regenerate_command_gives_back_the_same_settings():
     with pytest.raises(InvalidInputError, match="--protocol must be one of \\['paper', 'all_scenes'\\], got 'one'"):
         ExperimentConfig(protocol="one")
     with pytest.raises(
-        InvalidInputError, match="--levers \\['gravity'\\] unknown; choose from \\['kl', 'ensemble', 'branched'\\]"
+        InvalidInputError,
+        match="--levers \\['gravity'\\] unknown; choose from \\['kl', 'ensemble', 'branched', 'refresh'\\]",
     ):
         ExperimentConfig(levers=["gravity"])
 
@@ -117,11 +139,22 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
         "lever_curves": {RL_WORLD_MODEL_KL: curve},
         "ppo_runs": [],
         "curve": curve,
-        "replays": [],
+        "replays": [
+            {"episode_index": i, "family": "push", "scene": "s", "world_model_return": 1.0, "video": f"{i}.mp4"}
+            | {"world_model_success": True, "simulator_success": sim}
+            for i, sim in enumerate((True, False, False))
+        ],
         "seconds": {},
     }
     text = markdown(cfg, summary)
     assert "The paper's protocol (`--protocol=paper`)" in text and "initial scene only" in text
+    # The first lines answer the user's question: 40/50 against SFT's 10/50 OOD, on different initial states.
+    lines = text.splitlines()
+    first = lines.index("**Does RL in the world model make the policy better out of domain?**")
+    assert lines[first + 1].startswith("- **Yes** (mlp): PPO in the world model took the SFT policy from 20% to 80%")
+    assert "+60 points, paired 95% interval [+" in lines[first + 1]
+    assert lines[first + 2].startswith(f"- Against {RL_MANISKILL_ONE_SCENE} (60% OOD): +20 points, paired")
+    assert "outcome of 1 of 3" in lines[first + 3]
     row = next(line for line in text.splitlines() if line.startswith(f"| {RL_WORLD_MODEL_KL} |"))
     assert "12/50 (24% [" in row and "0: 4/20 (20% [" in row and "10: 9/20 (45% [" in row
     cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), protocol="all_scenes", readme=None)
