@@ -19,10 +19,11 @@ from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
-from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, rl_dir
+from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, protocol_dir, rl_dir
 from lerobot_roboscape.pipeline.methods import (
     OOD_ONLY,
     PAPER_PROTOCOL,
+    PROTOCOLS,
     REWARD_ABLATION,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
@@ -133,7 +134,12 @@ def write_experiment_report(
         "replays": replays,
         "seconds": times,
     }
+    other = other_protocol(cfg, out)
+    if other:
+        summary["other_protocol"] = other
     (folder / "results.json").write_text(json.dumps(summary, indent=2))
+    # Table 1 beside this protocol's runs, where the other protocol's report finds it.
+    (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table}, indent=2))
     write_table(table, p.families, folder, f"{p.scale} scale")
     (folder / "tables.json").unlink()  # results.json holds it
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
@@ -149,6 +155,20 @@ def write_experiment_report(
     if cfg.readme:
         update_readme(Path(cfg.readme), readme_block(cfg, summary))
     return folder / "report.md"
+
+
+PROTOCOL_TABLE = "table1.json"  # each protocol's Table 1, in its folder of the run (layout.protocol_dir)
+
+
+def other_protocol(cfg, out: Path) -> dict | None:
+    """The other protocol's Table 1 on the same run (its world models, goals and data), when it ran: {protocol,
+    table}."""
+    run = Path(cfg.pipeline.output_dir).resolve()
+    for name in PROTOCOLS:
+        path = run / protocol_dir(name) / PROTOCOL_TABLE
+        if name != cfg.protocol and path.is_file():
+            return json.loads(path.read_text())
+    return None
 
 
 def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]:
@@ -310,6 +330,11 @@ def markdown(cfg, summary: dict) -> str:
         protocol=protocol(cfg),
         answer=answer(summary),
         table=format_table(table, p.families, f"{p.scale} scale", with_paper=True),
+        other=summary.get("other_protocol")
+        and (
+            summary["other_protocol"]["protocol"],
+            format_table(summary["other_protocol"]["table"], p.families, f"{p.scale} scale"),
+        ),
         short=SHORT,
         difference_rows=difference_rows,
         ablation_rows=ablation_rows,

@@ -157,6 +157,11 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     assert "outcome of 1 of 3" in lines[first + 3]
     row = next(line for line in text.splitlines() if line.startswith(f"| {RL_WORLD_MODEL_KL} |"))
     assert "12/50 (24% [" in row and "0: 4/20 (20% [" in row and "10: 9/20 (45% [" in row
+    assert "The other protocol" not in text
+    # The all-scene protocol's report, where the paper protocol's Table 1 was found: both tables.
     cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), protocol="all_scenes", readme=None)
-    text = markdown(cfg, summary | {"levers": {"mlp": {}}, "lever_curves": {}})
+    other = {"protocol": "paper", "table": table(5, 1, 30, 25, 3)}
+    text = markdown(cfg, summary | {"levers": {"mlp": {}}, "lever_curves": {}, "other_protocol": other})
     assert "The all-scene protocol" in text and "Guards against gaming" not in text
+    assert "### The other protocol on the same world models (`--protocol=paper`)" in text
+    assert "| mlp | RL w. World Model | 60 [46, 72] (26) | 10 [4, 21] (17) |" in text.split("### The other")[1]
