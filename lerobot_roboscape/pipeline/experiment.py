@@ -72,6 +72,8 @@ class ExperimentConfig:
         first, on simulator rollouts of the current policy in the training scenes).
     refresh_episodes: simulator episodes of the policy per refit.
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
+    curve_points: points of each such curve: the SFT checkpoint and checkpoints evenly spread over the run (at least
+        2: SFT and the last).
     replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
     report_dir: where the report (report.md, results.json, figures, videos) goes.
     readme: the README whose results block (between its bench-results markers) is rewritten; null: none.
@@ -92,6 +94,7 @@ class ExperimentConfig:
     refresh_rounds: int = 3
     refresh_episodes: int = 16
     curve_episodes: int = 10
+    curve_points: int = 6
     replay_episodes: int = 8
     report_dir: str = "docs/results/bench"
     readme: str | None = "README.md"
@@ -104,6 +107,10 @@ class ExperimentConfig:
         for name in ("curve_episodes", "replay_episodes", "ensemble_members", "refresh_rounds", "refresh_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
+        if self.curve_points < 2:
+            raise InvalidInputError(
+                f"--curve_points must be >= 2 (SFT and the last checkpoint), got {self.curve_points}"
+            )
 
 
 @dataclass
@@ -195,11 +202,13 @@ def checkpoint_curve(
     sft: Path,
     method: str = methods.RL_WORLD_MODEL,
 ) -> list[dict]:
-    """OOD simulator success of the SFT checkpoint (iteration 0) and of every checkpoint the PPO run of `method`
-    saved, `curve_episodes` per family, on initial states apart from Table 1's: [{iteration, seconds, cell}]."""
+    """OOD simulator success of the SFT checkpoint (iteration 0) and of `curve_points` - 1 checkpoints the PPO run
+    of `method` saved (evenly spread, its last among them), `curve_episodes` per family, on initial states apart
+    from Table 1's: [{iteration, seconds, cell}]."""
     run = out / layout.rl_dir(policy, method) / CHECKPOINTS
+    saved = sorted(f for f in run.iterdir() if f.name.isdigit())
     points = [(0, 0.0, sft)]
-    for folder in sorted(f for f in run.iterdir() if f.name.isdigit()):
+    for folder in [saved[int(i)] for i in np.unique(np.linspace(0, len(saved) - 1, cfg.curve_points - 1).round())]:
         seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
         points.append((int(folder.name), seconds, folder / FINAL))
     jobs = [

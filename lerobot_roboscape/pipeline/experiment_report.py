@@ -18,7 +18,7 @@ from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
 from lerobot_roboscape.pipeline.config import SCALES
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
-from lerobot_roboscape.pipeline.figures import curve_figure, ppo_curves
+from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, protocol_dir, rl_dir
 from lerobot_roboscape.pipeline.methods import (
     OOD_ONLY,
@@ -144,6 +144,7 @@ def write_experiment_report(
     (folder / "tables.json").unlink()  # results.json holds it
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
     curve_figure(out, policies[0], curve, folder / "curve.png")
+    gaming_figure(out, policies[0], {RL_WORLD_MODEL: curve} | lever_curves, folder / "gaming.png")
     videos = folder / "videos"
     shutil.rmtree(videos, ignore_errors=True)
     videos.mkdir()

@@ -72,3 +72,33 @@ def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def gaming_figure(out: Path, policy: str, curves: dict[str, list[dict]], path: Path) -> None:
+    """Each PPO run in the world model (plain and each lever) over PPO's clock: the simulator success of its
+    checkpoints out of domain with 95% intervals (solid), beside the success its own world model's done signal
+    gives its training episodes (dashed, same colour). A run that games the world model climbs dashed, falls solid."""
+    fig, ax = plt.subplots(figsize=(8, 3.8))
+    for (method, curve), colour in zip(curves.items(), plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False):
+        minutes = np.array([point["seconds"] / 60 for point in curve])
+        rate = np.array([100 * point["success_rate"] for point in curve])
+        ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
+        ax.errorbar(minutes, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color=colour, capsize=3)
+        ax.plot([], [], "-", color=colour, label=method.removeprefix("RL w. World Model").strip(", ") or "no lever")
+        history = read_history(out / rl_dir(policy, method))
+        ax.plot(
+            [row["seconds"] / 60 for row in history],
+            [100 * row["charts/success"] for row in history],
+            "--",
+            color=colour,
+            alpha=0.6,
+        )
+    ax.plot([], [], "k-o", label="simulator, OOD (checkpoints)")
+    ax.plot([], [], "k--", alpha=0.6, label="world model's own done (training episodes)")
+    ax.set_xlabel("PPO's clock (min; 0: the SFT checkpoint)")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

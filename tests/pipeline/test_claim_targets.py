@@ -122,6 +122,8 @@ def test_regenerate_command_gives_back_the_same_settings():
         match="--levers \\['gravity'\\] unknown; choose from \\['kl', 'ensemble', 'branched', 'refresh'\\]",
     ):
         ExperimentConfig(levers=["gravity"])
+    with pytest.raises(InvalidInputError, match="--curve_points must be >= 2"):
+        ExperimentConfig(curve_points=1)
 
 
 def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_curve():

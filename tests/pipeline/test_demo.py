@@ -168,5 +168,8 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
     replay = claim["replays"][0]
     assert (tmp_path / "claim" / "videos" / replay["video"]).is_file() and replay["family"] == "push"
     assert "| Supervised finetune |" in report.read_text() and (tmp_path / "claim" / "curve.png").is_file()
+    assert (tmp_path / "claim" / "gaming.png").is_file()
+    assert any("checkpoint curve" in name for name in claim["targets"])
+    assert report.read_text().splitlines()[2] == "**Does RL in the world model make the policy better out of domain?**"
     text = readme.read_text()
     assert "old" not in text and "PPO in WM minus SFT" in text and text.endswith(f"{README_END}\nrest\n")
