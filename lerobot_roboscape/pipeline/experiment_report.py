@@ -251,8 +251,7 @@ def protocol(cfg) -> str:
         + ". IND: the training scenes with new initial states; OOD: the held-out scenes (unseen objects and "
         "object-container pairs). Differences are our success minus theirs, with Newcombe's 95% interval for "
         "independent proportions and, since every method ran from the same initial states, his interval for "
-        "paired proportions beside it (pairs of episodes from one initial state); the targets are decided on the "
-        "unpaired one."
+        "paired proportions beside it (pairs of episodes from one initial state), which decides the targets."
     )
 
 
@@ -269,7 +268,8 @@ def answer(summary: dict) -> list[str]:
         verdict = "**Yes**" if low > 0 else "**No, it made it worse**" if high < 0 else "**Not shown**"
         lines.append(
             f"{verdict} ({policy}): PPO in the world model took the SFT policy from {sft['success_rate']:.0%} to "
-            f"{wm['success_rate']:.0%} success out of domain ({wm['episodes']} episodes per family): " + _points(row)
+            f"{wm['success_rate']:.0%} success out of domain ({wm['episodes']} episodes, the same starts for each): "
+            + _points(row)
         )
         for other in (RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
             if (policy, other, "ood", "all") in by:
