@@ -217,7 +217,8 @@ def checkpoint_curve(
             data,
             path,
             ("ood",),
-            out / CURVE_DIR / policy / curve_tag(method) / f"{iteration:08d}",
+            # the SFT checkpoint's point (iteration 0) is every run's: evaluated once, in the plain run's folder
+            out / CURVE_DIR / policy / (curve_tag(method) if iteration else "") / f"{iteration:08d}",
             episodes=cfg.curve_episodes,
             seed=CURVE_SEED,
             videos=0,
