@@ -26,10 +26,10 @@ from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.tokenizer.token_cache import load_or_build_token_cache
+from lerobot_roboscape.tokenizer.token_cache import episodes_token_cache, load_or_build_token_cache
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import resolve_device, save_atomically
-from lerobot_roboscape.world_model.done_tuning import refit_done_head, tokenize_episodes
+from lerobot_roboscape.world_model.done_tuning import refit_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 REFRESH_DIR = "done_refresh"  # in the PPO run's folder: round_<r>/ (the refitted model and its figures)
@@ -121,7 +121,7 @@ def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, fold
     demo_cache = load_or_build_token_cache(demos, tokenizer, refresh.cache_dir, device=device)
     picks = np.linspace(0, len(demo_cache.episodes) - 1, min(refresh.demonstrations, len(demo_cache.episodes)))
     demo_episodes = [demo_cache.episodes[int(i)] for i in picks.round()]
-    policy_cache = tokenize_episodes(tokenizer, rollouts, demo_cache.cameras)
+    policy_cache = episodes_token_cache(tokenizer, rollouts, demo_cache.cameras)
     sources = [(policy_cache, policy_cache.episodes), (demo_cache, demo_episodes)]
     figures = refit_done_head(model, sources, refresh.steps)
     save_atomically(model, folder / FINAL)

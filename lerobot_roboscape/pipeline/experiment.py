@@ -162,7 +162,8 @@ def lever_runs(
 ) -> dict[str, tuple]:
     """{method: (its env, PPO's settings)} of the levers asked for, beside PPO in the world model's own env."""
     p = cfg.pipeline
-    wm = policy_stages.rl_envs(p, run, trained.data, wm_env)[methods.RL_WORLD_MODEL]
+    envs = policy_stages.rl_envs(p, run, trained.data, wm_env)
+    wm = envs[methods.RL_WORLD_MODEL]
     runs = {}
     if "kl" in cfg.levers:
         runs[methods.RL_WORLD_MODEL_KL] = (wm, {"kl_coef": cfg.kl_coef})
@@ -181,7 +182,7 @@ def lever_runs(
         runs[methods.RL_WORLD_MODEL_BRANCHED] = (env, {})
     if "refresh" in cfg.levers:
         refresh = DoneRefresh(
-            sim=policy_stages.rl_envs(p, run, trained.data, wm_env)[methods.RL_MANISKILL],
+            sim=envs[methods.RL_MANISKILL],
             tokenizer=str(trained.tokenizer),
             demonstrations_repo_id=trained.data.train.repo_id,
             demonstrations_root=trained.data.train.root,

@@ -177,10 +177,7 @@ def build_token_cache(
             episode = read_episode(dataset, index)
             length = len(episode.action)
             for c, camera in enumerate(cameras):
-                frames = torch.from_numpy(episode.images[camera]).permute(0, 3, 1, 2)
-                for s in range(0, length, batch_size):
-                    codes = tokenizer.encode(frames[s : s + batch_size].to(device))
-                    tokens[row + s : row + s + len(codes), c] = codes.cpu().numpy().astype(np.uint16)
+                tokens[row : row + length, c] = encode_frames(tokenizer, episode.images[camera], batch_size)
             actions[row : row + length] = episode.action
             done[row : row + length] = episode.done_label
             rewards[row : row + length] = episode.reward_label
@@ -205,6 +202,36 @@ def build_token_cache(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return open_token_cache(path)
+
+
+@torch.no_grad()
+def encode_frames(tokenizer: VisualTokenizer, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
+    """(T, H, W, 3) uint8 frames of one camera -> (T, h, w) uint16 codes, in batches on the tokenizer's device."""
+    device = next(tokenizer.parameters()).device
+    frames = torch.from_numpy(images).permute(0, 3, 1, 2)
+    codes = [tokenizer.encode(frames[s : s + batch_size].to(device)) for s in range(0, len(frames), batch_size)]
+    return torch.cat(codes).cpu().numpy().astype(np.uint16)
+
+
+def episodes_token_cache(tokenizer: VisualTokenizer, episodes: list, cameras: list[str]) -> TokenCache:
+    """An in-memory cache of episodes held in memory (each with `images` {camera: (T, H, W, 3)}, `action`, `done`
+    and `task`, like `evaluation.success_rate.RecordedEpisode`), its rows laid out as `build_token_cache` lays a
+    dataset's."""
+    tokens, rows, start = [], [], 0
+    for episode in episodes:
+        tokens.append(np.stack([encode_frames(tokenizer, episode.images[camera]) for camera in cameras], axis=1))
+        rows.append({"start": start, "length": len(episode.action), "task": episode.task})
+        start += len(episode.action)
+    done = np.concatenate([e.done for e in episodes]).astype(np.float32)
+    return TokenCache(
+        root=None,
+        manifest={"cameras": cameras},
+        tokens=np.concatenate(tokens),
+        actions=np.concatenate([e.action for e in episodes]).astype(np.float32),
+        done=done,
+        rewards=np.zeros_like(done),
+        episodes=rows,
+    )
 
 
 def load_or_build_token_cache(

@@ -86,33 +86,6 @@ def tune_done_head(
     return losses
 
 
-@torch.no_grad()
-def tokenize_episodes(tokenizer, episodes: list, cameras: list[str], batch_size: int = 64) -> TokenCache:
-    """An in-memory token cache of recorded episodes (`evaluation.success_rate.RecordedEpisode`: images, action,
-    done), its rows laid out as `build_token_cache` lays a dataset's, for `done_features`."""
-    device = next(tokenizer.parameters()).device
-    tokens, rows, start = [], [], 0
-    for episode in episodes:
-        views = []
-        for camera in cameras:
-            frames = torch.from_numpy(episode.images[camera]).permute(0, 3, 1, 2)
-            codes = [tokenizer.encode(frames[s : s + batch_size].to(device)) for s in range(0, len(frames), batch_size)]
-            views.append(torch.cat(codes).cpu().numpy().astype(np.uint16))
-        tokens.append(np.stack(views, axis=1))
-        rows.append({"start": start, "length": len(episode.action), "task": episode.task})
-        start += len(episode.action)
-    done = np.concatenate([e.done for e in episodes]).astype(np.float32)
-    return TokenCache(
-        root=None,
-        manifest={"cameras": cameras},
-        tokens=np.concatenate(tokens),
-        actions=np.concatenate([e.action for e in episodes]).astype(np.float32),
-        done=done,
-        rewards=np.zeros_like(done),
-        episodes=rows,
-    )
-
-
 def refit_done_head(
     model: STWorldModel,
     sources: list[tuple[TokenCache, list[dict]]],
