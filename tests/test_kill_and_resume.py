@@ -15,7 +15,6 @@ from lerobot_roboscape.dataset import EPISODES_SIDECAR
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
 from lerobot_roboscape.demos.collect import JOBS, CollectConfig, collect, episodes_dir
-from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
 from lerobot_roboscape.pipeline import stages
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
@@ -26,6 +25,7 @@ from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokeni
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import read_curve
 from lerobot_roboscape.world_model.train import prepare_token_cache
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 from tests.conftest import IMAGE_SIZE, TEST_WM_ARGS, record_maniskill_file
 from tests.harness import assert_same_weights, command, kill_when, rerun
 

@@ -9,7 +9,6 @@ import lerobot_roboscape
 
 # The library's folders and top-level modules, upstream first.
 STAGES = [
-    "errors",
     "io",
     "training",  # shared foundations
     "robot",  # the robot's interface: cameras, state, actions, rate

@@ -28,11 +28,11 @@ from lerobot_roboscape.cli import train_reward as train_reward_cli
 from lerobot_roboscape.cli import train_tokenizer as train_tokenizer_cli
 from lerobot_roboscape.cli import train_wm as train_wm_cli
 from lerobot_roboscape.dataset.reader import open_dataset
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import RewardModel, RewardModelConfig
 from lerobot_roboscape.rl.policy_loading import load_policy
 from lerobot_roboscape.tokenizer.token_cache import open_token_cache
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError
 from tests.conftest import record_maniskill_file
 
 

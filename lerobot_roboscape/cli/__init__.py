@@ -1,6 +1,6 @@
 """The command lines: each parses its config and calls its stage.
 
-User errors (`lerobot_roboscape.errors.UserError`, a bad flag, a full disk or a read-only output directory) print
+User errors (`roboscape_core.errors.UserError`, a bad flag, a full disk or a read-only output directory) print
 one line on stderr and exit with status 2. Set ROBOSCAPE_DEBUG=1 for the traceback. Any other exception is a bug
 and keeps its traceback.
 """
@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from draccus.utils import ParsingError
 
-from lerobot_roboscape.errors import UserError
+from roboscape_core.errors import UserError
 
 DEBUG_ENV = "ROBOSCAPE_DEBUG"
 USER_ERROR_EXIT = 2

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_roboscape.errors import InvalidInputError, require_finite, require_shape
+from roboscape_core.errors import InvalidInputError, require_finite, require_shape
 
 IMAGES = "images."  # prefix of the camera arrays in a saved episode
 MASKS = "masks."  # prefix of the cameras' label images (dataset/segmentation.py), when recorded

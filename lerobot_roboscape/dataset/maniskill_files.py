@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 
 from lerobot_roboscape.dataset.episode import Episode
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 RENDER_HINT = (
     "It has no camera images. Render them by replaying it first, e.g.\n"

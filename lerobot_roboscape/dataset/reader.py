@@ -13,7 +13,7 @@ from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD,
 
 from lerobot_roboscape.dataset.segmentation import read_masks
 from lerobot_roboscape.dataset.writer import read_episode_info
-from lerobot_roboscape.errors import InvalidInputError, require_finite
+from roboscape_core.errors import InvalidInputError, require_finite
 
 
 class DatasetError(InvalidInputError):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 BACKGROUND, OBJECT, CONTAINER = 0, 1, 2
 LABELS = {BACKGROUND: "background", OBJECT: "object", CONTAINER: "container"}

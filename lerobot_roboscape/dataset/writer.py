@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR, write_masks
-from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 # Per-episode facts (task family, scene, split, optimal, ...) that LeRobot's episode table has no column for.
 EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"

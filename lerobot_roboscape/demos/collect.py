@@ -16,10 +16,10 @@ from lerobot_roboscape.dataset.writer import check_target, write_dataset
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
 from lerobot_roboscape.demos.planner import KINDS
 from lerobot_roboscape.demos.rollout import EpisodeJob, run_jobs
-from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.io.atomic import make_tmp_dir
 from lerobot_roboscape.robot import ACTION_NAMES, CONTROL_FREQ, STATE_NAMES
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 JOBS = "jobs.json"  # the planned episodes of an interrupted collection, which a resumed one must equal
 

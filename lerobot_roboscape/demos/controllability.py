@@ -19,8 +19,8 @@ from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.writer import check_target
 from lerobot_roboscape.demos.collect import write_task_dataset
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, run_jobs, run_planned_episode, worker_env
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
+from roboscape_core.errors import InvalidInputError
 
 TRANSLATION = slice(0, 3)  # the action's TCP translation (dx, dy, dz), what the offsets move
 

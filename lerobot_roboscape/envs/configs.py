@@ -8,9 +8,9 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.robot import ACTION_NAMES, CAMERA_NAMES, CONTROL_FREQ, STATE_DIM
 from lerobot_roboscape.training.loop import native_bf16, resolve_device
+from roboscape_core.errors import InvalidInputError
 
 CAMERAS = tuple(CAMERA_NAMES.values())
 DONE_SOURCES = ("world_model", "classifier")

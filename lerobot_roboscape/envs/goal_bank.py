@@ -17,9 +17,9 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 GOAL_SOURCES = ("text_model", "dataset_last_frame")

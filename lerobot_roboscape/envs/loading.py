@@ -3,12 +3,12 @@ models repo that names them all), the baseline reward models and the goal simila
 
 from functools import lru_cache
 
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.pull import pull_world_models, snapshot
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import load_similarity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 
 def load_pretrained(cls, ref: str, what: str, command: str):

@@ -16,10 +16,10 @@ import numpy as np
 from lerobot_roboscape.dataset.reader import family_horizons, open_dataset
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.simulator_slots import Slots, SlotSpec, SlotWorkers, make_slots
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from lerobot_roboscape.robot import STATE_DIM
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES, select_scenes
+from roboscape_core.errors import InvalidInputError
 
 # The slots' own time limit, above every horizon: episodes are cut by the env's horizons (EpisodeBook).
 SLOT_TIME_LIMIT = 100_000

@@ -32,8 +32,8 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, Goal
 from lerobot_roboscape.envs.loading import load_reward_model
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.clips import model_frames
+from roboscape_core.errors import InvalidInputError
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -49,9 +49,9 @@ from lerobot_roboscape.envs.loading import (
     load_reward_model,
     model_refs,
 )
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 

@@ -27,7 +27,6 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_frames, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.rl.policy_loading import (
@@ -39,6 +38,7 @@ from lerobot_roboscape.rl.policy_loading import (
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
+from roboscape_core.errors import InvalidInputError
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -12,12 +12,12 @@ import torch
 from tqdm import tqdm
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
 SPLITS = "splits"  # each split's result, written when the split is complete

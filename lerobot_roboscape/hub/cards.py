@@ -9,8 +9,8 @@ from lerobot.datasets.utils import create_lerobot_dataset_card
 from safetensors import safe_open
 
 from lerobot_roboscape.dataset.writer import read_episode_info
-from lerobot_roboscape.errors import MissingInputError
 from lerobot_roboscape.io import templates
+from roboscape_core.errors import MissingInputError
 
 LICENSE = "apache-2.0"
 DATASET_TAGS = ["robotics", "roboscape", "maniskill"]

@@ -11,8 +11,8 @@ from pathlib import Path
 from huggingface_hub import constants, snapshot_download
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, RepositoryNotFoundError
 
-from lerobot_roboscape.errors import MissingInputError
 from lerobot_roboscape.io.weights import looks_like_repo_id
+from roboscape_core.errors import MissingInputError
 
 WORLD_MODELS_MANIFEST = "roboscape_wm.json"
 

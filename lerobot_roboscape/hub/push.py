@@ -16,7 +16,6 @@ from huggingface_hub import HfApi
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset import DATASET_FOLDERS
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.cards import (
     DATASET_TAGS,
     LICENSE,
@@ -28,6 +27,7 @@ from lerobot_roboscape.hub.cards import (
 )
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
 from lerobot_roboscape.io.weights import looks_like_repo_id
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 WORLD_MODEL_FOLDERS = {
     "tokenizer": "tokenizer",

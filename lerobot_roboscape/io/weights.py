@@ -13,7 +13,7 @@ from huggingface_hub.errors import EntryNotFoundError, HfHubHTTPError, LocalEntr
 from safetensors import safe_open
 from torch import nn
 
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 _SHOWN = 3  # tensors named per kind of fault; the count says how many more
 # safetensors' dtype names -> torch's.

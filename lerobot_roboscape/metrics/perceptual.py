@@ -14,7 +14,7 @@ import lpips
 import torch
 import torchvision
 
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 

@@ -12,11 +12,11 @@ import h5py
 import imageio.v3 as iio
 from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.hub.pull import pull_world_models
 from lerobot_roboscape.rl.policy_loading import load_policy
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 
 class ArtifactKind(Enum):

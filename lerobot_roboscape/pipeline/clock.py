@@ -3,7 +3,7 @@ A header is printed when its stage starts, so it also marks where the stage befo
 
 import time
 
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 
 class StopAfter(Exception):  # noqa: N818 (a signal, not an error)

@@ -4,8 +4,8 @@ from dataclasses import dataclass
 
 import torch
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import TASK_FAMILIES
+from roboscape_core.errors import InvalidInputError
 
 ALL = list(TASK_FAMILIES)
 

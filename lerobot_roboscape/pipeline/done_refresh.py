@@ -18,7 +18,6 @@ import torch
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import record_episodes
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
@@ -31,6 +30,7 @@ from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import resolve_device, save_atomically
 from lerobot_roboscape.world_model.done_tuning import refit_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError
 
 REFRESH_DIR = "done_refresh"  # in the PPO run's folder: round_<r>/ (the refitted model and its figures)
 REFRESH_SEED = 300_000  # the rollouts' initial states, apart from Table 1's and the curve's

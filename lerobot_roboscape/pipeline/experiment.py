@@ -21,7 +21,6 @@ from lerobot.configs.default import DatasetConfig
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.clock import StageClock
@@ -33,6 +32,7 @@ from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 CURVE_DIR, REPLAY_DIR = "curve", "replay"

@@ -8,9 +8,9 @@ from pathlib import Path
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.pipeline.resume import run_once
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST
+from roboscape_core.errors import InvalidInputError
 
 
 def run_lerobot(script: str, args: list[str]) -> None:

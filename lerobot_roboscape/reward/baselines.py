@@ -15,9 +15,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
+from roboscape_core.errors import InvalidInputError
 
 REWARD_KINDS = ("embedding", "proxy", "success")
 IMAGE_KINDS = ("proxy", "success")  # read decoded images; the embedding reads world-model features

@@ -27,12 +27,12 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -13,13 +13,13 @@ import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.reward.baselines import IMAGE_KINDS, RewardModel, RewardModelConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import TrainingConfig, fit
 from lerobot_roboscape.world_model.clips import ClipSampler, select_episodes
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import prepare_token_cache
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 

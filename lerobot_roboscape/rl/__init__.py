@@ -1,2 +1,2 @@
 """Reinforcement learning of policies in the roboscape envs (PPO); the contract a policy meets to be trained here is
-`lerobot_roboscape.rl.actor_critic`."""
+`roboscape_core.actor_critic`."""

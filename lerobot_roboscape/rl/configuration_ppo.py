@@ -6,7 +6,7 @@ from pathlib import Path
 from lerobot.envs.configs import EnvConfig
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 # Per policy type: RL4VLA's settings for OpenVLA; ours for the MLP (its learning rate measured at the bench scale).
 PPO_DEFAULTS = {

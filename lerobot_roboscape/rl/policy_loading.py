@@ -14,9 +14,9 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.import_utils import register_third_party_plugins
 from torch import Tensor
 
-from lerobot_roboscape.errors import InvalidInputError, MissingInputError
 from lerobot_roboscape.io.weights import check_tensors
-from lerobot_roboscape.rl.actor_critic import ActorCritic
+from roboscape_core.actor_critic import ActorCritic
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 
 def load_policy(path: str | Path, device: str):
@@ -46,7 +46,7 @@ def check_actor_critic(policy, path) -> None:
     if not isinstance(policy, ActorCritic):
         raise InvalidInputError(
             f"The {policy.name!r} policy at {path} cannot be trained by PPO: it lacks sample_action, "
-            "evaluate_actions or predict_value (lerobot_roboscape.rl.actor_critic.ActorCritic). Use roboscape_mlp or "
+            "evaluate_actions or predict_value (roboscape_core.actor_critic.ActorCritic). Use roboscape_mlp or "
             "openvla."
         )
 

@@ -24,7 +24,6 @@ from lerobot.optim.optimizers import load_optimizer_state
 from torch import Tensor, nn
 from tqdm import tqdm
 
-from lerobot_roboscape.errors import OutputExistsError
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
@@ -42,6 +41,7 @@ from lerobot_roboscape.training.checkpoints import (
 )
 from lerobot_roboscape.training.loop import resolve_mixed_precision
 from lerobot_roboscape.training.records import HISTORY, History, write_video
+from roboscape_core.errors import OutputExistsError
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 import gymnasium as gym
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES
+from roboscape_core.errors import InvalidInputError
 
 CONTROL_MODE = "pd_ee_delta_pose"  # 7-D: xyz delta, rotation delta (XYZ Euler), gripper; all in [-1, 1]
 

@@ -8,7 +8,7 @@ that defines them.
 from dataclasses import dataclass
 from typing import Literal
 
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 Shape = Literal["cube", "box", "sphere", "cylinder"]
 

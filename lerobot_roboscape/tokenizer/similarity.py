@@ -14,9 +14,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.metrics.perceptual import default_trunk_path, load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 SIMILARITIES = ("auto", "lpips", "tokenizer", "pixel")  # of the env's reward (`load_similarity`)

@@ -34,8 +34,8 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
 from lerobot_roboscape.dataset.writer import DATASET_FOLDERS
-from lerobot_roboscape.errors import InvalidInputError, require_finite
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from roboscape_core.errors import InvalidInputError, require_finite
 
 FORMAT_VERSION = 2
 ARRAYS = ("tokens", "actions", "done", "rewards")

@@ -22,7 +22,6 @@ from accelerate.utils import set_seed
 from torch import nn
 from tqdm import tqdm
 
-from lerobot_roboscape.errors import InvalidInputError, OutputExistsError
 from lerobot_roboscape.io.atomic import make_tmp_dir
 from lerobot_roboscape.training.checkpoints import (
     CHECKPOINTS,
@@ -31,6 +30,7 @@ from lerobot_roboscape.training.checkpoints import (
     last_checkpoint,
     publish_checkpoint,
 )
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
 # One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.token_cache import TokenCache
+from roboscape_core.errors import InvalidInputError
 
 
 def select_episodes(

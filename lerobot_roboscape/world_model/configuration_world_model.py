@@ -2,7 +2,7 @@ from dataclasses import dataclass
 
 import draccus
 
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 CONTROLS = ("action", "text")
 DONE_LOSSES = ("balanced_bce", "rmse")

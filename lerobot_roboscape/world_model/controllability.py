@@ -34,11 +34,11 @@ from safetensors.torch import load_file, save_file
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.dataset.segmentation import read_masks
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.metrics.image_fidelity import OBJECT, OBJECT_DILATION, dilate, psnr
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 REGIONS = ("whole_frame", "object")

@@ -34,7 +34,7 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")

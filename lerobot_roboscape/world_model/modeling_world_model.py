@@ -13,12 +13,12 @@ import torch.nn.functional as F
 from huggingface_hub import snapshot_download
 from torch import nn
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ACTION_TOKENS, ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
+from roboscape_core.errors import InvalidInputError
 
 TEXT_ENCODER_DIR = "text_encoder"
 

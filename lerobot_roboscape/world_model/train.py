@@ -14,7 +14,6 @@ from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.utils.constants import ACTION
 
 from lerobot_roboscape.dataset.reader import open_dataset
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import (
     ACTION_STATS_FILE,
@@ -31,6 +30,7 @@ from lerobot_roboscape.world_model.configuration_world_model import TinyWorldMod
 from lerobot_roboscape.world_model.controllability import control_summary, load_control_starts, read_control_set
 from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 

@@ -33,12 +33,12 @@ import torch
 
 from lerobot_roboscape.envs.configs import PRECISIONS, RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
+from roboscape_core.errors import InvalidInputError
 
 
 class Timed:

@@ -9,8 +9,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, successful_episodes
 from lerobot_roboscape.demos.collect import CollectConfig, collect, make_jobs
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.pipeline.lerobot_cli import sft_episodes
+from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
 
 

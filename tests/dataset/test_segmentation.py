@@ -6,7 +6,7 @@ from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.reader import CameraFrames, FrameBank, read_episode
 from lerobot_roboscape.dataset.segmentation import CONTAINER, OBJECT, has_masks, mask_path, read_masks
 from lerobot_roboscape.dataset.writer import write_dataset
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 CAMERAS = ["third_view", "wrist"]
 

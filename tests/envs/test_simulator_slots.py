@@ -6,8 +6,8 @@ import pytest
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.envs.simulator_slots import SlotSpec, SlotWorkers
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.tasks import SCENES
+from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
 
 pytestmark = pytest.mark.slow  # the simulator in worker processes

@@ -10,10 +10,10 @@ from lerobot_roboscape.envs.batched import SingleEnv
 from lerobot_roboscape.envs.goal_bank import GoalBank, goal_generation_seconds
 from lerobot_roboscape.envs.reward_report import replay_rewards
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.clips import model_frames
+from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
 
 

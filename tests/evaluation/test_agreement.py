@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation import agreement
 from lerobot_roboscape.evaluation.agreement import (
     AgreementConfig,
@@ -14,6 +13,7 @@ from lerobot_roboscape.evaluation.agreement import (
     evaluate_agreement,
     ladder_summary,
 )
+from roboscape_core.errors import InvalidInputError
 
 
 def test_balanced_accuracy_is_the_mean_of_both_recalls():

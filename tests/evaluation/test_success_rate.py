@@ -5,7 +5,6 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import (
     EvalConfig,
     difference_interval,
@@ -15,6 +14,7 @@ from lerobot_roboscape.evaluation.success_rate import (
     wilson_interval,
 )
 from lerobot_roboscape.rl.policy_loading import PolicyIO
+from roboscape_core.errors import InvalidInputError
 from tests.rl.reach_env import TARGET, ReachEnv
 
 

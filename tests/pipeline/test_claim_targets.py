@@ -4,13 +4,13 @@ interval that straddles 0, a method not run); the differences' intervals; the re
 import draccus
 import pytest
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
 from lerobot_roboscape.pipeline.targets import claim_targets
+from roboscape_core.errors import InvalidInputError
 
 
 def cell(successes: int, episodes: int = 50, first: int = 0) -> dict:

@@ -31,9 +31,9 @@ from lerobot_policy_openvla.prismatic import PrismaticVisionBackbone
 from safetensors import safe_open
 from torch import nn
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.evaluation.agreement import AgreementConfig, evaluate_agreement
 from lerobot_roboscape.hub.push import push_policy
+from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE, lerobot_train, roboscape_wm_args
 
 CAMERA = "observation.images.third_view"

@@ -226,7 +226,7 @@ def test_reward_report(reward_models, demo_dataset, trained_tokenizer, world_mod
 def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_actions(env_config, demo_dataset):
     from lerobot_roboscape.dataset.reader import open_dataset, read_episode
     from lerobot_roboscape.envs.reward_report import RewardReportConfig, episode_rewards
-    from lerobot_roboscape.errors import InvalidInputError
+    from roboscape_core.errors import InvalidInputError
 
     _, root = demo_dataset
     env = RoboscapeWorldModelEnv(env_config(episode_length=None), num_envs=1)

@@ -268,8 +268,8 @@ def test_a_policy_must_execute_a_world_model_frame_of_actions():
     (the MLP's 4 at k = 4), one that acts every step (OpenVLA) always fits; any other chunk is refused by name."""
     from types import SimpleNamespace
 
-    from lerobot_roboscape.errors import InvalidInputError
     from lerobot_roboscape.rl.policy_loading import check_policy_fits_frame_skip
+    from roboscape_core.errors import InvalidInputError
 
     env = SimpleNamespace(frame_skip=4)
     for executed in (1, 4):

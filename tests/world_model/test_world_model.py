@@ -1,11 +1,11 @@
 import pytest
 import torch
 
-from lerobot_roboscape.errors import InvalidInputError
 from lerobot_roboscape.world_model.configuration_world_model import PaperWorldModelConfig, TinyWorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ACTION_STD_FLOOR
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
+from roboscape_core.errors import InvalidInputError
 
 MICRO = dict(
     n_cameras=2,

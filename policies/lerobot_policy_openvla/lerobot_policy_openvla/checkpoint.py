@@ -21,7 +21,7 @@ from tokenizers import Tokenizer, decoders, models, normalizers, processors
 from transformers import LlamaTokenizerFast, PreTrainedTokenizerBase
 
 from lerobot_policy_openvla.prismatic import PrismaticArchitecture, PrismaticVLA
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 TINY = "tiny"
 RANDOM_7B = "random-7b"

@@ -19,7 +19,7 @@ from torch.distributions import Categorical
 from lerobot_policy_openvla.action_tokenizer import OpenVLAActionTokenizer
 from lerobot_policy_openvla.checkpoint import SPIECE_SPACE, OpenVLACheckpointError, build_vla, read_checkpoint
 from lerobot_policy_openvla.configuration_openvla import OpenVLAConfig
-from lerobot_roboscape.rl.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+from roboscape_core.actor_critic import ActionEvaluation, PolicySample, scale_gradient
 
 ACTION_DIM = 7
 SAFETENSORS_FILE = "model.safetensors"
@@ -55,7 +55,11 @@ class OpenVLAPolicy(PreTrainedPolicy):
         self.value_head = OpenVLAValueHead(self.vla.language_model.config.hidden_size, config.value_head_dims)
         self.value_head.to(config.device or "cpu")
         if config.gradient_checkpointing:
-            self.vla.language_model.activation_checkpointing_enable({"use_reentrant": False})
+            language_model = self.vla.language_model
+            # transformers renamed the switch within 5.x; the plugin allows every 5.x, so it takes either name
+            enable = getattr(language_model, "activation_checkpointing_enable", None)
+            enable = enable or language_model.gradient_checkpointing_enable
+            enable({"use_reentrant": False})
             self.vla.vision_backbone.featurizer.set_grad_checkpointing(True)
             self.vla.vision_backbone.fused_featurizer.set_grad_checkpointing(True)
 

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from lerobot_policy_openvla.checkpoint import read_config, select_action_stats
 from lerobot_policy_openvla.configuration_openvla import OpenVLAConfig
-from lerobot_roboscape.errors import InvalidInputError
+from roboscape_core.errors import InvalidInputError
 
 GRIPPER = 6  # index of the gripper in OpenVLA's 7-D end-effector action
 NORMALIZE_EPS = 1e-8  # OpenVLA's in normalize_action_and_proprio

@@ -19,7 +19,8 @@ from torch import Tensor, nn
 from torch.distributions import Normal
 
 from lerobot_policy_roboscape_mlp.configuration_roboscape_mlp import RoboscapeMLPConfig
-from lerobot_roboscape.rl.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+from roboscape_core.actor_critic import ActionEvaluation, PolicySample, scale_gradient
+from roboscape_core.errors import MissingInputError
 
 
 def random_shift(images_BCHW: Tensor, pad: int) -> Tensor:
@@ -64,7 +65,13 @@ class RoboscapeMLPTokenizerTrunk(nn.Module):
 
     def __init__(self, config: RoboscapeMLPConfig):
         super().__init__()
-        from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer, encoder_input
+        try:  # the one trunk that needs the pipeline: the plugin installs without it
+            from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer, encoder_input
+        except ModuleNotFoundError as error:
+            raise MissingInputError(
+                f"roboscape_mlp's tokenizer_path={config.tokenizer_path!r} reads a visual tokenizer, which lives in "
+                "lerobot-roboscape: install it, or leave tokenizer_path unset for the conv trunk"
+            ) from error
 
         self.encoder_input = encoder_input
 
