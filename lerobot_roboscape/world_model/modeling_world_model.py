@@ -128,9 +128,9 @@ class STWorldModel(
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
         """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, k, A) + no_action (B, T) or task (B
-        strings). Frames after the first are masked at a MaskGIT ratio each, left clean with clean_frame_prob, or
-        masked whole with full_mask_prob; controls are replaced by the null control with control_dropout. Masked
-        tokens that changed since the previous frame weigh changed_weight in the token loss."""
+        strings). Frames after the first are masked at a MaskGIT ratio each, or left clean with clean_frame_prob;
+        controls are replaced by the null control with control_dropout. Masked tokens that changed since the
+        previous frame weigh changed_weight in the token loss."""
         tokens, done = batch["tokens"], batch["done"]
         B, T, S = tokens.shape
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
@@ -138,8 +138,6 @@ class STWorldModel(
             dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < self.config.control_dropout
             control = control.where(dropped, self.null_control(control))
         ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
-        if self.config.full_mask_prob > 0:
-            ratio = ratio.masked_fill(torch.rand(B, T, 1, device=tokens.device) < self.config.full_mask_prob, 1.0)
         ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
         ratio[:, 0] = 0.0  # the first frame is the prompt
         mask = torch.rand(B, T, S, device=tokens.device) < ratio

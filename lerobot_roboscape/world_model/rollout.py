@@ -87,7 +87,7 @@ class Rollout:
         self, control: Control, temperature: float = 0.0, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Generate the next frame under `control` ((B, 1, L, C)) in `maskgit_steps` parallel decoding steps, each
-        keeping the tokens still masked that rank highest in the config's `maskgit_order`, then observe it. Returns
+        keeping the most confident of the tokens still masked, then observe it. Returns
         tokens (B, S) and done (B,)."""
         control = self._paired(control)
         if self.capture:
@@ -129,7 +129,9 @@ class Rollout:
             if step == steps:  # the last step keeps every token still masked
                 frame_B1S[:, 0] = torch.where(known_BS, frame_B1S[:, 0], sample_BS)
                 break
-            rank_BS = self._rank(logits_BSV, sample_BS, 1 - step / steps, generator)
+            # MaskGIT's confidence order; annealed noise and 1X GENIE's random order measured within noise of it
+            # (docs/results/world_model/control_levers.md) and were removed
+            rank_BS = logits_BSV.log_softmax(-1).gather(-1, sample_BS[..., None]).squeeze(-1)
             n_known = max(int(S * (1 - math.cos(math.pi / 2 * step / steps))), 1)
             keep_BS = known_BS.scatter(1, rank_BS.masked_fill(known_BS, math.inf).topk(n_known).indices, True)
             frame_B1S[:, 0] = torch.where(keep_BS & ~known_BS, sample_BS, frame_B1S[:, 0])
@@ -153,17 +155,6 @@ class Rollout:
         done, features = self._read(frame_B1S, control)
         self.cache.advance()
         return frame_B1S, done, features
-
-    def _rank(self, logits_BSV, sample_BS, noise_left: float, generator) -> torch.Tensor:
-        """Which sampled tokens a decoding step keeps first (higher first)."""
-        config = self.model.config
-        if config.maskgit_order == "random":
-            return torch.rand(sample_BS.shape, generator=generator, device=sample_BS.device)
-        log_confidence = logits_BSV.log_softmax(-1).gather(-1, sample_BS[..., None]).squeeze(-1)
-        if config.maskgit_order == "confidence":
-            return log_confidence
-        uniform = torch.rand(sample_BS.shape, generator=generator, device=sample_BS.device).clamp(min=1e-20)
-        return log_confidence + config.maskgit_noise * noise_left * -torch.log(-torch.log(uniform))
 
     @torch.no_grad()
     def observe(self, frame_B1S, control: Control) -> torch.Tensor:

@@ -207,7 +207,6 @@ class STBlock(nn.Module):
         self.ln_cross, self.cross = nn.LayerNorm(C), Attention(config)
         self.ln_mlp, self.mlp = nn.LayerNorm(C), Mlp(config)
         self.ln_context = nn.LayerNorm(C) if config.normalize_control else nn.Identity()
-        self.gate_offset = 1.0 if config.adaln == "one_plus" else 0.0
         self.modulation = None
         if config.adaln != "none":
             self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(C, 3 * self.N_SUBLAYERS * C))
@@ -231,7 +230,7 @@ class STBlock(nn.Module):
             return ln(x) if shift is None else ln(x) * (1 + scale) + shift
 
         def gated(h, mod):
-            return h if mod[2] is None else (self.gate_offset + mod[2]) * h
+            return h if mod[2] is None else (1 + mod[2]) * h
 
         h_BTSC = rearrange(norm(self.ln_spatial, x_BTSC, mods[0]), "b t s c -> (b t) s c")
         x_BTSC = x_BTSC + gated(rearrange(self.spatial(h_BTSC), "(b t) s c -> b t s c", b=B), mods[0])

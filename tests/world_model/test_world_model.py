@@ -27,9 +27,8 @@ VARIANTS = [
     ("action", {"adaln": "none"}),
     ("action", {}),
     ("action", CONTROL_PATH),
-    ("action", {**CONTROL_PATH, "adaln": "zero", "maskgit_order": "annealed"}),
     ("text", {"adaln": "none"}),
-    ("text", {**CONTROL_PATH, "maskgit_order": "random"}),
+    ("text", CONTROL_PATH),
 ]
 
 
@@ -116,23 +115,18 @@ def test_cached_generation_equals_recomputing_the_window(control, overrides):
     torch.testing.assert_close(done_cached, done_full)
 
 
-@pytest.mark.parametrize("gate", ["one_plus", "zero"])
-def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame(gate):
+def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame():
     batch = random_batch()
     plain = make_model(adaln="none")
     torch.manual_seed(0)  # unperturbed: the zero-initialised modulation, as training starts
-    fresh = STWorldModel(TinyWorldModelConfig(control="action", adaln=gate, **MICRO, **STATS)).eval()
+    fresh = STWorldModel(TinyWorldModelConfig(control="action", adaln="one_plus", **MICRO, **STATS)).eval()
     logits = fresh.compute_logits(batch["tokens"], fresh.encode_control(batch["actions"], batch["no_action"]))[0]
-    if gate == "one_plus":  # the same weights as the model without AdaLN: the same function
-        fresh_weights = {k: v for k, v in fresh.state_dict().items() if "modulation" not in k}
-        plain.load_state_dict(fresh_weights)
-        expected = plain.compute_logits(batch["tokens"], plain.encode_control(batch["actions"], batch["no_action"]))
-        torch.testing.assert_close(logits, expected[0])
-    else:  # DiT's AdaLN-Zero: every block starts as the identity
-        x = fresh.token_emb(batch["tokens"]) + fresh.pos_emb
-        torch.testing.assert_close(logits, fresh.head(fresh.ln_f(x)))
+    # the same weights as the model without AdaLN: the same function
+    plain.load_state_dict({k: v for k, v in fresh.state_dict().items() if "modulation" not in k})
+    expected = plain.compute_logits(batch["tokens"], plain.encode_control(batch["actions"], batch["no_action"]))
+    torch.testing.assert_close(logits, expected[0])
 
-    model = make_model(adaln=gate)
+    model = make_model(adaln="one_plus")
     for block in model.blocks:  # no cross-attention path: what remains is the modulation
         torch.nn.init.zeros_(block.cross.proj.weight)
         torch.nn.init.zeros_(block.cross.proj.bias)
@@ -190,18 +184,6 @@ def test_guidance_extrapolates_from_the_null_control():
     torch.testing.assert_close(logits, parts[1] + 2.0 * (parts[0] - parts[1]))
 
 
-def test_full_masked_frames_show_only_the_first_frame():
-    model = make_model(full_mask_prob=0.999).train()
-    seen = []
-    compute = model.compute_logits
-    model.compute_logits = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
-    batch = random_batch()
-    model(batch)
-    assert torch.equal(seen[0][:, 0], batch["tokens"][:, 0])
-    clean = (seen[0][:, 1:] == batch["tokens"][:, 1:]).all(-1)  # clean_frame_prob keeps some frames unmasked
-    assert ((seen[0][:, 1:] == model.config.mask_token_id).all(-1) | clean).all()
-
-
 @pytest.mark.parametrize("changed_weight", [1.0, 7.0])
 def test_changed_tokens_weigh_changed_weight_in_the_token_loss(changed_weight):
     model = make_model(changed_weight=changed_weight, clean_frame_prob=0.0, done_weight=0.0).train()
@@ -226,16 +208,15 @@ def test_changed_tokens_weigh_changed_weight_in_the_token_loss(changed_weight):
     assert metrics["changed_acc"] == pytest.approx(hits[changed[mask]].float().mean().item())
 
 
-@pytest.mark.parametrize("order", ["confidence", "annealed", "random"])
-def test_decoding_orders_are_reproducible_from_their_generator(order):
-    model = make_model(maskgit_order=order, maskgit_steps=3)
+def test_sampled_decoding_is_reproducible_from_its_generator():
+    model = make_model(maskgit_steps=3)
     batch = random_batch()
     kw = control_kwargs(model, batch, 3)
     runs = [
-        model.generate(batch["tokens"][:, :1], 3, generator=torch.Generator().manual_seed(s), **kw)[0]
+        model.generate(batch["tokens"][:, :1], 3, temperature=1.0, generator=torch.Generator().manual_seed(s), **kw)[0]
         for s in (0, 0, 1)
     ]
-    assert torch.equal(runs[0], runs[1])
+    assert torch.equal(runs[0], runs[1]) and not torch.equal(runs[0], runs[2])
     assert runs[0].min() >= 0 and runs[0].max() < 16
 
 
