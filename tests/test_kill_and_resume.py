@@ -16,7 +16,7 @@ from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
 from lerobot_roboscape.demos.collect import JOBS, CollectConfig, collect, episodes_dir
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
-from lerobot_roboscape.pipeline import stages
+from lerobot_roboscape.pipeline import data_stages
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
@@ -82,8 +82,8 @@ def test_a_pipeline_rerun_continues_a_killed_collection_and_fresh_discards_it(tm
     work.mkdir()
     (work / JOBS).write_text("[]")  # an interrupted collection of another plan
     with pytest.raises(InvalidInputError, match="collected with other settings"):  # resumed, not refused
-        stages._collect(cfg, fresh=False)
-    stages._collect(cfg, fresh=True)
+        data_stages._collect(cfg, fresh=False)
+    data_stages._collect(cfg, fresh=True)
     assert not work.exists() and LeRobotDataset("test/demos", root=cfg.root).num_episodes == 1
 
 

@@ -88,7 +88,22 @@ BAD_FLAGS = {
         ["--pipeline.scale=smoke", "--pipeline.output_dir=nowhere/run"],
         "is missing: the experiment runs on a pipeline run's trained stages; run roboscape-demo --scale=smoke",
     ),
-    "demo: unknown family": (demo_cli, ["--families=[fly]"], "unknown task families ['fly']"),
+    "demo: unknown family": (demo_cli, ["--data.families=[fly]"], "unknown task families ['fly']"),
+    "demo: a flag from before the stages' settings were nested": (
+        demo_cli,
+        ["--scale=bench", "--wm_steps=10"],
+        "--wm_steps is now --wm_train.steps",
+    ),
+    "experiment: a flag from before the nesting": (
+        experiment_cli,
+        ["--pipeline.ppo_minutes=6"],
+        "--pipeline.ppo_minutes is now --pipeline.ppo.time_budget_s (in seconds)",
+    ),
+    "demo: cameras and tokenizer at different sizes": (
+        demo_cli,
+        ["--data.image_size=128"],
+        "--tokenizer.image_size=64 differs from the cameras' --data.image_size=128: set both",
+    ),
     "demo: stop after no stage": (demo_cli, ["--stop_after=tokeniser"], "stop_after='tokeniser' is not a stage"),
     "agreement: no policy": (agreement_cli, [], "--policy_paths is required"),
     "agreement: unknown split": (agreement_cli, ["--policy_paths=[p]", "--split=moon"], "got 'moon'"),

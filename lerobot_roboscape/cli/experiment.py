@@ -9,17 +9,19 @@ report (lerobot_roboscape/pipeline/experiment.py). A rerun skips the steps alrea
 """
 
 import logging
-
-import draccus
+import sys
 
 from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig, run_experiment
 
 
 @one_line_errors("roboscape-experiment")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    print(f"report: {run_experiment(draccus.parse(ExperimentConfig, args=argv))}")
+    print(
+        f"report: {run_experiment(parse_config(ExperimentConfig, sys.argv[1:] if argv is None else argv, 'pipeline.'))}"
+    )
 
 
 if __name__ == "__main__":

@@ -70,7 +70,9 @@ def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneR
     its last checkpoint and round when interrupted. Returns the final checkpoint."""
     folder = Path(cfg.output_dir)
     if cfg.time_budget_s is None:
-        raise InvalidInputError("the done refresh slices PPO's clock: give PPO a time budget (--ppo_minutes)")
+        raise InvalidInputError(
+            "the done refresh slices PPO's clock: give PPO a time budget (--pipeline.ppo.time_budget_s)"
+        )
     train_once(folder, {"ppo": cfg, "refresh": refresh}, fresh, lambda resume: _rounds(cfg, refresh, resume))
     return last_checkpoint(folder) / FINAL
 

@@ -22,11 +22,12 @@ from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_e
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.pipeline import layout, methods, policy_stages, resume, stages
+from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import DoneRefresh
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
+from lerobot_roboscape.reward.done_report import REPORT_JSON, DoneChoice
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
@@ -45,7 +46,7 @@ class ExperimentConfig:
     """Args:
     pipeline: the `roboscape-demo` run whose trained stages the experiment reads, as it was given
         (`--pipeline.scale`, `--pipeline.output_dir`), and the sizes of PPO and of the table
-        (`--pipeline.ppo_minutes`, `--pipeline.table_episodes`, ...).
+        (`--pipeline.ppo.time_budget_s`, `--pipeline.eval.episodes`, ...).
     protocol: "paper": SFT on the demonstrations of the initial scene only, PPO in the world model from starts in
         every scene it learned, PPO in the simulator in the initial scene and (the stronger baseline the paper
         lacks) in every training scene; "all_scenes": the same PPO runs from SFT on every training scene. Each
@@ -117,10 +118,10 @@ class ExperimentConfig:
 class TrainedStages:
     """What the experiment reads from the run's output_dir."""
 
-    data: stages.Datasets
+    demonstrations: DatasetConfig
     tokenizer: Path
     models: dict[str, Path]
-    done: dict
+    done: DoneChoice
     reward_models: dict[str, Path]
 
 
@@ -129,7 +130,7 @@ def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
     train = DatasetConfig(repo_id=layout.DEMOS_REPO_ID, root=str(out / layout.DEMOS_DIR))
     tokenizer = out / layout.TOKENIZER_DIR / FINAL
     models = {control: out / layout.world_model_dir(control) / FINAL for control in ("action", "text")}
-    done = out / layout.DONE_REPORT_DIR / "done_report.json"
+    done = out / layout.DONE_REPORT_DIR / REPORT_JSON
     for path in (Path(train.root) / "meta" / "info.json", tokenizer, *models.values(), done):
         if not path.exists():
             raise MissingInputError(
@@ -141,20 +142,19 @@ def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
         for kind in (*methods.REWARD_BASELINES, methods.SUCCESS_CLASSIFIER)
         if (out / layout.reward_model_dir(kind) / FINAL).exists()
     }
-    data = stages.Datasets(train, train, train, None, Path())
-    return TrainedStages(data, tokenizer, models, json.loads(done.read_text()), reward_models)
+    return TrainedStages(train, tokenizer, models, DoneChoice.read(done.parent), reward_models)
 
 
-def sft_policy(cfg: ExperimentConfig, out: Path, data: stages.Datasets) -> dict[str, Path]:
+def sft_policy(cfg: ExperimentConfig, out: Path, demonstrations: DatasetConfig) -> dict[str, Path]:
     """{policy: SFT checkpoint}: the one given, or lerobot-train's on the SFT demonstrations of the protocol's
     scenes (the initial scene under the paper's)."""
     if cfg.sft_checkpoint:
         return {"roboscape_mlp": Path(cfg.sft_checkpoint).resolve()}
-    dataset = data.train
+    dataset = demonstrations
     if cfg.sft_dataset_root:
         dataset = DatasetConfig(repo_id=cfg.sft_dataset_repo_id, root=str(Path(cfg.sft_dataset_root).resolve()))
     scenes = [methods.initial_scene()] if cfg.protocol == methods.PAPER_PROTOCOL else None
-    return policy_stages.sft(cfg.pipeline, out, stages.Datasets(dataset, dataset, dataset, None, Path()), scenes)
+    return policy_stages.sft(cfg.pipeline, out, dataset, scenes)
 
 
 def lever_runs(
@@ -162,13 +162,13 @@ def lever_runs(
 ) -> dict[str, tuple]:
     """{method: (its env, PPO's settings)} of the levers asked for, beside PPO in the world model's own env."""
     p = cfg.pipeline
-    envs = policy_stages.rl_envs(p, run, trained.data, wm_env)
+    envs = policy_stages.rl_envs(p, run, trained.demonstrations, wm_env)
     wm = envs[methods.RL_WORLD_MODEL]
     runs = {}
     if "kl" in cfg.levers:
         runs[methods.RL_WORLD_MODEL_KL] = (wm, {"kl_coef": cfg.kl_coef})
     if "ensemble" in cfg.levers:
-        data = stages.demonstrations(p, run)  # complete: found, not collected again
+        data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
         members = stages.ensemble_members(p, run, data, trained.tokenizer, cfg.ensemble_members)
         env = replace(
             wm,
@@ -184,8 +184,8 @@ def lever_runs(
         refresh = DoneRefresh(
             sim=envs[methods.RL_MANISKILL],
             tokenizer=str(trained.tokenizer),
-            demonstrations_repo_id=trained.data.train.repo_id,
-            demonstrations_root=trained.data.train.root,
+            demonstrations_repo_id=trained.demonstrations.repo_id,
+            demonstrations_root=trained.demonstrations.root,
             cache_dir=str(run / layout.TOKEN_CACHE_DIR),
             rounds=cfg.refresh_rounds,
             episodes=cfg.refresh_episodes,
@@ -198,7 +198,7 @@ def lever_runs(
 def checkpoint_curve(
     cfg: ExperimentConfig,
     out: Path,
-    data: stages.Datasets,
+    demonstrations: DatasetConfig,
     policy: str,
     sft: Path,
     method: str = methods.RL_WORLD_MODEL,
@@ -215,7 +215,7 @@ def checkpoint_curve(
     jobs = [
         policy_stages.eval_job(
             cfg.pipeline,
-            data,
+            demonstrations,
             path,
             ("ood",),
             # the SFT checkpoint's point (iteration 0) is every run's: evaluated once, in the plain run's folder
@@ -281,7 +281,7 @@ def _replay(cfg: ExperimentConfig, folder: Path, env_cfg: RoboscapeWorldModelEnv
     rows, strips = [], []
     for i, start in enumerate(chosen):
         family, scene, seed = start.facts["task_family"], start.facts["scene"], int(start.facts["seed"])
-        job = EpisodeJob(family, scene, seed, "optimal", p.image_size)
+        job = EpisodeJob(family, scene, seed, "optimal", p.data.image_size)
         replayed = replay_actions(worker_env(job), job, actions[:, i], {})
         simulator = np.concatenate([replayed.images[camera] for camera in env.cameras], axis=1)  # (T, 2H, W, 3)
         clip = [np.concatenate([frames[t][i], simulator[t]], axis=1) for t in range(len(simulator))]
@@ -323,12 +323,12 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     clock = StageClock(STEPS)
     clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
     wm_env = stages.world_model_env(
-        p, trained.data, trained.tokenizer, trained.models, trained.done, trained.reward_models
+        p, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )
     wm_env = replace(wm_env, goal_file=str(run / layout.GOAL_FILE))  # one set of goals for every protocol
     sft_data = "the initial scene" if cfg.protocol == methods.PAPER_PROTOCOL else "every training scene"
     clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or f'SFT with lerobot-train on {sft_data}'}")
-    sft = sft_policy(cfg, out, trained.data)
+    sft = sft_policy(cfg, out, trained.demonstrations)
     clock("levers", f"the guards against gaming the world model: {', '.join(cfg.levers) or 'none'}")
     levers = lever_runs(cfg, run, trained, wm_env)
     clock(
@@ -337,16 +337,16 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
         + (" (and the reward ablation)" if p.reward_ablation else "")
         + (" (and each lever)" if levers else ""),
     )
-    rl = policy_stages.rl(p, out, trained.data, wm_env, sft, levers)
+    rl = policy_stages.rl(p, out, trained.demonstrations, wm_env, sft, levers)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
-    results = policy_stages.simulator_eval(p, out, trained.data, checkpoints)
+    results = policy_stages.simulator_eval(p, out, trained.demonstrations, checkpoints)
     policy = next(iter(sft))
     clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")
-    curve = checkpoint_curve(cfg, out, trained.data, policy, sft[policy])
-    lever_curves = {m: checkpoint_curve(cfg, out, trained.data, policy, sft[policy], m) for m in levers}
+    curve = checkpoint_curve(cfg, out, trained.demonstrations, policy, sft[policy])
+    lever_curves = {m: checkpoint_curve(cfg, out, trained.demonstrations, policy, sft[policy], m) for m in levers}
     clock("replay", "world-model rollouts replayed in the simulator")
-    ppo_env = policy_stages.rl_envs(p, out, trained.data, wm_env)[methods.RL_WORLD_MODEL]
+    ppo_env = policy_stages.rl_envs(p, out, trained.demonstrations, wm_env)[methods.RL_WORLD_MODEL]
     replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
     clock("report", "the claim's report")
     report = write_experiment_report(cfg, out, results, curve, replays, lever_curves)

@@ -16,7 +16,7 @@ import numpy as np
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
-from lerobot_roboscape.pipeline.config import SCALES
+from lerobot_roboscape.pipeline.config import as_flag, settings_flags
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, protocol_dir, rl_dir
@@ -111,7 +111,7 @@ def write_experiment_report(
         policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
     }
     levers = {policy: {m: s for m, s in methods.items() if m in lever_curves} for policy, methods in results.items()}
-    targets = claim_targets(table, p.families, curve)
+    targets = claim_targets(table, p.data.families, curve)
     policies = list(table)
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
@@ -119,13 +119,13 @@ def write_experiment_report(
     summary = {
         "protocol": cfg.protocol,
         "scale": p.scale,
-        "families": p.families,
+        "families": p.data.families,
         "date": date.today().isoformat(),
         "machine": machine(),
         "sft_checkpoint": cfg.sft_checkpoint,
         "targets": targets,
         "table": table,
-        "differences": differences(table, p.families),
+        "differences": differences(table, p.data.families),
         "reward_ablation": ablation,
         "levers": levers,
         "ppo_runs": runs,
@@ -140,7 +140,7 @@ def write_experiment_report(
     (folder / "results.json").write_text(json.dumps(summary, indent=2))
     # Table 1 beside this protocol's runs, where the other protocol's report finds it.
     (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table}, indent=2))
-    write_table(table, p.families, folder, f"{p.scale} scale")
+    write_table(table, p.data.families, folder, f"{p.scale} scale")
     (folder / "tables.json").unlink()  # results.json holds it
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
     curve_figure(out, policies[0], curve, folder / "curve.png")
@@ -224,14 +224,14 @@ def protocol(cfg) -> str:
         else "The all-scene protocol (`--protocol=all_scenes`): the policy learned every training scene. "
     )
     budget = (
-        f"the same {p.ppo_minutes:g} min of PPO's clock (rollouts and updates)"
-        if p.ppo_minutes
-        else f"the same number of iterations ({p.ppo_iterations})"
+        f"the same {p.ppo.time_budget_s / 60:g} min of PPO's clock (rollouts and updates)"
+        if p.ppo.time_budget_s
+        else f"the same number of iterations ({p.ppo.iterations})"
     )
-    steps = f"{p.ppo_episode_length} steps" if p.ppo_episode_length else "the family's horizon"
-    length = p.table_episode_length or p.ppo_episode_length
+    steps = f"{p.env.episode_length} steps" if p.env.episode_length else "the family's horizon"
+    length = p.eval.episode_length or p.env.episode_length
     envs = "`roboscape_wm` starting from the first frame of a demonstration in every training scene (" + (
-        f"{p.wm_starts_per_scene} per family and scene)" if p.wm_starts_per_scene else "every demonstration)"
+        f"{p.env.starts_per_scene} per family and scene)" if p.env.starts_per_scene else "every demonstration)"
     )
     if p.ppo_one_scene:
         envs += (
@@ -240,12 +240,12 @@ def protocol(cfg) -> str:
         )
     envs += " and `roboscape_maniskill` in every training scene"
     return name + (
-        f"Task families {', '.join(p.families)}. PPO starts from {sft}, one multi-task run per env, "
-        f"{p.ppo_envs} parallel episodes of {steps} per iteration, for {budget} on the same machine, one run at a "
+        f"Task families {', '.join(p.data.families)}. PPO starts from {sft}, one multi-task run per env, "
+        f"{p.ppo.num_envs} parallel episodes of {steps} per iteration, for {budget} on the same machine, one run at a "
         f"time: {envs}. The world model's reward is the paper's: alpha x the sparse done reward + beta x the "
         "similarity to the goal frame the text model generated"
         + ("; the reward ablation pays one term only" if p.reward_ablation else "")
-        + f". Success is measured in the simulator, {p.table_episodes} episodes per (split, family) on the same "
+        + f". Success is measured in the simulator, {p.eval.episodes} episodes per (split, family) on the same "
         "initial states for every method; episodes end at success or after "
         + (f"{length} steps" if length else "the family's horizon")
         + ". IND: the training scenes with new initial states; OOD: the held-out scenes (unseen objects and "
@@ -295,7 +295,7 @@ def markdown(cfg, summary: dict) -> str:
     p, table = cfg.pipeline, summary["table"]
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
     difference_rows = [
-        (other, split.upper(), [by[policy, other, split, f] for f in [*p.families, "all"]])
+        (other, split.upper(), [by[policy, other, split, f] for f in [*p.data.families, "all"]])
         for policy in table
         for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL)
         for split in ("ind", "ood")
@@ -307,12 +307,12 @@ def markdown(cfg, summary: dict) -> str:
             rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
                 m.split(", ")[1]: s["ood"] for m, s in methods.items()
             }
-            ablation_rows += [(name, [cells[f] for f in [*p.families, "all"]]) for name, cells in rows.items()]
+            ablation_rows += [(name, [cells[f] for f in [*p.data.families, "all"]]) for name, cells in rows.items()]
     beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary["ppo_runs"]}
     lever_rows = [
         (
             method,
-            [cells["ood"][f] for f in [*p.families, "all"]],
+            [cells["ood"][f] for f in [*p.data.families, "all"]],
             summary["lever_curves"][method],
             beside.get((policy, method), 0),
         )
@@ -330,11 +330,11 @@ def markdown(cfg, summary: dict) -> str:
         upstream={name: _relative(path, cfg.report_dir) for name, path in UPSTREAM_REPORTS.items()},
         protocol=protocol(cfg),
         answer=answer(summary),
-        table=format_table(table, p.families, f"{p.scale} scale", with_paper=True),
+        table=format_table(table, p.data.families, f"{p.scale} scale", with_paper=True),
         other=summary.get("other_protocol")
         and (
             summary["other_protocol"]["protocol"],
-            format_table(summary["other_protocol"]["table"], p.families, f"{p.scale} scale"),
+            format_table(summary["other_protocol"]["table"], p.data.families, f"{p.scale} scale"),
         ),
         short=SHORT,
         difference_rows=difference_rows,
@@ -346,31 +346,21 @@ def markdown(cfg, summary: dict) -> str:
 
 
 def command(cfg) -> str:
-    """The command that regenerates the report: the scale, and every setting that differs from its default."""
+    """The command that regenerates the report: the scale, and every setting that differs from its file."""
     p = cfg.pipeline
     parts = [f"roboscape-experiment --protocol={cfg.protocol} --pipeline.scale={p.scale}"]
     parts.append(f"--pipeline.output_dir={p.output_dir}")
-    preset = SCALES[p.scale]
-    parts += [f"--pipeline.{name}={_flag(getattr(p, name))}" for name in preset if getattr(p, name) != preset[name]]
+    parts += [flag.replace("--", "--pipeline.", 1) for flag in settings_flags(p)]
     default = type(cfg)()
     for f in fields(cfg):
         if f.name not in ("pipeline", "protocol", "report_dir", "readme") and getattr(cfg, f.name) != getattr(
             default, f.name
         ):
-            parts.append(f"--{f.name}={_flag(getattr(cfg, f.name))}")
+            parts.append(f"--{f.name}={as_flag(getattr(cfg, f.name))}")
     parts.append(f"--report_dir={cfg.report_dir}")
     if cfg.readme != "README.md":
         parts.append(f"--readme={cfg.readme or 'null'}")
     return " ".join(parts)
-
-
-def _flag(value) -> str:
-    """A value as draccus parses it back."""
-    if isinstance(value, list):
-        return f"[{','.join(map(str, value))}]"
-    if isinstance(value, bool) or value is None:
-        return str(value).lower() if value is not None else "null"
-    return str(value)
 
 
 def _relative(path: str, report_dir: str) -> str:
@@ -387,7 +377,7 @@ def readme_block(cfg, summary: dict) -> str:
             summary=summary,
             targets=summary["targets"],
             command=command(cfg),
-            table=format_table(summary["table"], p.families, f"{p.scale} scale", with_paper=True),
+            table=format_table(summary["table"], p.data.families, f"{p.scale} scale", with_paper=True),
         ).rstrip("\n")
         + "\n"
     )  # one final newline, whatever the template's file ends with

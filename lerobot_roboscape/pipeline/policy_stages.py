@@ -7,6 +7,8 @@ from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 
+from lerobot.configs.default import DatasetConfig
+
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
 from lerobot_roboscape.evaluation.success_rate import (
@@ -37,7 +39,6 @@ from lerobot_roboscape.pipeline.methods import (
     initial_scene,
 )
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
-from lerobot_roboscape.pipeline.stages import Datasets
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
@@ -49,22 +50,24 @@ def policy_specs(cfg: PipelineConfig) -> dict[str, list[str]]:
     """{policy name: its lerobot-train arguments} of the policies this run trains."""
     device = [f"--policy.device={cfg.device}"] if cfg.device != "auto" else []
     specs = {"roboscape_mlp": ["--policy.type=roboscape_mlp", *device]}
-    if cfg.openvla_steps:
-        specs["openvla"] = ["--policy.type=openvla", f"--policy.base_model={cfg.openvla_base}", *device]
+    if cfg.sft.openvla_steps:
+        specs["openvla"] = ["--policy.type=openvla", f"--policy.base_model={cfg.sft.openvla_base_model}", *device]
     return specs
 
 
-def sft(cfg: PipelineConfig, out: Path, data: Datasets, scenes: list[str] | None = None) -> dict[str, Path]:
+def sft(
+    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, scenes: list[str] | None = None
+) -> dict[str, Path]:
     """SFT of each policy with `lerobot-train` on the demonstrations of `scenes` (None: all); returns
     {policy name: checkpoint}."""
-    steps = {"roboscape_mlp": (cfg.mlp_steps, cfg.sft_batch_size), "openvla": (cfg.openvla_steps, 8)}
+    steps = {"roboscape_mlp": (cfg.sft.steps, cfg.sft.batch_size), "openvla": (cfg.sft.openvla_steps, 8)}
     return {
         name: lerobot_sft(
             out / sft_dir(name),
-            data.train,
+            demonstrations,
             args,
             *steps[name],
-            num_workers=cfg.loader_workers,
+            num_workers=cfg.sft.num_workers,
             fresh=cfg.fresh,
             scenes=scenes,
         )
@@ -91,8 +94,8 @@ def lerobot_eval_in_world_model(
     """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
     env_args = [
         "--env.type=roboscape_wm",
-        f"--env.families=[{','.join(cfg.families)}]",
-        f"--env.episode_length={cfg.eval_episode_length}",
+        f"--env.families=[{','.join(cfg.data.families)}]",
+        f"--env.episode_length={cfg.lerobot_eval.episode_length}",
         *(f"--env.{key}={value}" for key, value in asdict(env).items() if key in _LEROBOT_EVAL_ENV_KEYS),
     ]
     results = {}
@@ -101,8 +104,8 @@ def lerobot_eval_in_world_model(
             out / lerobot_eval_dir(name),
             checkpoint,
             env_args,
-            cfg.eval_episodes,
-            cfg.eval_episodes,
+            cfg.lerobot_eval.n_episodes,
+            cfg.lerobot_eval.n_episodes,
             fresh=cfg.fresh,
         )
         result = json.loads(results[name].read_text())["overall"]
@@ -113,25 +116,27 @@ def lerobot_eval_in_world_model(
     return results
 
 
-def rl_envs(cfg: PipelineConfig, out: Path, data: Datasets, wm_env: RoboscapeWorldModelEnvConfig) -> dict:
+def rl_envs(
+    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, wm_env: RoboscapeWorldModelEnvConfig
+) -> dict:
     """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
     training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
     environment"), the simulator in one scene; with `reward_ablation`, the world model paid only its sparse and
     only its dense reward. The world model's goals are generated once into `wm_env.goal_file` (default: the run's
     own, in `out`), before PPO's clock starts, and shared by its runs."""
     sim = RoboscapeManiSkillEnvConfig(
-        families=cfg.families,
+        families=cfg.data.families,
         split="ind",
-        image_size=cfg.image_size,
-        episode_length=cfg.ppo_episode_length,
-        dataset_repo_id=data.train.repo_id,
-        dataset_root=data.train.root,
+        image_size=cfg.data.image_size,
+        episode_length=cfg.env.episode_length,
+        dataset_repo_id=demonstrations.repo_id,
+        dataset_root=demonstrations.root,
     )
     wm = replace(
         wm_env,
         split="ind",
-        episode_length=cfg.ppo_episode_length,
-        starts_per_scene=cfg.wm_starts_per_scene,
+        episode_length=cfg.env.episode_length,
+        starts_per_scene=cfg.env.starts_per_scene,
         goal_file=wm_env.goal_file or str(out / GOAL_FILE),
     )
     envs = {RL_WORLD_MODEL: wm, RL_MANISKILL: sim}
@@ -157,7 +162,7 @@ def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
 def rl(
     cfg: PipelineConfig,
     out: Path,
-    data: Datasets,
+    demonstrations: DatasetConfig,
     wm_env: RoboscapeWorldModelEnvConfig,
     checkpoints: dict[str, Path],
     levers: dict[str, tuple] | None = None,
@@ -166,7 +171,7 @@ def rl(
     the runs of `levers` ({method: (its env, PPO's settings beside these; "done_refresh": a `DoneRefresh` runs it
     with the done refresh)}); returns {policy: {method: checkpoint}}."""
     runs = {}
-    envs = {method: (env, {}) for method, env in rl_envs(cfg, out, data, wm_env).items()} | (levers or {})
+    envs = {method: (env, {}) for method, env in rl_envs(cfg, out, demonstrations, wm_env).items()} | (levers or {})
     for name, sft_checkpoint in checkpoints.items():
         runs[name] = {}
         for method, (env, settings) in envs.items():
@@ -178,13 +183,8 @@ def rl(
                     policy_path=str(sft_checkpoint),
                     env=env,
                     output_dir=out / rl_dir(name, method),
-                    num_envs=cfg.ppo_envs,
-                    iterations=cfg.ppo_iterations,
-                    critic_warmup_iterations=cfg.ppo_critic_warmup,
-                    time_budget_s=None if cfg.ppo_minutes is None else 60 * cfg.ppo_minutes,
-                    save_freq=max(min(cfg.ppo_iterations, 5), 1),
                     device=cfg.device,
-                    **settings,
+                    **(asdict(cfg.ppo) | settings),
                 ),
                 cfg.fresh,
             )
@@ -198,7 +198,7 @@ EVAL_BATCH_SIZE = 8  # parallel episodes of each simulator evaluation
 
 def eval_job(
     cfg: PipelineConfig,
-    data: Datasets,
+    demonstrations: DatasetConfig,
     checkpoint: Path,
     splits: tuple[str, ...],
     output_dir: Path,
@@ -209,16 +209,16 @@ def eval_job(
     """The simulator evaluation of one checkpoint: `episodes` (default: Table 1's) per (split, family)."""
     return EvalConfig(
         policy_path=str(checkpoint),
-        families=cfg.families,
+        families=cfg.data.families,
         splits=list(splits),
-        episodes=episodes or cfg.table_episodes,
+        episodes=episodes or cfg.eval.episodes,
         batch_size=EVAL_BATCH_SIZE,
-        episode_length=cfg.table_episode_length or cfg.ppo_episode_length,
-        dataset_repo_id=data.train.repo_id,
-        dataset_root=data.train.root,
-        image_size=cfg.image_size,
+        episode_length=cfg.eval.episode_length or cfg.env.episode_length,
+        dataset_repo_id=demonstrations.repo_id,
+        dataset_root=demonstrations.root,
+        image_size=cfg.data.image_size,
         videos=videos,
-        workers=cfg.workers,
+        workers=cfg.data.workers,
         output_dir=output_dir,
         device=cfg.device,
         **({} if seed is None else {"seed": seed}),
@@ -231,7 +231,7 @@ def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
     pending = [job for job in jobs if not is_done(job.output_dir, job, cfg.fresh)]
     if not pending:
         return
-    slots = build_slots(eval_env_config(pending[0], "ind", cfg.image_size), eval_batch_size(pending[0]))
+    slots = build_slots(eval_env_config(pending[0], "ind", cfg.data.image_size), eval_batch_size(pending[0]))
     try:
         for job in pending:
             start(job.output_dir)
@@ -241,7 +241,9 @@ def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
         slots.close()
 
 
-def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: dict[str, dict[str, Path]]) -> dict:
+def simulator_eval(
+    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, checkpoints: dict[str, dict[str, Path]]
+) -> dict:
     """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's and the levers' OOD only;
     95% Wilson intervals), one evaluation per (checkpoint, split). Returns
     {policy: {method: {split: {family: cell}}}}."""
@@ -250,7 +252,7 @@ def simulator_eval(cfg: PipelineConfig, out: Path, data: Datasets, checkpoints: 
         for method, checkpoint in methods.items():
             for split in ("ood",) if method in OOD_ONLY else ("ind", "ood"):
                 jobs[name, method, split] = eval_job(
-                    cfg, data, checkpoint, (split,), out / eval_dir(name, method) / split
+                    cfg, demonstrations, checkpoint, (split,), out / eval_dir(name, method) / split
                 )
     run_evaluations(cfg, list(jobs.values()))
     results = {}

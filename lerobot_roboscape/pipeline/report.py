@@ -86,12 +86,12 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     table = json.loads((out / TABLES_DIR / "tables.json").read_text())
     curve = read_curve(out / world_model_dir("action"))
     targets = tokenizer_targets(tokenizer) | measure_targets(
-        fidelity, done, rewards, table, cfg.families, curve, fidelity_ind
+        fidelity, done, rewards, table, cfg.data.families, curve, fidelity_ind
     )
     times = stage_times(cfg, out)
     results = {
         "scale": cfg.scale,
-        "families": cfg.families,
+        "families": cfg.data.families,
         "date": date.today().isoformat(),
         "machine": machine(),
         "targets": targets,
@@ -144,22 +144,23 @@ def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
 def protocol(cfg: PipelineConfig) -> str:
     """The experiment's protocol, as the paper's section 8.1, in the words of this run's settings."""
     heldout = (
-        f"held-out episodes in {cfg.heldout_scenes} OOD scenes, half of them failed attempts"
-        if cfg.heldout_scenes
+        f"held-out episodes in {cfg.data.heldout_scenes} OOD scenes, half of them failed attempts"
+        if cfg.data.heldout_scenes
         else "one recorded and converted IND episode (this scale collects no held-out OOD episodes)"
     )
     budget = (
-        f"the same wall-clock budget ({cfg.ppo_minutes:g} min) on the same machine"
-        if cfg.ppo_minutes
-        else f"the same number of iterations ({cfg.ppo_iterations})"
+        f"the same wall-clock budget ({cfg.ppo.time_budget_s / 60:g} min) on the same machine"
+        if cfg.ppo.time_budget_s
+        else f"the same number of iterations ({cfg.ppo.iterations})"
     )
-    length = cfg.table_episode_length or cfg.ppo_episode_length
+    length = cfg.eval.episode_length or cfg.env.episode_length
     ending = f"{length} steps" if length else "the family's horizon (its longest successful demonstration)"
     return (
-        f"As the paper's section 8.1: task families {', '.join(cfg.families)}; IND evaluates the training scenes with "
+        f"As the paper's section 8.1: task families {', '.join(cfg.data.families)}; IND evaluates the training scenes "
+        "with "
         "new initial states, OOD the held-out scenes (unseen objects and unseen object-container combinations). The "
         "world models and the MLP policy train on the demonstrations of the IND scenes "
-        f"({cfg.episodes_per_scene} per family and scene, a quarter of them deliberately failed; SFT imitates the "
+        f"({cfg.data.episodes_per_scene} per family and scene, a quarter of them deliberately failed; SFT imitates the "
         f"successful ones). The fidelity and reward reports use {heldout}. RL: PPO from the SFT checkpoint, one "
         f"multi-task run per env over the families; each run gets {budget}."
         + (
@@ -168,7 +169,7 @@ def protocol(cfg: PipelineConfig) -> str:
             if cfg.ppo_one_scene
             else " RL in ManiSkill runs in every training scene."
         )
-        + f" Success: {_episodes(cfg.table_episodes)} in the simulator per (split, family); episodes end at success "
+        + f" Success: {_episodes(cfg.eval.episodes)} in the simulator per (split, family); episodes end at success "
         f"or after {ending}."
     )
 
@@ -185,9 +186,9 @@ def evaluation_summary(cfg: PipelineConfig, table: dict, seconds: dict) -> str:
     ]
     minutes = sum(v for k, v in seconds.items() if k.startswith("simulator evaluation")) / 60
     return (
-        f"Each cell rests on {_episodes(cfg.table_episodes)}; its 95% interval is {min(widths):.0f} to "
+        f"Each cell rests on {_episodes(cfg.eval.episodes)}; its 95% interval is {min(widths):.0f} to "
         f"{max(widths):.0f} points wide (in parentheses after each interval). The evaluation took "
-        f"{minutes:.1f} min ({len(widths)} cells, {cfg.workers} simulator processes)."
+        f"{minutes:.1f} min ({len(widths)} cells, {cfg.data.workers} simulator processes)."
     )
 
 
@@ -235,7 +236,7 @@ def evaluation_seconds(out: Path) -> float:
 
 def evaluation_label(cfg: PipelineConfig, out: Path) -> str:
     jobs = len(list((out / EVAL_DIR).glob("*/*/*/stage.json")))
-    return f"simulator evaluation ({jobs} jobs one after another, on {cfg.workers} simulator processes)"
+    return f"simulator evaluation ({jobs} jobs one after another, on {cfg.data.workers} simulator processes)"
 
 
 def machine() -> str:
@@ -251,7 +252,7 @@ def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
         targets=results["targets"],
         judged=cfg.scale in JUDGED_SCALES,
         protocol=protocol(cfg),
-        table=format_table(table, cfg.families, f"{cfg.scale} scale"),
+        table=format_table(table, cfg.data.families, f"{cfg.scale} scale"),
         evaluation=evaluation_summary(cfg, table, results["stage_seconds"]),
         wm_figure_frames=WM_FIGURE_FRAMES,
     )

@@ -8,10 +8,10 @@ from pathlib import Path
 
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
-from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
+from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, stages
 from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
 from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
-from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.config import PipelineConfig, preset
 from lerobot_roboscape.pipeline.report import write_report
 
 # The demo's stages, in order; each header names one, with the details of this run.
@@ -45,12 +45,12 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     out = Path(cfg.output_dir).resolve()
 
     clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
-    data = stages.demonstrations(cfg, out)
+    data = data_stages.demonstrations(cfg.data, out, cfg.fresh)
     artifacts["demonstrations (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.train.root))
     artifacts["held-out episodes (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.heldout.root))
     artifacts["ManiSkill trajectory file"] = Artifact(ArtifactKind.TRAJECTORY_FILE, data.trajectory_file)
 
-    clock("tokenizer", f"train the image tokenizer ({cfg.tokenizer_preset} preset)")
+    clock("tokenizer", f"train the image tokenizer ({preset(cfg.tokenizer)} preset)")
     tokenizer = stages.tokenizer(cfg, out, data)
     artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
 
@@ -65,7 +65,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
         ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
     )
 
-    clock("world models", f"train the action and the text world models ({cfg.wm_preset} preset)")
+    clock("world models", f"train the action and the text world models ({preset(cfg.wm)} preset)")
     models = stages.world_models(cfg, out, data, tokenizer)
     artifacts |= {
         f"{control} world model": Artifact(ArtifactKind.WORLD_MODEL, path) for control, path in models.items()
@@ -92,9 +92,9 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     clock("done and reward", "reward models, the done signal and the reward report (held-out episodes)")
     trained = stages.reward_models(cfg, out, data, tokenizer, models)
     done = stages.done_report(cfg, out, data, tokenizer, models, trained)
-    print(f"done: {done['chosen']['source']} at threshold {done['chosen']['theta']:.3f}")
+    print(f"done: {done.source} at threshold {done.theta:.3f}")
     artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.DONE_REPORT_DIR / "done_report.md")
-    wm_env = stages.world_model_env(cfg, data, tokenizer, models, done, trained)
+    wm_env = stages.world_model_env(cfg, data.train, tokenizer, models, done, trained)
     rewards = stages.reward_report(cfg, out, data, wm_env, trained)
     print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
     artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
@@ -106,7 +106,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout["plot"])
 
     clock("SFT", "SFT with lerobot-train: " + " and ".join(policy_stages.policy_specs(cfg)))
-    sft = policy_stages.sft(cfg, out, data)
+    sft = policy_stages.sft(cfg, out, data.train)
     artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
 
     clock("lerobot-eval in the world model", "lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
@@ -116,19 +116,19 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     clock(
         "PPO",
         "PPO in roboscape_wm and in roboscape_maniskill"
-        + (" (each " + f"{cfg.ppo_minutes:g} min)" if cfg.ppo_minutes else ""),
+        + (f" (each {cfg.ppo.time_budget_s / 60:g} min)" if cfg.ppo.time_budget_s else ""),
     )
-    rl = policy_stages.rl(cfg, out, data, wm_env, sft)
+    rl = policy_stages.rl(cfg, out, data.train, wm_env, sft)
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     for name, runs in rl.items():
         artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
-    table = policy_stages.simulator_eval(cfg, out, data, checkpoints)
+    table = policy_stages.simulator_eval(cfg, out, data.train, checkpoints)
     # Table 1's methods; the reward ablation's OOD rows are roboscape-experiment's to report.
     table = {n: {m: s for m, s in runs.items() if m not in methods.REWARD_ABLATION} for n, runs in table.items()}
     tables = out / layout.TABLES_DIR
-    write_table(table, cfg.families, tables)
+    write_table(table, cfg.data.families, tables)
     print((tables / "tables.md").read_text())
     artifacts["Table 1"] = Artifact(ArtifactKind.MARKDOWN, tables / "tables.md")
     artifacts["Table 1 bar chart"] = Artifact(ArtifactKind.IMAGE, tables / "tables.png")

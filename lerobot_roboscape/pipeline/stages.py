@@ -4,8 +4,7 @@ the settings it ran with; a rerun with the same settings skips it (so a killed r
 
 import json
 import logging
-import shutil
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import av
@@ -13,31 +12,18 @@ import imageio.v3 as iio
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import open_dataset
-from lerobot_roboscape.demos.collect import CollectConfig, collect, episodes_dir
-from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
-from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
-from lerobot_roboscape.demos.record import record_maniskill_trajectories
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import RewardReportConfig, plot_rollout_rewards, write_reward_report
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.data_stages import Datasets
 from lerobot_roboscape.pipeline.layout import (
-    CONTROL_DIR,
-    CONTROL_IND_DIR,
-    CONVERTED_DIR,
-    DEMOS_DIR,
-    DEMOS_REPO_ID,
     DONE_REPORT_DIR,
-    EXPLORE_DIR,
-    HELDOUT_DIR,
     REWARD_REPORT_DIR,
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
-    TRAJECTORIES_DIR,
-    VALIDATION_DIR,
     fidelity_dir,
     reward_model_dir,
     world_model_dir,
@@ -46,169 +32,18 @@ from lerobot_roboscape.pipeline.methods import (
     REWARD_BASELINES,
     SUCCESS_CLASSIFIER,
 )
-from lerobot_roboscape.pipeline.resume import STAGE_FILE, is_done, mark_done, run_once, start, train_once
+from lerobot_roboscape.pipeline.resume import STAGE_FILE, run_once, train_once
 from lerobot_roboscape.reward.baselines import RewardModelConfig
-from lerobot_roboscape.reward.done_report import DoneReportConfig, evaluate_done
-from lerobot_roboscape.reward.train import RewardTrainingConfig, TrainRewardConfig, train_reward_model
-from lerobot_roboscape.tasks import select_scenes
-from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
+from lerobot_roboscape.reward.done_report import DoneChoice, DoneReportConfig, evaluate_done
+from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
-from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig, TrainTokenizerConfig, train_tokenizer
+from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
-from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
+from lerobot_roboscape.training.loop import TrainingConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
-from lerobot_roboscape.world_model.train import TrainWorldModelConfig, WorldModelTrainingConfig, train_world_model
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 logger = logging.getLogger(__name__)
-HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
-VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
-CONTROL_SEED = 70_000  # and the starts of the controllability set
-CONTROL_IND_SEED = 75_000  # and those of its twin in the training scenes
-EXPLORE_SEED = 80_000  # and the exploratory episodes
-
-
-# ---- data --------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Datasets:
-    """train: the demonstrations (IND scenes; successful, suboptimal and failed attempts). heldout: episodes the
-    models never saw, for the fidelity and reward reports (OOD scenes, half failed; or one converted episode).
-    validation: episodes the done threshold is chosen on (IND scenes, new initial states, half failed; the
-    demonstrations themselves at the scales without held-out scenes). controllability: K action sequences from
-    each of some OOD starts (demos/controllability.py), or None; controllability_ind: the same from new initial
-    states of the training scenes (where RL runs, so where the world model must first be faithful), or None.
-    trajectory_file: the recorded ManiSkill .h5 that
-    `roboscape-convert` read. exploration: exploratory episodes in the IND scenes (demos/exploration.py) for the
-    action world model only, or None."""
-
-    train: DatasetConfig
-    heldout: DatasetConfig
-    validation: DatasetConfig
-    controllability: DatasetConfig | None
-    trajectory_file: Path
-    exploration: DatasetConfig | None = None
-    controllability_ind: DatasetConfig | None = None
-
-
-def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
-    folder = Path(cfg.root)
-    if fresh:
-        shutil.rmtree(episodes_dir(folder), ignore_errors=True)
-    # a killed collection continues from the episodes it saved (its planned jobs must match, or collect says so)
-    run_once(folder, cfg, fresh, lambda: collect(replace(cfg, overwrite=True, resume=True)))
-    return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
-
-
-def _unseen_episodes(
-    cfg: PipelineConfig, root: Path, split: str, scenes: int | None, per_scene: int, seed: int
-) -> DatasetConfig:
-    """Episodes no model trains on, from initial states the demonstrations lack: half of them failed attempts,
-    with the object's masks (the held-out and the validation collections)."""
-    return _collect(
-        CollectConfig(
-            repo_id=f"local/{root.name}",
-            root=str(root),
-            families=cfg.families,
-            split=split,
-            max_scenes=scenes,
-            episodes_per_scene=per_scene,
-            failed_fraction=0.5,
-            seed=seed,
-            image_size=cfg.image_size,
-            workers=cfg.workers,
-            keep_failed=True,
-            segmentation=True,
-        ),
-        cfg.fresh,
-    )
-
-
-def _controllability(
-    cfg: PipelineConfig, root: Path, split: str, scenes: int | None, seed: int, starts_per_scene: int = 2
-) -> DatasetConfig:
-    """A controllability set (K action sequences from each start) in the scenes of `split`."""
-    control = ControllabilityConfig(
-        repo_id=f"local/{root.name}",
-        root=str(root),
-        families=cfg.families,
-        split=split,
-        max_scenes=scenes,
-        starts_per_scene=starts_per_scene,
-        seed=seed,
-        image_size=cfg.image_size,
-        workers=cfg.workers,
-        overwrite=True,
-    )
-    run_once(root, control, cfg.fresh, lambda: collect_controllability(control))
-    return DatasetConfig(repo_id=control.repo_id, root=control.root)
-
-
-def demonstrations(cfg: PipelineConfig, out: Path) -> Datasets:
-    """Planner demonstrations in the IND scenes, a recorded ManiSkill trajectory file converted to a LeRobotDataset
-    and, at the scales with held-out scenes, a held-out collection in OOD scenes, a validation collection in IND
-    scenes and a controllability set from OOD starts."""
-    train = _collect(
-        CollectConfig(
-            repo_id=DEMOS_REPO_ID,
-            root=str(out / DEMOS_DIR),
-            families=cfg.families,
-            split="ind",
-            max_scenes=cfg.scenes,
-            episodes_per_scene=cfg.episodes_per_scene,
-            image_size=cfg.image_size,
-            workers=cfg.workers,
-            keep_failed=True,
-            segmentation=True,
-        ),
-        cfg.fresh,
-    )
-    record = {
-        "family": cfg.families[0],
-        "scene": select_scenes("ind")[0].id,
-        "image_size": cfg.image_size,
-        "seed": HELDOUT_SEED,
-    }
-    converted = out / CONVERTED_DIR
-    h5_dir = out / TRAJECTORIES_DIR
-    if not is_done(converted, record, cfg.fresh):
-        start(h5_dir)
-        h5 = record_maniskill_trajectories(
-            h5_dir, record["family"], record["scene"], episodes=1, image_size=cfg.image_size, seed=HELDOUT_SEED
-        )
-        start(converted)
-        convert(ConvertConfig(h5=str(h5), root=str(converted), repo_id="local/maniskill_converted", overwrite=True))
-        mark_done(converted, record)
-    h5 = next(h5_dir.glob("*.h5"))
-    heldout = DatasetConfig(repo_id="local/maniskill_converted", root=str(converted))
-    validation, controllability, controllability_ind = train, None, None
-    if cfg.heldout_scenes:
-        heldout = _unseen_episodes(cfg, out / HELDOUT_DIR, "ood", cfg.heldout_scenes, 4, HELDOUT_SEED)
-        validation = _unseen_episodes(cfg, out / VALIDATION_DIR, "ind", cfg.scenes, 1, VALIDATION_SEED)
-        controllability = _controllability(cfg, out / CONTROL_DIR, "ood", cfg.heldout_scenes, CONTROL_SEED)
-        # One start per training scene, from new initial states: where RL runs, the world model is judged first.
-        controllability_ind = _controllability(cfg, out / CONTROL_IND_DIR, "ind", cfg.scenes, CONTROL_IND_SEED, 1)
-    exploration = None
-    if cfg.explore_episodes_per_scene:
-        exploration = _collect(
-            CollectConfig(
-                repo_id="local/roboscape_explore",
-                root=str(out / EXPLORE_DIR),
-                families=cfg.families,
-                split="ind",
-                max_scenes=cfg.scenes,
-                episodes_per_scene=cfg.explore_episodes_per_scene,
-                kinds=list(EXPLORATORY_KINDS),
-                seed=EXPLORE_SEED,
-                image_size=cfg.image_size,
-                workers=cfg.workers,
-                keep_failed=True,
-            ),
-            cfg.fresh,
-        )
-    return Datasets(train, heldout, validation, controllability, h5, exploration, controllability_ind)
-
-
 # ---- models ------------------------------------------------------------------------------------------------------
 
 
@@ -219,15 +54,10 @@ def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
     train = TrainTokenizerConfig(
         dataset=data.train,
         heldout=data.heldout,
-        tokenizer=TokenizerConfig.get_choice_class(cfg.tokenizer_preset)(image_size=cfg.image_size),
-        train=TokenizerTrainingConfig(
-            steps=cfg.tokenizer_steps,
-            batch_size=cfg.tokenizer_batch_size,
-            save_freq=max(cfg.tokenizer_steps // 4, 1),
-            eval_freq=max(cfg.tokenizer_steps // 10, 1),
-        ),
+        tokenizer=cfg.tokenizer,
+        train=_with_checkpoints(cfg.tokenizer_train),
         output_dir=folder,
-        num_workers=min(cfg.workers, 2),
+        num_workers=min(cfg.data.workers, 2),
         allow_random_lpips=True,
     )
     return _train(folder, train, train_tokenizer, cfg.fresh)
@@ -254,8 +84,8 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
     controllability set as it trains."""
     return {
-        control: _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, steps)
-        for control, steps in (("action", cfg.wm_steps), ("text", cfg.text_wm_steps))
+        control: _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
+        for control, training in (("action", cfg.wm_train), ("text", cfg.text_wm_train))
     }
 
 
@@ -264,26 +94,20 @@ def ensemble_members(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
     disagreement guards PPO in the world model (envs/ensemble.py)."""
     folders = [out / world_model_dir(f"action_seed{seed}") for seed in range(1, n + 1)]
     return [
-        _world_model(cfg, folder, data, tokenizer_path, "action", cfg.wm_steps, seed)
+        _world_model(cfg, folder, data, tokenizer_path, "action", replace(cfg.wm_train, seed=seed))
         for seed, folder in enumerate(folders, start=1)
     ]
 
 
 def _world_model(
-    cfg: PipelineConfig, folder: Path, data: Datasets, tokenizer_path: Path, control: str, steps: int, seed: int = 0
+    cfg: PipelineConfig, folder: Path, data: Datasets, tokenizer_path: Path, control: str, training
 ) -> Path:
     action = control == "action"
     train = TrainWorldModelConfig(
         dataset=data.train,
         tokenizer=str(tokenizer_path),
-        wm=WorldModelConfig.get_choice_class(cfg.wm_preset)(control=control),
-        train=WorldModelTrainingConfig(
-            steps=steps,
-            batch_size=cfg.wm_batch_size,
-            save_freq=max(steps // 4, 1),
-            eval_freq=max(steps // 10, 1),
-            seed=seed,
-        ),
+        wm=replace(cfg.wm, control=control),
+        train=_with_checkpoints(training),
         output_dir=folder,
         cache_dir=folder.parent / TOKEN_CACHE_DIR,
         exploration=data.exploration if action else None,
@@ -292,6 +116,11 @@ def _world_model(
         device=cfg.device,
     )
     return _train(folder, train, train_world_model, cfg.fresh)
+
+
+def _with_checkpoints(training: TrainingConfig) -> TrainingConfig:
+    """A checkpoint every quarter of the run and a held-out reading every tenth, whatever its length."""
+    return replace(training, save_freq=max(training.steps // 4, 1), eval_freq=max(training.steps // 10, 1))
 
 
 def _train(folder: Path, train, trainer, fresh: bool) -> Path:
@@ -305,9 +134,9 @@ def reward_models(
     cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
 ) -> dict[str, Path]:
     """Train the paper's baseline rewards (embedding-based and proxy-based) and the success classifier; {} when
-    reward_model_steps is 0."""
+    the run trains no reward models."""
     trained = {}
-    for kind in (*REWARD_BASELINES, SUCCESS_CLASSIFIER) if cfg.reward_model_steps else ():
+    for kind in (*REWARD_BASELINES, SUCCESS_CLASSIFIER) if cfg.reward_models else ():
         folder = out / reward_model_dir(kind)
         train = TrainRewardConfig(
             reward=RewardModelConfig(kind=kind),
@@ -315,7 +144,7 @@ def reward_models(
             tokenizer=str(tokenizer_path),
             action_world_model=str(models["action"]),
             # The embedding head reads clips of the action model's window; the image networks single frames.
-            train=RewardTrainingConfig(steps=cfg.reward_model_steps, batch_size=8 if kind == "embedding" else 32),
+            train=replace(cfg.reward_train, batch_size=8 if kind == "embedding" else 32),
             output_dir=folder,
             cache_dir=out / TOKEN_CACHE_DIR,
             device=cfg.device,
@@ -327,13 +156,13 @@ def reward_models(
 
 def done_report(
     cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path], trained: dict
-) -> dict:
+) -> DoneChoice:
     """Which done signal the env trusts (the action model's head or the success classifier) and its threshold,
-    chosen on the validation episodes and measured on the held-out ones; returns the report."""
+    chosen on the validation episodes and measured on the held-out ones (the report, in its folder)."""
     folder = out / DONE_REPORT_DIR
     classifier = trained.get(SUCCESS_CLASSIFIER)
     report_cfg = DoneReportConfig(
-        dataset=spread(data.heldout, cfg.report_episodes),
+        dataset=spread(data.heldout, cfg.data.report_episodes),
         validation=data.validation,
         tokenizer=str(tokenizer_path),
         world_model=str(models["action"]),
@@ -342,33 +171,34 @@ def done_report(
         device=cfg.device,
     )
     run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_done(report_cfg))
-    return json.loads((folder / "done_report.json").read_text())
+    return DoneChoice.read(folder)
 
 
 def world_model_env(
     cfg: PipelineConfig,
-    data: Datasets,
+    demonstrations: DatasetConfig,
     tokenizer_path: Path,
     models: dict[str, Path],
-    done: dict | None = None,
+    done: DoneChoice | None = None,
     trained: dict | None = None,
 ) -> RoboscapeWorldModelEnvConfig:
-    """The `roboscape_wm` env of these models, starting from the demonstrations' first frames; with a done report,
-    its chosen done source and threshold (for success, the goal and the sparse reward)."""
+    """The `roboscape_wm` env of these models, starting from the demonstrations' first frames; with the done
+    report's choice, its done source and threshold (for success, the goal and the sparse reward)."""
     chosen = dict(done_source="world_model")
     if done is not None:
-        source, theta = done["chosen"]["source"], done["chosen"]["theta"]
-        classifier = (trained or {}).get(SUCCESS_CLASSIFIER) if source == "classifier" else None
-        chosen = dict(done_source=source, success_classifier=_str(classifier), theta=theta, theta_sps=theta)
+        classifier = (trained or {}).get(SUCCESS_CLASSIFIER) if done.source == "classifier" else None
+        chosen = dict(
+            done_source=done.source, success_classifier=_str(classifier), theta=done.theta, theta_sps=done.theta
+        )
     return RoboscapeWorldModelEnvConfig(
-        dataset_repo_id=data.train.repo_id,
-        dataset_root=data.train.root,
+        dataset_repo_id=demonstrations.repo_id,
+        dataset_root=demonstrations.root,
         tokenizer=str(tokenizer_path),
         action_world_model=str(models["action"]),
         text_world_model=str(models["text"]),
-        families=cfg.families,
-        image_size=cfg.image_size,
-        max_goal_steps=cfg.max_goal_steps,
+        families=cfg.data.families,
+        image_size=cfg.data.image_size,
+        max_goal_steps=cfg.env.max_goal_steps,
         allow_random_lpips=True,
         device=cfg.device,
         **chosen,
@@ -401,11 +231,11 @@ def fidelity(
     else:
         episodes, control = data.heldout, data.controllability
     report_cfg = FidelityConfig(
-        dataset=spread(episodes, cfg.report_episodes),
+        dataset=spread(episodes, cfg.data.report_episodes),
         tokenizer=str(tokenizer_path),
         world_model=str(models["action"]),
         output_dir=folder,
-        max_episodes=cfg.report_episodes,
+        max_episodes=cfg.data.report_episodes,
         controllability=control,
         allow_random_lpips=True,
         device=cfg.device,
@@ -421,11 +251,11 @@ def reward_report(
     folder = out / REWARD_REPORT_DIR
     report_cfg = RewardReportConfig(
         env=env,
-        dataset=spread(data.heldout, cfg.report_episodes),
+        dataset=spread(data.heldout, cfg.data.report_episodes),
         embedding_reward=_str(baselines.get("embedding")),
         proxy_reward=_str(baselines.get("proxy")),
         output_dir=folder,
-        max_episodes=cfg.report_episodes,
+        max_episodes=cfg.data.report_episodes,
     )
     # The report points a copy of the env at the held-out data, every episode of it (a converted dataset records
     # no task family to filter by).

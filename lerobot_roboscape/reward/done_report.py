@@ -39,6 +39,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 logger = logging.getLogger(__name__)
 SOURCES = ("world_model", "classifier")  # as the env's done_source
+REPORT_JSON = "done_report.json"
 DEFAULT_THETA = 0.5  # when the validation episodes hold one kind only (tiny runs): no threshold can be chosen
 MODES = ("teacher_forced", "open_loop")
 
@@ -203,6 +204,21 @@ def summarize(episodes: list[EpisodeScores], source: str, mode: str, theta: floa
     return out
 
 
+@dataclass(frozen=True)
+class DoneChoice:
+    """The done signal the env trusts, chosen on the validation episodes: its source ("world_model" or
+    "classifier") and threshold."""
+
+    source: str
+    theta: float
+
+    @classmethod
+    def read(cls, folder: Path) -> "DoneChoice":
+        """The choice a finished report in `folder` made."""
+        chosen = json.loads((Path(folder) / REPORT_JSON).read_text())["chosen"]
+        return cls(chosen["source"], float(chosen["theta"]))
+
+
 def evaluate_done(cfg: DoneReportConfig) -> dict:
     device = resolve_device(cfg.device)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
@@ -268,7 +284,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
     }
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "done_report.json").write_text(json.dumps(report, indent=2))
+    (out / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (out / "done_report.md").write_text(markdown(report))
     plot_curves(heldout, report, out / "done_curves.png")
     return report

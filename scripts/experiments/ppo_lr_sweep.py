@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from lerobot_roboscape.pipeline import methods, policy_stages, stages
-from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.config import scale_config
 from lerobot_roboscape.pipeline.experiment import trained_stages
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
@@ -25,11 +25,11 @@ def main():
     parser.add_argument("--run-dir", default="outputs/bench", help="the bench run (its demonstrations)")
     parser.add_argument("--iterations", type=int, default=6)
     args = parser.parse_args()
-    p = PipelineConfig(scale="bench", output_dir=args.run_dir)
+    p = scale_config("bench", (f"--output_dir={args.run_dir}",))
     out = Path(p.output_dir).resolve()
     t = trained_stages(p, out)
-    wm = stages.world_model_env(p, t.data, t.tokenizer, t.models, t.done, t.reward_models)
-    env = policy_stages.rl_envs(p, out, t.data, wm)[methods.RL_MANISKILL_ONE_SCENE]
+    wm = stages.world_model_env(p, t.demonstrations, t.tokenizer, t.models, t.done, t.reward_models)
+    env = policy_stages.rl_envs(p, out, t.demonstrations, wm)[methods.RL_MANISKILL_ONE_SCENE]
     for run in args.runs:
         name, lr, kl = run.split(":")
         folder = out / "lr_sweep" / name

@@ -1,11 +1,10 @@
 """The claim's targets (`claim_targets`), cell by cell, on hand-made tables: met, missed, and undecidable (an
 interval that straddles 0, a method not run); the differences' intervals; the report's regenerate command."""
 
-import draccus
 import pytest
 
 from lerobot_roboscape.evaluation.success_rate import summarise
-from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.config import parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
@@ -99,8 +98,9 @@ def test_the_checkpoint_curve_target_holds_the_last_checkpoint_within_the_firsts
 
 def test_regenerate_command_gives_back_the_same_settings():
     cfg = ExperimentConfig(
-        pipeline=PipelineConfig(
-            scale="bench", output_dir="outputs/x", scenes=8, ppo_minutes=6, reward_ablation=False, device="cpu"
+        pipeline=scale_config(
+            "bench",
+            ("--output_dir=outputs/x", "--data.max_scenes=8", "--ppo.time_budget_s=360", "--reward_ablation=false"),
         ),
         protocol="all_scenes",
         sft_checkpoint="outputs/sft/pretrained_model",
@@ -111,9 +111,10 @@ def test_regenerate_command_gives_back_the_same_settings():
         readme=None,
     )
     args = command(cfg).split()[1:]
-    assert "--pipeline.scenes=8" in args and "--pipeline.reward_ablation=false" in args
+    assert "--pipeline.data.max_scenes=8" in args and "--pipeline.reward_ablation=false" in args
+    assert "--pipeline.ppo.time_budget_s=360" in args and not any("wm_train" in a for a in args)
     assert "--levers=[kl,branched]" in args and "--kl_coef=0.3" in args
-    assert draccus.parse(ExperimentConfig, args=args) == cfg
+    assert parse_config(ExperimentConfig, args, "pipeline.") == cfg
     assert ExperimentConfig().protocol == "paper"  # the paper's protocol unless told otherwise
     with pytest.raises(InvalidInputError, match="--protocol must be one of \\['paper', 'all_scenes'\\], got 'one'"):
         ExperimentConfig(protocol="one")
@@ -127,7 +128,7 @@ def test_regenerate_command_gives_back_the_same_settings():
 
 
 def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_curve():
-    cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), levers=["kl"], readme=None)
+    cfg = ExperimentConfig(pipeline=scale_config("smoke"), levers=["kl"], readme=None)
     results = table(40, 10, 30, 25, 30)
     curve = [{"iteration": i, "seconds": 60.0 * i, **cell(n, 20)} for i, n in ((0, 4), (5, 6), (10, 9))]
     summary = {
@@ -161,7 +162,7 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     assert "12/50 (24% [" in row and "0: 4/20 (20% [" in row and "10: 9/20 (45% [" in row
     assert "The other protocol" not in text
     # The all-scene protocol's report, where the paper protocol's Table 1 was found: both tables.
-    cfg = ExperimentConfig(pipeline=PipelineConfig(scale="smoke"), protocol="all_scenes", readme=None)
+    cfg = ExperimentConfig(pipeline=scale_config("smoke"), protocol="all_scenes", readme=None)
     other = {"protocol": "paper", "table": table(5, 1, 30, 25, 3)}
     text = markdown(cfg, summary | {"levers": {"mlp": {}}, "lever_curves": {}, "other_protocol": other})
     assert "The all-scene protocol" in text and "Guards against gaming" not in text

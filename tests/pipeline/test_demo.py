@@ -6,7 +6,6 @@ import json
 import shutil
 from pathlib import Path
 
-import draccus
 import numpy as np
 import pytest
 from huggingface_hub import ModelCard
@@ -15,7 +14,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.clock import header
-from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
 from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment
 from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
@@ -99,7 +98,7 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
     out, tmp_path = base / "demo", base
     args = ["--scale=smoke", f"--output_dir={out}", f"--report_dir={base / 'report'}"]
     tokenizer_weights = (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns
-    artifacts = run_pipeline(draccus.parse(PipelineConfig, args=args))
+    artifacts = run_pipeline(parse_config(PipelineConfig, args))
     # A rerun with the same settings skips every completed stage: nothing is trained again.
     assert (out / "tokenizer" / "pretrained_model" / "model.safetensors").stat().st_mtime_ns == tokenizer_weights
     assert "done in 0s" in capsys.readouterr().out
@@ -160,7 +159,7 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
     # PPO runs and Table 1 are the pipeline's.
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nrest\n")
-    report = run_experiment(draccus.parse(ExperimentConfig, args=[*experiment[0], f"--readme={readme}"]))
+    report = run_experiment(parse_config(ExperimentConfig, [*experiment[0], f"--readme={readme}"], "pipeline."))
     claim = json.loads((tmp_path / "claim" / "results.json").read_text())
     assert claim["table"]["roboscape_mlp"] == tables  # the pipeline's evaluations, not new ones
     assert [point["iteration"] for point in claim["curve"]] == [0, 1]  # SFT, then PPO's one checkpoint

@@ -174,11 +174,11 @@ def test_tokenizer_targets_are_one_row_per_view_and_measure():
     assert not met["tokenizer reconstruction PSNR, whole frame, wrist (dB)"]  # 26 < 27
 
 
-def report_markdown(scale: str, **overrides) -> str:
-    from lerobot_roboscape.pipeline.config import PipelineConfig
+def report_markdown(scale: str, *flags: str) -> str:
+    from lerobot_roboscape.pipeline.config import scale_config
     from lerobot_roboscape.pipeline.report import markdown
 
-    cfg = PipelineConfig(scale=scale, families=["push"], **overrides)
+    cfg = scale_config(scale, ("--data.families=[push]", *flags))
     table = {"roboscape_mlp": {methods.SFT: {s: {"push": cell(0.0, 50), "all": cell(0.0, 50)} for s in ("ind", "ood")}}}
     results = {
         "machine": "2 CPU cores",
@@ -200,13 +200,13 @@ def test_a_scale_too_small_to_judge_says_so_instead_of_missing_every_target():
     assert "**no**" not in tiny and "none is judged here" in tiny
     assert "None" not in tiny and "0 OOD scenes" not in tiny  # no PPO time budget, no held-out scenes
     assert "same number of iterations (2)" in tiny and "collects no held-out OOD episodes" in tiny
-    bench = report_markdown("bench", device="cpu")
+    bench = report_markdown("bench", "--device=cpu")
     assert "| tokenizer reconstruction PSNR, whole frame, wrist (dB) | 20.000 | >= 27 | **no** |" in bench
     assert "8 OOD scenes" in bench and "(8 min)" in bench
 
 
 def test_the_report_gives_each_cells_interval_width_and_the_evaluation_time():
-    bench = report_markdown("bench", device="cpu")
+    bench = report_markdown("bench", "--device=cpu")
     assert "0 [0, 7] (7)" in bench  # 0 of 50: the 95% Wilson interval [0, 7.1]
     assert "Each cell rests on 50 episodes; its 95% interval is 7 to 7 points wide" in bench
     assert "The evaluation took 2.0 min" in bench
