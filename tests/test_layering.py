@@ -55,3 +55,28 @@ def test_the_world_model_env_imports_without_the_simulator():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_no_import_circle_between_modules():
+    """No module reaches a module that reaches it back (within a stage too): each can be read on its own."""
+    root = Path(lerobot_roboscape.__file__).parent
+    graph = {}
+    for path in root.rglob("*.py"):
+        name = ".".join(("lerobot_roboscape", *path.relative_to(root).with_suffix("").parts)).removesuffix(".__init__")
+        graph[name] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("lerobot_roboscape"):
+                graph[name] |= {node.module, *(f"{node.module}.{alias.name}" for alias in node.names)}
+    graph = {name: {d for d in deps if d in graph and d != name} for name, deps in graph.items()}
+    circles = []
+    for start in graph:  # a depth-first walk from each module; a circle returns to its start
+        seen, todo = set(), [(start, (start,))]
+        while todo:
+            name, route = todo.pop()
+            for dep in graph[name]:
+                if dep == start:
+                    circles.append(" -> ".join((*route, start)))
+                elif dep not in seen:
+                    seen.add(dep)
+                    todo.append((dep, (*route, dep)))
+    assert circles == []

@@ -59,8 +59,23 @@ def load_models(tokenizer: str, action_model: str, text_model: str | None, devic
     return tuple(m.to(device).eval() if m is not None else None for m in loaded)
 
 
+def load_ensemble(refs, action_model: STWorldModel, device: str) -> tuple[STWorldModel, ...]:
+    """The action world models of an ensemble beside `action_model`, each checked to predict the same frames from
+    the same actions."""
+    members = _ensemble_members(tuple(refs), device)
+    ours = action_model.config
+    layout = lambda c: (c.control, c.frame_skip, c.tokens_per_frame, c.vocab_size, c.action_dim)  # noqa: E731
+    for ref, member in zip(refs, members, strict=True):
+        if layout(member.config) != layout(ours):
+            raise InvalidInputError(
+                f"ensemble member {ref} (control, frame_skip, tokens per frame, vocabulary, action_dim = "
+                f"{layout(member.config)}) does not match the action world model {layout(ours)}"
+            )
+    return members
+
+
 @lru_cache(maxsize=4)
-def load_ensemble(refs: tuple[str, ...], device: str) -> tuple[STWorldModel, ...]:
+def _ensemble_members(refs: tuple[str, ...], device: str) -> tuple[STWorldModel, ...]:
     """The action world models of an ensemble, loaded once per process."""
     command = "roboscape-train-wm --wm.control=action --train.seed=<another seed>"
     return tuple(load_pretrained(STWorldModel, ref, "ensemble member", command).to(device).eval() for ref in refs)

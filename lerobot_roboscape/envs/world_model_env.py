@@ -22,7 +22,6 @@ B episodes run side by side on one device, stepped by one batched call of the ac
 """
 
 import logging
-from collections import Counter
 from pathlib import Path
 
 import gymnasium as gym
@@ -30,15 +29,6 @@ import numpy as np
 import psutil
 import torch
 
-from lerobot_roboscape.dataset.reader import (
-    action_range,
-    camera_names,
-    episode_facts,
-    episode_indices,
-    family_horizons,
-    open_dataset,
-    read_frames,
-)
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.ensemble import Ensemble
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
@@ -49,6 +39,7 @@ from lerobot_roboscape.envs.loading import (
     load_reward_model,
     model_refs,
 )
+from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
@@ -61,10 +52,6 @@ def free_memory_bytes(device: str) -> int:
     if torch.device(device).type == "cuda":
         return torch.cuda.mem_get_info(torch.device(device))[0]
     return psutil.virtual_memory().available
-
-
-# The episode index of a start made from given frames (`reset(options={"frames": ...})`), not from the dataset.
-FROM_FRAMES = -1
 
 
 class RoboscapeWorldModelEnv(BatchedEnv):
@@ -96,7 +83,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{action_model} is a {self.action_model.config.control} world model, not an action world model"
             )
         self.frame_skip = self.action_model.config.frame_skip
-        self.ensemble = self._load_ensemble()
+        self.ensemble = (
+            Ensemble(list(load_ensemble(config.ensemble, self.action_model, self.device))) if config.ensemble else None
+        )
         self.precision = config.resolved_precision
         bf16 = self.precision == "bfloat16"
         self.autocast = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
@@ -138,7 +127,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     f"{config.success_classifier} is a {self.success_classifier.config.kind} reward model, not a "
                     "success classifier (roboscape-train-reward --reward.kind=success)"
                 )
-        self.starts, self.cameras, self.action_range = self._load_starts()
+        self.starts, self.cameras, self.action_range = dataset_starts(
+            config, self.dataset_repo_id, self.action_model.config.n_cameras, self.encode
+        )
         self.goal_bank = GoalBank(
             config, self.text_model, self.frame_skip, self.device, self.done_of, self.autocast, self._goal_settings()
         )
@@ -161,23 +152,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     # ---- starts and goals ----------------------------------------------------------------------------------
 
-    def _load_ensemble(self) -> Ensemble | None:
-        """The ensemble's members, checked against the env's action model (None without one)."""
-        if not self.config.ensemble:
-            return None
-        members = load_ensemble(tuple(self.config.ensemble), self.device)
-        ours = self.action_model.config
-        for ref, member in zip(self.config.ensemble, members, strict=True):
-            c = member.config
-            theirs = (c.control, c.frame_skip, c.tokens_per_frame, c.vocab_size, c.action_dim)
-            if theirs != (ours.control, ours.frame_skip, ours.tokens_per_frame, ours.vocab_size, ours.action_dim):
-                raise InvalidInputError(
-                    f"ensemble member {ref} (control, frame_skip, tokens per frame, vocabulary, action_dim = "
-                    f"{theirs}) does not match the action world model "
-                    f"{(ours.control, ours.frame_skip, ours.tokens_per_frame, ours.vocab_size, ours.action_dim)}"
-                )
-        return Ensemble(list(members))
-
     def _check_cache_fits(self, dtype: torch.dtype) -> None:
         """Refuse a batch whose key/value cache cannot fit in the device's free memory, before any generation."""
         needed, free = self.action_model.cache_bytes(self.num_envs, dtype), free_memory_bytes(self.device)
@@ -188,47 +162,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"(window {c.window}, {c.n_layer} layers, {c.tokens_per_frame} tokens a frame, {dtype}) but "
                 f"{free / 2**30:.2f} GiB are free on {self.device}: lower the number of envs"
             )
-
-    def _load_starts(self) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray]]:
-        """The starts, the camera names and the per-dimension action range (low, high) of the dataset."""
-        cfg = self.config
-        dataset = open_dataset(self.dataset_repo_id, cfg.dataset_root)
-        cameras = camera_names(dataset)
-        if len(cameras) != self.action_model.config.n_cameras:
-            raise InvalidInputError(
-                f"dataset {dataset.root} has cameras {cameras} but the world model expects "
-                f"{self.action_model.config.n_cameras} views"
-            )
-        horizons = family_horizons(dataset) if cfg.episode_length is None else {}
-        starts, per_scene = [], Counter()
-        for index in episode_indices(dataset):
-            facts = episode_facts(dataset, index)
-            if cfg.families and facts.get("task_family") not in cfg.families:
-                continue
-            if cfg.split and facts.get("split") != cfg.split:
-                continue
-            if cfg.scenes and facts.get("scene") not in cfg.scenes:
-                continue
-            scene = (facts.get("task_family"), facts.get("scene"))
-            if cfg.starts_per_scene is not None and per_scene[scene] >= cfg.starts_per_scene:
-                continue
-            per_scene[scene] += 1
-            length = dataset.meta.episodes[index]["length"]
-            branches = sorted(
-                {round(j * (length - 1) / cfg.branches_per_episode) for j in range(cfg.branches_per_episode)}
-            )
-            tokens = self.encode(read_frames(dataset, index, [*branches, -1]))  # (branches + 1, S)
-            task = dataset.meta.episodes[index]["tasks"][0]
-            horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
-            starts += [
-                EpisodeStart(index, task, tokens[j], tokens[-1], facts, horizon, frame, tokens[0] if frame else None)
-                for j, frame in enumerate(branches)
-            ]
-        if not starts:
-            raise InvalidInputError(
-                f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} scenes={cfg.scenes}"
-            )
-        return starts, cameras, action_range(dataset)
 
     def _starts_from_frames(self, frames: dict, tasks, horizons) -> list[EpisodeStart]:
         """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions and
@@ -357,6 +290,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return self._observation(), info
 
     def step(self, actions):
+        """Take the action; at a chunk's last action, in lifecycle order: generate the next frame, decode it, read
+        its done (`done_of`), pay it (`compute_reward`, the one place the reward is chosen), then book the episode."""
         if self._rollout is None:
             raise RuntimeError("call reset() before step()")
         actions, clipped = self._check_actions(actions)
@@ -365,41 +300,25 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._chunk[:, self._substep] = actions
         self._substep += 1
         live = ~self._book.finished
+        halt = None
         if self._substep < self.frame_skip:  # within a chunk: the last frame stays, nothing is paid
-            reward = self._book.step(np.zeros(self.num_envs, np.float32), self._succeeding())
             zeros = np.zeros(self.num_envs, np.float32)
+            reward = zeros
             parts = {"reward_sparse": zeros, "reward_dense": zeros, "distance_to_goal": self._distance}
             parts["disagreement"] = zeros
         else:
             self._substep = 0
-            chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
-            control = self.action_model.encode_control(chunk)
-            disagreement = np.zeros(self.num_envs, np.float32)
-            with self.autocast():
-                if self.ensemble is not None:  # every model's prediction, before the env's model decodes
-                    disagreement = self.ensemble.disagreement(self._rollout, chunk).cpu().numpy() * live
-                tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
-                if self.ensemble is not None:
-                    self.ensemble.observe(tokens, chunk)
+            tokens, model_done, disagreement = self._generate(live)
             frames = self.decode(tokens)
-            done = self.done_of(tokens, done, frames)
+            done = self.done_of(tokens, model_done, frames)
             self._done = done.cpu().numpy()  # once per frame: the steps between read it without a device sync
-            with self.autocast():
-                paid = self.reward_fn(frames, self._goals, done)
             self._frames = torch.where(
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
             )
-            reward = self.compute_reward(paid, frames).cpu().numpy() - self.config.disagreement_penalty * disagreement
-            threshold = self.config.disagreement_threshold
-            halt = None if threshold is None else disagreement > threshold
-            reward = self._book.step(reward, self._succeeding(), halt)
-            self._distance = paid.distance.cpu().numpy()
-            parts = {
-                "reward_sparse": paid.sparse.cpu().numpy() * live,
-                "reward_dense": paid.dense.cpu().numpy() * live,
-                "distance_to_goal": self._distance,
-                "disagreement": disagreement,
-            }
+            reward, parts = self.compute_reward(frames, done, disagreement, live)
+            if self.config.disagreement_threshold is not None:
+                halt = disagreement > self.config.disagreement_threshold
+        reward = self._book.step(reward, self._succeeding(), halt)
         info = {
             "is_success": self._book.succeeded.copy(),
             "halted": self._book.halted.copy(),
@@ -411,17 +330,45 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
+    def _generate(self, live: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+        """The next frame's tokens (B, S) under the chunk just completed, the action model's done (B,), and the
+        ensemble's disagreement on it (B,; 0 without an ensemble, or for a finished episode)."""
+        chunk = torch.from_numpy(self._chunk).to(self.device)[:, None]  # (B, 1, k, A)
+        control = self.action_model.encode_control(chunk)
+        disagreement = np.zeros(self.num_envs, np.float32)
+        with self.autocast():
+            if self.ensemble is not None:  # every model's prediction, before the env's model decodes
+                disagreement = self.ensemble.disagreement(self._rollout, chunk).cpu().numpy() * live
+            tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
+            if self.ensemble is not None:
+                self.ensemble.observe(tokens, chunk)
+        return tokens, done, disagreement
+
     def _succeeding(self) -> np.ndarray:
         return self._done >= self.config.theta
 
     @torch.no_grad()
-    def compute_reward(self, parts, frames: torch.Tensor) -> torch.Tensor:
-        """The reward of the configured type for the frames just generated (B,)."""
+    def compute_reward(
+        self, frames: torch.Tensor, done: torch.Tensor, disagreement: np.ndarray, live: np.ndarray
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The reward (B,) of the frames just generated, of the configured type (the paper's, or a baseline reward
+        model's), less the ensemble's disagreement penalty; and its parts for `info`."""
+        with self.autocast():
+            paid = self.reward_fn(frames, self._goals, done)
         if self.config.reward_type == "embedding":
-            return self.reward_model(self._rollout.features)
-        if self.config.reward_type == "proxy":
-            return self.reward_model(frames)
-        return parts.reward
+            reward = self.reward_model(self._rollout.features)
+        elif self.config.reward_type == "proxy":
+            reward = self.reward_model(frames)
+        else:
+            reward = paid.reward
+        self._distance = paid.distance.cpu().numpy()
+        parts = {
+            "reward_sparse": paid.sparse.cpu().numpy() * live,
+            "reward_dense": paid.dense.cpu().numpy() * live,
+            "distance_to_goal": self._distance,
+            "disagreement": disagreement,
+        }
+        return reward.cpu().numpy() - self.config.disagreement_penalty * disagreement, parts
 
     def _pixels(self, images: torch.Tensor) -> dict[str, np.ndarray]:
         uint8 = (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2).cpu().numpy()

@@ -1,6 +1,6 @@
 """PPO for LeRobot policies in the roboscape envs (paper Algorithm 1), on Accelerate, read top to bottom:
-GAE and the losses -> rollout -> update -> the training loop (its settings in configuration_ppo.py; the running
-return statistics that scale rewards, and the checkpoints, in ppo_state.py).
+rollout -> update -> the training loop (GAE and the losses in ppo_losses.py; the settings in configuration_ppo.py;
+the running return statistics that scale rewards, and the checkpoints, in ppo_state.py).
 
 One iteration runs one episode of fixed horizon in each of the batched envs (all start together: N scenes at
 once), scales its rewards by the running spread of the discounted return, scores it with GAE, and updates the
@@ -32,6 +32,7 @@ from lerobot_roboscape.rl.policy_loading import (
     check_policy_fits_frame_skip,
     load_policy,
 )
+from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import (
@@ -44,84 +45,6 @@ from lerobot_roboscape.training.records import HISTORY, History, write_video
 from roboscape_core.errors import OutputExistsError
 
 logger = logging.getLogger(__name__)
-
-# GAE and the PPO losses.
-
-
-def compute_gae(
-    rewards: Tensor,
-    values: Tensor,
-    terminated: Tensor,
-    truncated: Tensor,
-    last_value: Tensor,
-    gamma: float,
-    gae_lambda: float,
-) -> tuple[Tensor, Tensor]:
-    """Advantages and returns (T, B). An episode that ends by termination bootstraps nothing; one truncated by its
-    horizon bootstraps from the value of the observation after its last step (`values[t + 1]`, or `last_value`
-    (B,) after the rollout's last step). Either way the recursion stops there, so the steps after an episode's end
-    never reach its earlier steps."""
-    advantages = torch.zeros_like(rewards)
-    next_advantage = torch.zeros_like(last_value)
-    next_value = last_value
-    for t in reversed(range(len(rewards))):
-        nonterminal = 1.0 - terminated[t].float()
-        continues = nonterminal * (1.0 - truncated[t].float())
-        delta = rewards[t] + gamma * next_value * nonterminal - values[t]
-        next_advantage = delta + gamma * gae_lambda * continues * next_advantage
-        advantages[t] = next_advantage
-        next_value = values[t]
-    return advantages, advantages + values
-
-
-class PPOLosses(NamedTuple):
-    policy: Tensor
-    value: Tensor
-    entropy: Tensor
-    approx_kl: Tensor
-    clip_fraction: Tensor
-
-
-def ppo_losses(
-    new_log_prob: Tensor,
-    old_log_prob: Tensor,
-    advantages: Tensor,
-    new_value: Tensor,
-    old_value: Tensor,
-    returns: Tensor,
-    entropy: Tensor,
-    clip_coef: float,
-    value_clip_coef: float | None,
-    value_loss: str = "mse",
-    huber_delta: float = 10.0,
-) -> PPOLosses:
-    """Clipped surrogate, (clipped) value loss and diagnostics, averaged over the samples."""
-    log_ratio = new_log_prob - old_log_prob
-    ratio = log_ratio.exp()
-    policy_loss = torch.max(-advantages * ratio, -advantages * ratio.clamp(1 - clip_coef, 1 + clip_coef)).mean()
-
-    def error_loss(error: Tensor) -> Tensor:
-        if value_loss == "mse":
-            return 0.5 * error.pow(2)
-        return nn.functional.huber_loss(error, torch.zeros_like(error), reduction="none", delta=huber_delta)
-
-    value_loss = error_loss(new_value - returns)
-    if value_clip_coef is not None:
-        clipped = old_value + (new_value - old_value).clamp(-value_clip_coef, value_clip_coef)
-        value_loss = torch.max(value_loss, error_loss(clipped - returns))
-    with torch.no_grad():
-        approx_kl = ((ratio - 1) - log_ratio).mean()
-        clip_fraction = ((ratio - 1).abs() > clip_coef).float().mean()
-    return PPOLosses(policy_loss, value_loss.mean(), entropy.mean(), approx_kl, clip_fraction)
-
-
-def kl_to_reference(log_prob: Tensor, reference_log_prob: Tensor) -> Tensor:
-    """KL(policy || reference) estimated on actions the rollout's policy sampled: Schulman's k3, `r - 1 - log r` with
-    r = reference / policy, non-negative per sample (so no sample rewards drifting) and unbiased when the samples
-    are the policy's own. Averaged over the samples."""
-    log_ratio = reference_log_prob - log_prob
-    return (log_ratio.exp() - 1 - log_ratio).mean()
-
 
 # Rollout.
 

@@ -10,7 +10,8 @@ from safetensors.torch import load_file
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import collect_rollout, compute_gae, kl_to_reference, ppo_losses, train_ppo
+from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
+from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
 from lerobot_roboscape.training.records import read_history
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
