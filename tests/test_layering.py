@@ -80,3 +80,25 @@ def test_no_import_circle_between_modules():
                     seen.add(dep)
                     todo.append((dep, (*route, dep)))
     assert circles == []
+
+
+def test_a_stage_s_results_file_is_named_and_read_only_where_it_is_written():
+    """Each results file a stage writes (`*_JSON`) is spelled once, in the module that writes it and reads it back
+    (`read_*`): no later stage reads another's JSON by its file name and keys."""
+    files = [
+        *Path(lerobot_roboscape.__file__).parent.rglob("*.py"),
+        *(Path(__file__).parents[1] / "scripts").rglob("*.py"),
+    ]
+    homes = {}
+    for path in files:
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.Assign) and any(getattr(t, "id", "").endswith("_JSON") for t in node.targets):
+                homes[node.value.value] = path
+    assert {"done_report.json", "fidelity.json", "eval.json", "tables.json", "clock.json"} <= set(homes)
+    elsewhere = [
+        f"{path} spells {name!r}"
+        for path in files
+        for name, home in homes.items()
+        if path != home and f'"{name}"' in path.read_text()
+    ]
+    assert elsewhere == []

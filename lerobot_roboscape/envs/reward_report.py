@@ -38,6 +38,14 @@ from roboscape_core.errors import InvalidInputError
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+REPORT_JSON = "reward_report.json"
+
+
+def read_reward_report(folder: Path) -> dict:
+    """The report `write_reward_report` wrote into `folder`."""
+    return json.loads((Path(folder) / REPORT_JSON).read_text())
+
+
 logger = logging.getLogger(__name__)
 FRAMES = ("real", "open_loop")
 
@@ -263,7 +271,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     }
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "reward_report.json").write_text(json.dumps(report, indent=2))
+    (out / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (out / "reward_report.md").write_text(_markdown(report, len(episodes), int(success.sum())))
     _plot(
         [e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],

@@ -19,6 +19,14 @@ from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
 from roboscape_core.errors import InvalidInputError, OutputExistsError
 
+EVAL_JSON = "eval.json"
+
+
+def read_cells(folder: Path, split: str) -> dict[str, dict]:
+    """{family (and "all"): cell} of `split` in the evaluation `evaluate_success` wrote into `folder`."""
+    return json.loads((Path(folder) / EVAL_JSON).read_text())["splits"][split]
+
+
 logger = logging.getLogger(__name__)
 SPLITS = "splits"  # each split's result, written when the split is complete
 
@@ -240,7 +248,7 @@ def evaluate_success(cfg: EvalConfig, slots=None) -> dict:
         if own_slots is not None:
             own_slots.close()
     # The tables appear only complete: a killed evaluation leaves its finished splits, never a partial eval.json.
-    write_text_atomically(cfg.output_dir / "eval.json", json.dumps(results, indent=2))
+    write_text_atomically(cfg.output_dir / EVAL_JSON, json.dumps(results, indent=2))
     write_text_atomically(cfg.output_dir / "eval.md", markdown_table(results))
     return results
 
@@ -278,7 +286,7 @@ def completed_splits(cfg: EvalConfig) -> dict[str, dict]:
     kept = {k: str(v) for k, v in asdict(cfg).items() if k not in ("resume", "workers")}
     settings = json.dumps(kept, sort_keys=True)
     written = cfg.output_dir / SPLITS / "eval_config.json"
-    if (cfg.output_dir / "eval.json").exists() or written.exists():
+    if (cfg.output_dir / EVAL_JSON).exists() or written.exists():
         if not cfg.resume:
             raise OutputExistsError(
                 f"{cfg.output_dir} already holds an evaluation: pass --resume=true to continue "

@@ -11,6 +11,14 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+TABLES_JSON = "tables.json"
+
+
+def read_table(folder: Path) -> dict:
+    """The results `write_table` wrote into `folder`: {policy: {method: {split: {family: cell}}}}."""
+    return json.loads((Path(folder) / TABLES_JSON).read_text())
+
+
 SHORT = {"pick_place": "P.&P.", "push": "Push", "pull": "Pull", "move_to_aim": "M.A."}
 # The paper's Table 1 (success %, ManiSkill): {policy: {method: {split: {family: rate}}}}.
 PAPER_TABLE_1 = {
@@ -51,7 +59,7 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
     Writes tables.md, tables.json and tables.png into output_dir."""
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / "tables.json").write_text(json.dumps(results, indent=2))
+    (output_dir / TABLES_JSON).write_text(json.dumps(results, indent=2))
     (output_dir / "tables.md").write_text(format_table(results, families, title))
     bar_chart(results, families, output_dir / "tables.png", title)
 

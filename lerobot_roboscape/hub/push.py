@@ -27,6 +27,8 @@ from lerobot_roboscape.hub.cards import (
 )
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
 from lerobot_roboscape.io.weights import looks_like_repo_id
+from lerobot_roboscape.world_model.fidelity import REPORT_JSON as FIDELITY_JSON
+from lerobot_roboscape.world_model.fidelity import read_fidelity
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 WORLD_MODEL_FOLDERS = {
@@ -55,7 +57,7 @@ def _training_config(pretrained_model: Path) -> dict | None:
 
 
 def _fidelity_summary(report_dir: Path) -> dict:
-    report = read_json(report_dir / "fidelity.json")
+    report = read_fidelity(report_dir)
     summary = {
         key: f"{value:.3f}" if "ssim" in key or "lpips" in key else f"{value:.2f}"
         for key, value in report["mean"].items()
@@ -114,7 +116,7 @@ def stage_world_models(
     )
     fidelity = None
     if fidelity_dir is not None:
-        for name in ("fidelity.md", "fidelity.json", "fidelity.png"):
+        for name in ("fidelity.md", FIDELITY_JSON, "fidelity.png"):
             if (Path(fidelity_dir) / name).is_file():
                 shutil.copy2(Path(fidelity_dir) / name, folder / name)
         fidelity = _fidelity_summary(Path(fidelity_dir))
@@ -199,7 +201,8 @@ def stage_policy(
         if not (Path(eval_dir) / "eval.md").is_file():
             raise MissingInputError(f"no roboscape-eval results in {eval_dir} (eval.md missing)")
         results = (Path(eval_dir) / "eval.md").read_text().split("\n", 1)[1].strip()  # drop the local path line
-        shutil.copy2(Path(eval_dir) / "eval.json", folder / "eval.json")
+        for path in Path(eval_dir).glob("eval.*"):  # roboscape-eval's results, as it names them
+            shutil.copy2(path, folder / path.name)
     base_model = config.get("base_model")  # a Hub id, a local folder or a random preset ("tiny")
     card = model_card(
         "policy.md",

@@ -24,6 +24,7 @@ from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_o
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import train_ppo
+from lerobot_roboscape.rl.ppo_state import checkpoint_seconds
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import episodes_token_cache, load_or_build_token_cache
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
@@ -94,7 +95,7 @@ def _ppo_seconds(folder: Path) -> float:
     checkpoint = last_checkpoint(folder)
     if checkpoint is None:
         return 0.0
-    return json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
+    return checkpoint_seconds(checkpoint)
 
 
 def refresh_rounds(folder: Path) -> list[dict]:

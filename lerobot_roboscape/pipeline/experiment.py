@@ -21,6 +21,7 @@ from lerobot.configs.default import DatasetConfig
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.evaluation.success_rate import read_cells
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.clock import StageClock
@@ -29,6 +30,7 @@ from lerobot_roboscape.pipeline.done_refresh import DoneRefresh
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.reward.done_report import REPORT_JSON, DoneChoice
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+from lerobot_roboscape.rl.ppo_state import checkpoint_seconds
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
 from lerobot_roboscape.training.loop import resolve_device
@@ -210,8 +212,7 @@ def checkpoint_curve(
     saved = sorted(f for f in run.iterdir() if f.name.isdigit())
     points = [(0, 0.0, sft)]
     for folder in [saved[int(i)] for i in np.unique(np.linspace(0, len(saved) - 1, cfg.curve_points - 1).round())]:
-        seconds = json.loads((folder / "training_state" / "clock.json").read_text())["seconds"]
-        points.append((int(folder.name), seconds, folder / FINAL))
+        points.append((int(folder.name), checkpoint_seconds(folder), folder / FINAL))
     jobs = [
         policy_stages.eval_job(
             cfg.pipeline,
@@ -231,7 +232,7 @@ def checkpoint_curve(
         {
             "iteration": iteration,
             "seconds": seconds,
-            **json.loads((job.output_dir / "eval.json").read_text())["splits"]["ood"]["all"],
+            **read_cells(job.output_dir, "ood")["all"],
         }
         for (iteration, seconds, _), job in zip(points, jobs, strict=True)
     ]

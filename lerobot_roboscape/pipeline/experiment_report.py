@@ -15,7 +15,7 @@ import numpy as np
 
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
-from lerobot_roboscape.evaluation.tables import SHORT, format_table, write_table
+from lerobot_roboscape.evaluation.tables import SHORT, TABLES_JSON, format_table, write_table
 from lerobot_roboscape.pipeline.config import as_flag, settings_flags
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
@@ -141,7 +141,7 @@ def write_experiment_report(
     # Table 1 beside this protocol's runs, where the other protocol's report finds it.
     (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table}, indent=2))
     write_table(table, p.data.families, folder, f"{p.scale} scale")
-    (folder / "tables.json").unlink()  # results.json holds it
+    (folder / TABLES_JSON).unlink()  # results.json holds it
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
     curve_figure(out, policies[0], curve, folder / "curve.png")
     gaming_figure(out, policies[0], {RL_WORLD_MODEL: curve} | lever_curves, folder / "gaming.png")

@@ -12,11 +12,13 @@ from lerobot.configs.default import DatasetConfig
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
 from lerobot_roboscape.evaluation.success_rate import (
+    EVAL_JSON,
     EvalConfig,
     eval_batch_size,
     eval_env_config,
     evaluate_success,
     markdown_table,
+    read_cells,
 )
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
@@ -257,13 +259,13 @@ def simulator_eval(
     run_evaluations(cfg, list(jobs.values()))
     results = {}
     for (name, method, split), job in jobs.items():
-        cells = json.loads((job.output_dir / "eval.json").read_text())["splits"][split]
+        cells = read_cells(job.output_dir, split)
         results.setdefault(name, {}).setdefault(method, {})[split] = cells
     for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
         for method, splits in methods.items():
             length = jobs[name, method, next(iter(splits))].episode_length or "per family"
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
             folder = out / eval_dir(name, method)
-            write_text_atomically(folder / "eval.json", json.dumps(merged, indent=2))
+            write_text_atomically(folder / EVAL_JSON, json.dumps(merged, indent=2))
             (folder / "eval.md").write_text(markdown_table(merged))
     return results

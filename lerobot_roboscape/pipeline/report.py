@@ -11,7 +11,8 @@ from pathlib import Path
 import matplotlib
 import torch
 
-from lerobot_roboscape.evaluation.tables import format_table
+from lerobot_roboscape.envs.reward_report import read_reward_report
+from lerobot_roboscape.evaluation.tables import format_table, read_table
 from lerobot_roboscape.io.templates import render
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
 from lerobot_roboscape.pipeline.figures import WM_FIGURE_FRAMES, ppo_curves, world_model_figure
@@ -45,7 +46,10 @@ from lerobot_roboscape.pipeline.methods import (
 )
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import format_value, measure_targets, tokenizer_targets
+from lerobot_roboscape.reward.done_report import read_done_report
+from lerobot_roboscape.tokenizer.report import read_tokenizer_report
 from lerobot_roboscape.training.loop import read_curve
+from lerobot_roboscape.world_model.fidelity import read_fidelity
 
 matplotlib.use("Agg")
 
@@ -77,13 +81,12 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     """Write report.md, results.json and the figures into out/report (and report_dir); returns report.md."""
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
-    tokenizer = json.loads((out / TOKENIZER_REPORT_DIR / "tokenizer_report.json").read_text())
-    fidelity = json.loads((out / FIDELITY_DIR / "fidelity.json").read_text())
-    ind = out / FIDELITY_IND_DIR / "fidelity.json"
-    fidelity_ind = json.loads(ind.read_text()) if ind.is_file() else None
-    done = json.loads((out / DONE_REPORT_DIR / "done_report.json").read_text())
-    rewards = json.loads((out / REWARD_REPORT_DIR / "reward_report.json").read_text())
-    table = json.loads((out / TABLES_DIR / "tables.json").read_text())
+    tokenizer = read_tokenizer_report(out / TOKENIZER_REPORT_DIR)
+    fidelity = read_fidelity(out / FIDELITY_DIR)
+    fidelity_ind = read_fidelity(out / FIDELITY_IND_DIR)
+    done = read_done_report(out / DONE_REPORT_DIR)
+    rewards = read_reward_report(out / REWARD_REPORT_DIR)
+    table = read_table(out / TABLES_DIR)
     curve = read_curve(out / world_model_dir("action"))
     targets = tokenizer_targets(tokenizer) | measure_targets(
         fidelity, done, rewards, table, cfg.data.families, curve, fidelity_ind

@@ -14,7 +14,12 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.reward_report import RewardReportConfig, plot_rollout_rewards, write_reward_report
+from lerobot_roboscape.envs.reward_report import (
+    RewardReportConfig,
+    plot_rollout_rewards,
+    read_reward_report,
+    write_reward_report,
+)
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.data_stages import Datasets
@@ -36,11 +41,11 @@ from lerobot_roboscape.pipeline.resume import STAGE_FILE, run_once, train_once
 from lerobot_roboscape.reward.baselines import RewardModelConfig
 from lerobot_roboscape.reward.done_report import DoneChoice, DoneReportConfig, evaluate_done
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
-from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer
+from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer, read_tokenizer_report
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig
-from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 logger = logging.getLogger(__name__)
@@ -76,7 +81,7 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
     # The tokenizer's own stage record (its settings and the seconds of its run) names the model measured.
     settings = {"report": report_cfg, "tokenizer": json.loads((out / TOKENIZER_DIR / STAGE_FILE).read_text())}
     run_once(folder, settings, cfg.fresh, lambda: evaluate_tokenizer(report_cfg))
-    return json.loads((folder / "tokenizer_report.json").read_text())
+    return read_tokenizer_report(folder)
 
 
 def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:
@@ -241,7 +246,7 @@ def fidelity(
         device=cfg.device,
     )
     run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_fidelity(report_cfg))
-    return json.loads((folder / "fidelity.json").read_text())
+    return read_fidelity(folder)
 
 
 def reward_report(
@@ -262,7 +267,7 @@ def reward_report(
     run_once(
         folder, report_cfg, cfg.fresh, lambda: write_reward_report(replace(report_cfg, env=replace(env, families=[])))
     )
-    return json.loads((folder / "reward_report.json").read_text())
+    return read_reward_report(folder)
 
 
 def _str(path: Path | None) -> str | None:

@@ -215,8 +215,13 @@ class DoneChoice:
     @classmethod
     def read(cls, folder: Path) -> "DoneChoice":
         """The choice a finished report in `folder` made."""
-        chosen = json.loads((Path(folder) / REPORT_JSON).read_text())["chosen"]
+        chosen = read_done_report(folder)["chosen"]
         return cls(chosen["source"], float(chosen["theta"]))
+
+
+def read_done_report(folder: Path) -> dict:
+    """The report `evaluate_done` wrote into `folder`."""
+    return json.loads((Path(folder) / REPORT_JSON).read_text())
 
 
 def evaluate_done(cfg: DoneReportConfig) -> dict:

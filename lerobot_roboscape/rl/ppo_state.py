@@ -16,6 +16,8 @@ from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO
 from lerobot_roboscape.training.checkpoints import FINAL, begin_checkpoint, publish_checkpoint
 
+CLOCK_JSON = "clock.json"
+
 
 class RunningReturnStats:
     """Running mean and variance of the discounted return (Chan et al.'s parallel update, as gymnasium's
@@ -71,7 +73,7 @@ def save_checkpoint(
     state = {"iteration": iteration, "return_stats": return_stats.state_dict()}
     (tmp / "training_state" / "iteration.json").write_text(json.dumps(state))
     # Wall-clock apart from the state, which is the same bytes in every run with the same flags.
-    (tmp / "training_state" / "clock.json").write_text(json.dumps({"seconds": seconds}))
+    (tmp / "training_state" / CLOCK_JSON).write_text(json.dumps({"seconds": seconds}))
     with draccus.config_type("json"):
         draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
     (tmp / "reward.txt").write_text(reward + "\n")
@@ -83,5 +85,9 @@ def load_checkpoint(checkpoint: Path) -> tuple[int, RunningReturnStats, float]:
     statistics, the seconds of PPO so far). The policy loads from checkpoint/pretrained_model, the optimizer state
     from checkpoint/training_state."""
     state = json.loads((checkpoint / "training_state" / "iteration.json").read_text())
-    seconds = json.loads((checkpoint / "training_state" / "clock.json").read_text())["seconds"]
-    return state["iteration"], RunningReturnStats(**state["return_stats"]), seconds
+    return state["iteration"], RunningReturnStats(**state["return_stats"]), checkpoint_seconds(checkpoint)
+
+
+def checkpoint_seconds(checkpoint: Path) -> float:
+    """Seconds of PPO's clock (rollouts and updates) when `checkpoint` was saved."""
+    return json.loads((Path(checkpoint) / "training_state" / CLOCK_JSON).read_text())["seconds"]

@@ -27,6 +27,14 @@ from lerobot_roboscape.training.loop import read_curve, resolve_device
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+REPORT_JSON = "tokenizer_report.json"
+
+
+def read_tokenizer_report(folder: Path) -> dict:
+    """The report `evaluate_tokenizer` wrote into `folder`."""
+    return json.loads((Path(folder) / REPORT_JSON).read_text())
+
+
 logger = logging.getLogger(__name__)
 CURVE_MEASURES = ("psnr", "object_psnr", "object_survival")
 
@@ -112,7 +120,7 @@ def evaluate_tokenizer(cfg: TokenizerReportConfig) -> dict:
     picture = reconstruction_figure(tokenizer, bank, cameras, out / "reconstruction.png", cfg.columns)
     for camera, share in picture.items():
         report["views"][camera]["picture_object_survives"] = share
-    (out / "tokenizer_report.json").write_text(json.dumps(report, indent=2))
+    (out / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (out / "tokenizer_report.md").write_text(markdown(report))
     if report["curve"]:
         curve_figure(report["curve"], cameras, out / "heldout_curve.png")

@@ -36,6 +36,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from roboscape_core.errors import InvalidInputError
 
+REPORT_JSON = "fidelity.json"
+
+
+def read_fidelity(folder: Path) -> dict | None:
+    """The report `evaluate_fidelity` wrote into `folder` (None where none was made)."""
+    path = Path(folder) / REPORT_JSON
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
 # Of the task object (metrics/image_fidelity.py), when the held-out dataset has its masks: over views and the
@@ -203,7 +212,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
 
 def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: int) -> None:
     output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / "fidelity.json").write_text(json.dumps(report, indent=2))
+    (output_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (output_dir / "fidelity.md").write_text(markdown_table(report))
     plot(report, output_dir / "fidelity.png")
     if videos:

@@ -105,10 +105,10 @@ def with_eval_options(checkpoint: Path, changes: dict, where: Path) -> Path:
 
 
 def evaluate(args, checkpoint: Path, out: Path, splits: list[str]) -> dict:
-    from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
+    from lerobot_roboscape.evaluation.success_rate import EVAL_JSON, EvalConfig, evaluate_success
 
-    if (out / "eval.json").exists():
-        return json.loads((out / "eval.json").read_text())
+    if (out / EVAL_JSON).exists():
+        return json.loads((out / EVAL_JSON).read_text())
     cfg = EvalConfig(
         policy_path=str(checkpoint),
         families=args.families,

@@ -19,6 +19,8 @@ from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
 
+from lerobot_roboscape.tokenizer.report import REPORT_JSON, read_tokenizer_report
+
 # The baseline: the bench preset's losses before this ablation (L1 and LFQ's losses only, entropy weight 0.1).
 BASELINE = {"object_weight": 0.0, "entropy_weight": 0.1}
 # Changes from the baseline, by variant name (the bench preset's architecture throughout unless named).
@@ -50,9 +52,8 @@ def run_variant(name: str, args) -> dict:
     changes = BASELINE | VARIANTS[name]
     training = {k: changes.pop(k) for k in TRAINING_OPTIONS if k in changes}
     folder = Path(args.out) / name
-    report_file = folder / "report" / "tokenizer_report.json"
-    if report_file.exists():
-        return json.loads(report_file.read_text())
+    if (folder / "report" / REPORT_JSON).exists():
+        return read_tokenizer_report(folder / "report")
     train = TrainTokenizerConfig(
         dataset=DatasetConfig(repo_id="local/train", root=args.train),
         heldout=DatasetConfig(repo_id="local/heldout", root=args.heldout),
@@ -82,7 +83,7 @@ def run_variant(name: str, args) -> dict:
         )
     )
     report["train_seconds"] = seconds
-    report_file.write_text(json.dumps(report, indent=2))
+    (folder / "report" / REPORT_JSON).write_text(json.dumps(report, indent=2))
     return report
 
 

@@ -20,6 +20,7 @@ import json
 import shutil
 from pathlib import Path
 
+from lerobot_roboscape.envs.reward_report import read_reward_report
 from lerobot_roboscape.pipeline.figures import world_model_figure
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
@@ -30,7 +31,9 @@ from lerobot_roboscape.pipeline.layout import (
 )
 from lerobot_roboscape.pipeline.report import fidelity_results, machine, world_model_results
 from lerobot_roboscape.pipeline.targets import agreement_targets, world_model_targets
+from lerobot_roboscape.reward.done_report import read_done_report
 from lerobot_roboscape.training.loop import read_curve
+from lerobot_roboscape.world_model.fidelity import read_fidelity
 
 FIGURES = {
     FIDELITY_DIR: ("fidelity.png", "controllability.png"),
@@ -77,7 +80,7 @@ def main():
             shutil.copy2(run / FIDELITY_IND_DIR / name, out / f"ind_{name}")
     world_model_figure(
         run / FIDELITY_DIR / "side_by_side.mp4",
-        json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())["prompt_frames"],
+        read_fidelity(run / FIDELITY_DIR)["prompt_frames"],
         out / "world_model_open_loop.png",
     )
     if gpu_targets is None:
@@ -94,11 +97,10 @@ def main():
 
 def read_run(run: Path) -> tuple[dict, dict]:
     """The targets and the measured results of the fidelity, done and reward reports under `run`."""
-    fidelity = json.loads((run / FIDELITY_DIR / "fidelity.json").read_text())
-    done = json.loads((run / DONE_REPORT_DIR / "done_report.json").read_text())
-    rewards = json.loads((run / REWARD_REPORT_DIR / "reward_report.json").read_text())
-    ind = run / FIDELITY_IND_DIR / "fidelity.json"
-    fidelity_ind = json.loads(ind.read_text()) if ind.is_file() else None
+    fidelity = read_fidelity(run / FIDELITY_DIR)
+    done = read_done_report(run / DONE_REPORT_DIR)
+    rewards = read_reward_report(run / REWARD_REPORT_DIR)
+    fidelity_ind = read_fidelity(run / FIDELITY_IND_DIR)
     curve = read_curve(run / world_model_dir("action"))
     measured = world_model_results(fidelity, done, rewards)
     if fidelity_ind is not None:
