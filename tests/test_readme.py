@@ -9,6 +9,7 @@ import contextlib
 import dataclasses
 import importlib
 import io
+import json
 import re
 import subprocess
 import sys
@@ -210,3 +211,53 @@ def test_python_blocks(readme):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in names:
                 fields = {f.name for f in dataclasses.fields(names[node.func.id])}
                 assert {k.arg for k in node.keywords} - fields == set(), node.func.id
+
+
+def _measured(path: str, *keys: str):
+    value = json.loads((ROOT / "docs" / "results" / path).read_text())
+    for key in keys:
+        value = value[key]
+    return value
+
+
+def _pct(value: float) -> str:
+    return f"{100 * value:.0f}%"
+
+
+def quoted_figures() -> list[str]:
+    """Each sentence of the README's Results that quotes a figure, with the figure read from the committed results
+    file that measured it."""
+    sft = lambda split, family: _pct(  # noqa: E731  (the bench table's SFT row, below the results)
+        _measured("bench/results.json", "table", "roboscape_mlp", "Supervised finetune", split, family, "success_rate")
+    )
+    tokenizer = lambda name, view: _measured("tokenizer/results.json", "targets", name.format(view), "value")  # noqa: E731
+    done = _measured("world_model/results.json", "done", "sources", "world_model", "teacher_forced")
+    control = _measured("world_model/results.json", "fidelity", "controllability")
+    gpu = _measured("world_model/results.json", "bench_on_gpu", "fidelity", "controllability")
+    table = lambda path, method: _measured(path, "table", "roboscape_mlp", method, "ood", "all", "success_rate")  # noqa: E731
+    psnr = "tokenizer reconstruction PSNR, whole frame, {} (dB)"
+    survival = "tokenizer object survival, {} (share of held-out frames with the object >= 4 px)"
+    return [
+        f"The MLP succeeds in {sft('ind', 'push')} of push and {sft('ind', 'pick_place')} of pick&place episodes in "
+        f"the training scenes (OOD: {sft('ood', 'push')} and {sft('ood', 'pick_place')};",
+        f"({tokenizer(psnr, 'third_view'):.1f} / {tokenizer(psnr, 'wrist'):.1f} dB PSNR, third view / wrist,",
+        f"the object survives in {_pct(tokenizer(survival, 'third_view'))} / {_pct(tokenizer(survival, 'wrist'))},",
+        f"(ROC-AUC {done['frame_roc_auc']:.2f}), but calls {_pct(done['confusion']['failed_called_done_rate'])} of "
+        "the failed episodes done",
+        f"in {_pct(control['world_model']['whole_frame']['retrieval'])} of held-out starts (chance "
+        f"{_pct(control['ignoring_actions']['whole_frame']['retrieval'])}, goal 90%); trained on a GPU, "
+        f"{_pct(gpu['world_model']['whole_frame']['retrieval'])}.",
+        f"balanced accuracy {_measured('world_model/agreement/ood/ladder.json', 'pooled', 'balanced_accuracy'):.2f} "
+        "out of domain",
+        f"it takes OOD success from {_pct(table('claim_paper/results.json', 'Supervised finetune'))} to "
+        f"{_pct(table('claim_paper/results.json', 'RL w. World Model'))}",
+        f"GPU-trained world models, {_pct(table('claim/results.json', 'Supervised finetune'))} to "
+        f"{_pct(table('claim/results.json', 'RL w. World Model'))}",
+    ]
+
+
+def test_results_quote_the_committed_results_files(readme):
+    """Every figure the README's Results give is the one in the results file that measured it."""
+    text = " ".join(readme.split())
+    missing = [sentence for sentence in quoted_figures() if " ".join(sentence.split()) not in text]
+    assert missing == [], "the README quotes other figures than its results files hold:\n" + "\n".join(missing)
