@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.dataset.segmentation import OBJECT
-from lerobot_roboscape.metrics.image_fidelity import codebook_use, dilate, frame_measures, summarize
+from lerobot_roboscape.metrics.image_fidelity import codebook_use, dilate, frame_measures, summarise
 
 TABLE, CUBE = torch.tensor([0.6, 0.4, 0.2]), torch.tensor([0.8, 0.1, 0.1])
 
@@ -34,7 +34,7 @@ def test_an_object_under_four_pixels_is_not_judged():
     real, labels = scene(cube_pixels=1)
     measures = frame_measures(real, real, labels)
     assert math.isnan(measures["object_psnr"][0]) and math.isnan(measures["object_survives"][0])
-    summary = summarize(measures)
+    summary = summarise(measures)
     assert summary["object_frames"] == 0 and summary["object_psnr"] is None and summary["frames"] == 1
 
 
@@ -58,7 +58,7 @@ def test_survival_is_also_given_by_the_objects_size():
         "object_survives": np.array([1.0, 0.0, 1.0, np.nan]),
         "object_pixels": np.array([5, 10, 100, 2]),
     }
-    by_size = summarize(measures)["object_survival_by_size"]
+    by_size = summarise(measures)["object_survival_by_size"]
     assert by_size == {
         "4-15 px": {"frames": 2, "survival": 0.5},
         "16-63 px": {"frames": 0, "survival": None},

@@ -65,7 +65,7 @@ def frame_measures(pred: torch.Tensor, real: torch.Tensor, labels: torch.Tensor)
     }
 
 
-def summarize(measures: dict[str, np.ndarray]) -> dict:
+def summarise(measures: dict[str, np.ndarray]) -> dict:
     """Means over frames of `frame_measures`' arrays (concatenated); object means over the frames that show it."""
     seen = measures["object_pixels"] >= MIN_OBJECT_PIXELS
     return {

@@ -183,7 +183,7 @@ def confusion(episode_scores: np.ndarray, success: np.ndarray, theta: float) -> 
     }
 
 
-def summarize(episodes: list[EpisodeScores], source: str, mode: str, theta: float | None) -> dict | None:
+def summarise(episodes: list[EpisodeScores], source: str, mode: str, theta: float | None) -> dict | None:
     kept = [e for e in episodes if (source, mode) in e.scores]
     if not kept:
         return None
@@ -260,7 +260,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
             # A probability threshold the env accepts, (0, 1]: "above every score" can land past 1.
             "theta": float(np.clip(choose_threshold(best, success), 1e-3, 1.0)) if both else DEFAULT_THETA,
             "theta_from": "validation" if both else "default (validation episodes of one kind)",
-            "validation": summarize(validation, source, "teacher_forced", None),
+            "validation": summarise(validation, source, "teacher_forced", None),
         }
         chosen[source]["validation"]["confusion"] = confusion(best, success, chosen[source]["theta"])
     source = max(sources.names, key=lambda s: chosen[s]["validation"]["frame_roc_auc"] or 0.0)
@@ -273,7 +273,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
                 "theta": chosen[s]["theta"],
                 "theta_from": chosen[s]["theta_from"],
                 "validation": chosen[s]["validation"],
-                **{mode: summarize(heldout, s, mode, chosen[s]["theta"]) for mode in MODES},
+                **{mode: summarise(heldout, s, mode, chosen[s]["theta"]) for mode in MODES},
             }
             for s in sources.names
         },

@@ -20,7 +20,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import FrameBank, camera_names, open_dataset
 from lerobot_roboscape.dataset.segmentation import OBJECT, has_masks
-from lerobot_roboscape.metrics.image_fidelity import MIN_OBJECT_PIXELS, codebook_use, frame_measures, psnr, summarize
+from lerobot_roboscape.metrics.image_fidelity import MIN_OBJECT_PIXELS, codebook_use, frame_measures, psnr, summarise
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import read_curve, resolve_device
 
@@ -75,7 +75,7 @@ def reconstruct(tokenizer: VisualTokenizer, images: torch.Tensor, batch_size: in
 
 @torch.no_grad()
 def measure_tokenizer(tokenizer: VisualTokenizer, bank: FrameBank, cameras: list[str]) -> dict[str, dict]:
-    """camera -> whole-frame and object measures (image_fidelity.summarize; object ones None without masks) and
+    """camera -> whole-frame and object measures (image_fidelity.summarise; object ones None without masks) and
     codebook use, over every frame of `bank`."""
     views = {}
     for v, camera in enumerate(cameras):
@@ -84,7 +84,7 @@ def measure_tokenizer(tokenizer: VisualTokenizer, bank: FrameBank, cameras: list
         if bank.masks is None:
             summary = {"psnr": float(psnr(recon, real).mean()), "object_psnr": None, "object_survival": None}
         else:
-            summary = summarize(frame_measures(recon, real, bank.masks[:, v].to(recon.device)))
+            summary = summarise(frame_measures(recon, real, bank.masks[:, v].to(recon.device)))
         views[camera] = summary | {"codebook": codebook_use(codes, tokenizer.config.codebook_size)}
     return views
 
@@ -152,7 +152,7 @@ def reconstruction_figure(tokenizer, bank: FrameBank, cameras: list[str], path: 
         recon, _ = reconstruct(tokenizer, real)
         if bank.masks is not None:
             real_float = real.to(recon.device).permute(0, 3, 1, 2).float() / 255
-            kept = summarize(frame_measures(recon, real_float, bank.masks[picked, v].to(recon.device)))
+            kept = summarise(frame_measures(recon, real_float, bank.masks[picked, v].to(recon.device)))
             survives[camera] = kept["object_survival"]
         recon = (recon.clamp(0, 1).permute(0, 2, 3, 1).cpu() * 255).round().to(torch.uint8)
         rows += [torch.cat(list(real), 1), torch.cat(list(recon), 1)]
