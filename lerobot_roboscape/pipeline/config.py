@@ -14,6 +14,7 @@ from pathlib import Path
 
 import draccus
 import yaml
+from lerobot.utils.utils import flatten_dict
 
 from lerobot_roboscape.reward.train import RewardTrainingConfig
 from lerobot_roboscape.tasks import TASK_FAMILIES
@@ -302,25 +303,16 @@ def scale_config(scale: str = TINY, args: tuple[str, ...] = ()) -> PipelineConfi
 
 def settings_flags(cfg: PipelineConfig) -> list[str]:
     """The flags that make `cfg` from its scale's file: each setting that differs from it, as `--a.b=value`."""
-    preset = _flat(draccus.encode(scale_config(cfg.scale)))
+    preset = flatten_dict(draccus.encode(scale_config(cfg.scale)), sep=".")
     return [
         f"--{name}={as_flag(value)}"
-        for name, value in _flat(draccus.encode(cfg)).items()
+        for name, value in flatten_dict(draccus.encode(cfg), sep=".").items()
         if name not in ("scale", "output_dir", "report_dir") and preset.get(name) != value
     ]
 
 
-def _flat(tree: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat |= _flat(value, f"{prefix}{key}.")
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def as_flag(value) -> str:
+    """A value as draccus parses it back from the command line."""
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, list | tuple):

@@ -160,9 +160,8 @@ def protocol(cfg: PipelineConfig) -> str:
     ending = f"{length} steps" if length else "the family's horizon (its longest successful demonstration)"
     return (
         f"As the paper's section 8.1: task families {', '.join(cfg.data.families)}; IND evaluates the training scenes "
-        "with "
-        "new initial states, OOD the held-out scenes (unseen objects and unseen object-container combinations). The "
-        "world models and the MLP policy train on the demonstrations of the IND scenes "
+        "with new initial states, OOD the held-out scenes (unseen objects and unseen object-container combinations). "
+        "The world models and the MLP policy train on the demonstrations of the IND scenes "
         f"({cfg.data.episodes_per_scene} per family and scene, a quarter of them deliberately failed; SFT imitates the "
         f"successful ones). The fidelity and reward reports use {heldout}. RL: PPO from the SFT checkpoint, one "
         f"multi-task run per env over the families; each run gets {budget}."
