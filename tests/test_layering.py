@@ -102,3 +102,14 @@ def test_a_stage_s_results_file_is_named_and_read_only_where_it_is_written():
         if path != home and f'"{name}"' in path.read_text()
     ]
     assert elsewhere == []
+
+
+def test_reports_are_rendered_from_the_templates():
+    """A report's markdown lives in one place, `lerobot_roboscape/templates/`: no module of the library builds a
+    markdown table line by line."""
+    package = Path(lerobot_roboscape.__file__).parent
+    built = [str(path) for path in package.rglob("*.py") if '"|---' in path.read_text()]
+    assert built == []
+    assert {"tokenizer_report.md", "fidelity_report.md", "done_report.md", "reward_report.md"} <= {
+        p.name for p in (package / "templates").glob("*.md")
+    }

@@ -32,6 +32,7 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, Goal
 from lerobot_roboscape.envs.loading import load_reward_model
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.world_model.clips import model_frames
 from roboscape_core.errors import InvalidInputError
 
@@ -272,7 +273,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / REPORT_JSON).write_text(json.dumps(report, indent=2))
-    (out / "reward_report.md").write_text(_markdown(report, len(episodes), int(success.sum())))
+    (out / "reward_report.md").write_text(markdown(report, len(episodes), int(success.sum())))
     _plot(
         [e for e in episodes if e["success"]][: cfg.plot_episodes] or episodes[: cfg.plot_episodes],
         out / "reward_curves.png",
@@ -300,40 +301,8 @@ def _mean(values: np.ndarray) -> float | None:
     return float(values.mean()) if len(values) else None
 
 
-def _markdown(report: dict, n: int, n_success: int) -> str:
-    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    lines = [
-        f"# Reward report ({n} episodes, {n_success} successful)",
-        "",
-        "Frames: "
-        + (
-            "generated open loop by the action model from each episode's first frame and recorded actions. "
-            if report["config"]["frames"] == "open_loop"
-            else "the episodes' own, through the tokenizer. "
-        )
-        + f"Dense reward's similarity: {report['similarity']}. Done: {report['done_source']} at threshold "
-        f"{report['theta']:.3f}. Returns are summed over each family's fixed "
-        "horizon. ROC-AUC: how well the episode return separates successful from failed episodes (- when only "
-        "one kind is present).",
-        "",
-        "| reward | ROC-AUC of return | mean return, success | mean return, failure |",
-        "|---|---:|---:|---:|",
-    ]
-    for kind, s in report["summary"].items():
-        lines.append(
-            f"| {kind} | {fmt(s['roc_auc_of_return'])} | {fmt(s['mean_return_success'])} | "
-            f"{fmt(s['mean_return_failure'])} |"
-        )
-    g = report["goals"]
-    lines += [
-        "",
-        f"Goals: the text model reached done within the family's horizon from {fmt(g['reached_within_horizon'])} of "
-        f"{g['starts']} starts; the goal is nearer the real final frame than the start frame in "
-        f"{fmt(g['nearer_final_than_start'])} of {g['successful_starts']} successful episodes, and the real final "
-        "frame is nearer the goal made under its own instruction than the goal made from the same start under "
-        f"another family's instruction in {fmt(g.get('final_nearer_own_goal_than_other_instructions'))} of them.",
-    ]
-    return "\n".join(lines) + "\n"
+def markdown(report: dict, episodes: int, successes: int) -> str:
+    return render_report("reward_report.md", report=report, episodes=episodes, successes=successes)
 
 
 def _plot(episodes: list[dict], path: Path) -> None:

@@ -29,6 +29,7 @@ from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_f
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
     check_policy_fits_env,
@@ -350,34 +351,7 @@ def _word(success: bool) -> str:
 
 
 def ladder_markdown(ladder: dict) -> str:
-    lines = [
-        "| policy | simulator success | world-model success | world-model mean return |",
-        "|---|---:|---:|---:|",
-    ]
-    for path, s, w, r in zip(
-        ladder["policies"],
-        ladder["simulator_success_rate"],
-        ladder["world_model_success_rate"],
-        ladder["world_model_mean_return"],
-        strict=True,
-    ):
-        lines.append(f"| `{path}` | {s:.0%} | {w:.0%} | {r:.2f} |")
-    pooled, c = ladder["pooled"], ladder["pooled"]["confusion"]
-    fmt = lambda x: "-" if x is None else f"{x:.3f}"  # noqa: E731
-    lines += [
-        "",
-        f"Spearman (world-model mean return against simulator success): {fmt(ladder['spearman_return_vs_success'])}; "
-        f"(world-model success against simulator success): {fmt(ladder['spearman_wm_success_vs_success'])}.",
-        "",
-        f"All {pooled['episodes']} paired episodes: agreement {fmt(pooled['agreement'])}, balanced accuracy "
-        f"{fmt(pooled['balanced_accuracy'])}.",
-        "",
-        "| | world model: success | world model: failure |",
-        "|---|---:|---:|",
-        f"| simulator: success | {c['sim_success_wm_success']} | {c['sim_success_wm_failure']} |",
-        f"| simulator: failure | {c['sim_failure_wm_success']} | {c['sim_failure_wm_failure']} |",
-    ]
-    return "\n".join(lines) + "\n"
+    return render_report("agreement_ladder.md", ladder=ladder)
 
 
 def ladder_figure(ladder: dict, path: Path) -> None:

@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training.loop import resolve_device
@@ -249,7 +250,7 @@ def evaluate_success(cfg: EvalConfig, slots=None) -> dict:
             own_slots.close()
     # The tables appear only complete: a killed evaluation leaves its finished splits, never a partial eval.json.
     write_text_atomically(cfg.output_dir / EVAL_JSON, json.dumps(results, indent=2))
-    write_text_atomically(cfg.output_dir / "eval.md", markdown_table(results))
+    write_text_atomically(cfg.output_dir / "eval.md", markdown(results))
     return results
 
 
@@ -319,18 +320,5 @@ def summarise(outcomes: list[bool]) -> dict:
     }
 
 
-def markdown_table(results: dict) -> str:
-    lines = [
-        f"Success rate of `{results['policy']}` in roboscape_maniskill (95% Wilson interval)",
-        "",
-        "| split | family | success | 95% CI | episodes |",
-        "|---|---|---:|---:|---:|",
-    ]
-    for split, cells in results["splits"].items():
-        for family, cell in cells.items():
-            low, high = cell["ci95"]
-            lines.append(
-                f"| {split.upper()} | {family} | {cell['success_rate']:.0%} | {low:.0%}-{high:.0%} | "
-                f"{cell['episodes']} |"
-            )
-    return "\n".join(lines) + "\n"
+def markdown(results: dict) -> str:
+    return render_report("success_rate.md", results=results)

@@ -8,6 +8,8 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from lerobot_roboscape.io.templates import render_report
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
@@ -67,35 +69,18 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
 def format_table(results: dict, families: list[str], title: str, with_paper: bool = False) -> str:
     """The paper's layout: rows policy x method, columns IND families then OOD families: success % [95% CI];
     `with_paper`: under each of our rows, the paper's number for the same policy kind and method (Table 1)."""
-    names = [SHORT.get(f, f) for f in families]
-    header = (
-        "| Policy | Training method | "
-        + " | ".join(f"IND {n}" for n in names)
-        + " | "
-        + " | ".join(f"OOD {n}" for n in names)
-        + " |"
+    return render_report(
+        "table1.md",
+        results=results,
+        families=families,
+        names=[SHORT.get(f, f) for f in families],
+        splits=("ind", "ood"),
+        title=title,
+        episodes=_episodes(results),
+        with_paper=with_paper,
+        paper_table=PAPER_TABLE_1,
+        paper_policy=PAPER_POLICY,
     )
-    lines = [
-        f"{title}: success rate (%) in the ManiSkill simulator [95% Wilson interval] (its width), episodes per cell: "
-        f"{_episodes(results)}",
-        "",
-        header,
-        "|---|---|" + "---:|" * (2 * len(families)),
-    ]
-    for policy, methods in results.items():
-        for method, splits in methods.items():
-            cells = [_cell(splits[split][f]) for split in ("ind", "ood") for f in families]
-            lines.append(f"| {policy} | {method} | " + " | ".join(cells) + " |")
-            paper = PAPER_TABLE_1.get(PAPER_POLICY.get(policy), {}).get(method)
-            if with_paper and paper:
-                cells = [f"*{paper[split][f]:.1f}*" for split in ("ind", "ood") for f in families]
-                lines.append(f"| *paper: {PAPER_POLICY[policy]}* | *{method}* | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def _cell(cell: dict) -> str:
-    low, high = cell["ci95"]
-    return f"{100 * cell['success_rate']:.0f} [{100 * low:.0f}, {100 * high:.0f}] ({100 * (high - low):.0f})"
 
 
 def _episodes(results: dict) -> str:

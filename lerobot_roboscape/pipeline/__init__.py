@@ -4,4 +4,5 @@ last (`run.py`) and the paper's claim measured on a run's trained stages (`exper
 per file: the folders under output_dir (`layout.py`), skipping and resuming stages (`resume.py`), the stage
 headers (`clock.py`), the methods' names (`methods.py`), the LeRobot command lines (`lerobot_cli.py`), what counts
 as success (`targets.py`), the figures (`figures.py`), and the two reports (`report.py`, `experiment_report.py`)
-rendered from `templates/`. `roboscape-demo` and `roboscape-experiment` are thin command lines over it."""
+rendered from `lerobot_roboscape/templates/`. `roboscape-demo` and `roboscape-experiment` are thin command lines
+over it."""

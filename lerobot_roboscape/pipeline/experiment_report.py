@@ -31,7 +31,7 @@ from lerobot_roboscape.pipeline.methods import (
     SFT,
     initial_scene,
 )
-from lerobot_roboscape.pipeline.report import machine, render_report
+from lerobot_roboscape.pipeline.report import machine, render_pipeline_report
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
 from lerobot_roboscape.training.records import read_history
@@ -320,7 +320,7 @@ def markdown(cfg, summary: dict) -> str:
         for method, cells in methods.items()
     ]
     replays = summary["replays"]
-    return render_report(
+    return render_pipeline_report(
         "claim_report.md",
         FILTERS,
         p=p,
@@ -371,7 +371,7 @@ def readme_block(cfg, summary: dict) -> str:
     """The README's results: the claim's targets and Table 1, with the machine and the command."""
     p = cfg.pipeline
     return (
-        render_report(
+        render_pipeline_report(
             "readme_results.md",
             cfg=cfg,
             summary=summary,

@@ -17,7 +17,7 @@ from lerobot_roboscape.evaluation.success_rate import (
     eval_batch_size,
     eval_env_config,
     evaluate_success,
-    markdown_table,
+    markdown,
     read_cells,
 )
 from lerobot_roboscape.io.atomic import write_text_atomically
@@ -267,5 +267,5 @@ def simulator_eval(
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
             folder = out / eval_dir(name, method)
             write_text_atomically(folder / EVAL_JSON, json.dumps(merged, indent=2))
-            (folder / "eval.md").write_text(markdown_table(merged))
+            (folder / "eval.md").write_text(markdown(merged))
     return results

@@ -13,7 +13,7 @@ import torch
 
 from lerobot_roboscape.envs.reward_report import read_reward_report
 from lerobot_roboscape.evaluation.tables import format_table, read_table
-from lerobot_roboscape.io.templates import render
+from lerobot_roboscape.io.templates import number, render_report
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
 from lerobot_roboscape.pipeline.figures import WM_FIGURE_FRAMES, ppo_curves, world_model_figure
 from lerobot_roboscape.pipeline.layout import (
@@ -45,7 +45,7 @@ from lerobot_roboscape.pipeline.methods import (
     SUCCESS_CLASSIFIER,
 )
 from lerobot_roboscape.pipeline.resume import stage_seconds
-from lerobot_roboscape.pipeline.targets import format_value, measure_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.targets import measure_targets, tokenizer_targets
 from lerobot_roboscape.reward.done_report import read_done_report
 from lerobot_roboscape.tokenizer.report import read_tokenizer_report
 from lerobot_roboscape.training.loop import read_curve
@@ -200,21 +200,19 @@ def _episodes(n: int) -> str:
 
 def measured(target: dict) -> str:
     """A target's measured value as the reports write it, with its detail."""
-    return format_value(target["value"]) + (f" ({target['detail']})" if "detail" in target else "")
+    return number(target["value"]) + (f" ({target['detail']})" if "detail" in target else "")
 
 
 def minutes(seconds: float) -> str:
     return f"{seconds / 60:.1f}"
 
 
-# How the report templates write values (filters: `{{ target | measured }}`).
-FILTERS = {"measured": measured, "value": format_value, "minutes": minutes}
-TEMPLATES = Path(__file__).parent / "templates"
+# How the pipeline's reports write a target and a duration (`{{ target | measured }}`), beside the renderer's own.
+FILTERS = {"measured": measured, "minutes": minutes}
 
 
-def render_report(template: str, filters: dict | None = None, **fields) -> str:
-    """A report template of pipeline/templates/ filled with `fields`."""
-    return render(TEMPLATES, template, FILTERS | (filters or {}), **fields)
+def render_pipeline_report(template: str, filters: dict | None = None, **fields) -> str:
+    return render_report(template, FILTERS | (filters or {}), **fields)
 
 
 def stage_times(cfg: PipelineConfig, out: Path) -> dict[str, float]:
@@ -247,7 +245,7 @@ def machine() -> str:
 
 
 def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
-    return render_report(
+    return render_pipeline_report(
         "run_report.md",
         cfg=cfg,
         results=results,

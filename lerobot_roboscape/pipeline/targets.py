@@ -6,6 +6,7 @@ import numpy as np
 
 from lerobot_roboscape.evaluation.success_rate import difference_interval, paired_difference_interval
 from lerobot_roboscape.evaluation.tables import SHORT
+from lerobot_roboscape.io.templates import number
 from lerobot_roboscape.pipeline.methods import (
     REWARD_BASELINES,
     RL_MANISKILL,
@@ -161,7 +162,7 @@ def world_model_targets(
             auc,
             f">= {goal}",
             auc is not None and auc >= goal,
-            f"episodes: {format_value(chosen[mode]['episode_roc_auc'])}",
+            f"episodes: {number(chosen[mode]['episode_roc_auc'])}",
         )
         c = chosen[mode]["confusion"]
         successful = c["success_called_done"] + c["success_missed"]
@@ -217,7 +218,7 @@ def reward_target(rewards: dict) -> dict:
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     return target_row(
         ours,
-        f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({format_value(v)})" for k, v in baselines.items()),
+        f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({number(v)})" for k, v in baselines.items()),
         ours is not None and ours >= REWARD_ROC_AUC and beats,
         f"similarity: {rewards['similarity']}; done: {rewards['done_source']} at {rewards['theta']:.3f}",
     )
@@ -319,10 +320,6 @@ def target_row(value, goal: str, met: bool, detail: str | None = None) -> dict:
     """A target row: the measured value, the goal, whether it is met, and what the value is made of (optional)."""
     row = {"value": None if value is None else round(float(value), 4), "goal": goal, "met": bool(met)}
     return row | ({"detail": detail} if detail else {})
-
-
-def format_value(value) -> str:
-    return "-" if value is None else f"{value:.3f}"
 
 
 def claim_targets(table: dict, families: list[str], curve: list[dict] | None = None) -> dict:

@@ -27,6 +27,7 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
@@ -296,32 +297,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
 
 
 def markdown(report: dict) -> str:
-    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    chosen = report["chosen"]
-    lines = [
-        f"# Done signals ({len(report['episodes'])} held-out episodes)",
-        "",
-        f"Chosen on the validation episodes: **{chosen['source']}**, threshold {chosen['theta']:.3f} (from "
-        f"{chosen['theta_from']}).",
-        "",
-        "| source | threshold | validation frame ROC-AUC | mode | frame ROC-AUC | episode ROC-AUC | "
-        "failed called done | successes called done |",
-        "|---|---:|---:|---|---:|---:|---:|---:|",
-    ]
-    for source, s in report["sources"].items():
-        for mode in MODES:
-            m = s[mode]
-            if m is None or "confusion" not in m:
-                continue
-            c = m["confusion"]
-            failed = c["failed_called_done"] + c["failed_not_done"]
-            successes = c["success_called_done"] + c["success_missed"]
-            lines.append(
-                f"| {source} | {s['theta']:.3f} | {fmt(s['validation']['frame_roc_auc'])} | {mode} | "
-                f"{fmt(m['frame_roc_auc'])} | {fmt(m['episode_roc_auc'])} | {c['failed_called_done']}/{failed} | "
-                f"{c['success_called_done']}/{successes} |"
-            )
-    return "\n".join(lines) + "\n"
+    return render_report("done_report.md", report=report, modes=MODES)
 
 
 def plot_curves(episodes: list[EpisodeScores], report: dict, path: Path, per_kind: int = 6) -> None:

@@ -20,6 +20,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import FrameBank, camera_names, open_dataset
 from lerobot_roboscape.dataset.segmentation import OBJECT, has_masks
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.metrics.image_fidelity import MIN_OBJECT_PIXELS, codebook_use, frame_measures, psnr, summarise
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import read_curve, resolve_device
@@ -177,32 +178,5 @@ def curve_figure(curve: list[dict], cameras: list[str], path: Path) -> None:
 
 
 def markdown(report: dict) -> str:
-    fmt = lambda v, f="{:.2f}": "-" if v is None else f.format(v)  # noqa: E731
-    lines = [
-        f"# Tokenizer on held-out frames ({report['episodes']} episodes)",
-        "",
-        f"Object measures over the frames where the object covers at least {report['min_object_pixels']} px; it "
-        "survives when its reconstructed pixels' mean colour is nearer the real object's than the surrounding "
-        "background's.",
-        "",
-        "| view | frames | PSNR (dB) | object frames | object PSNR (dB) | object survives | in the picture | codes "
-        "used | perplexity |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for camera, m in report["views"].items():
-        c = m["codebook"]
-        lines.append(
-            f"| {camera} | {m.get('frames', '-')} | {fmt(m['psnr'])} | {m.get('object_frames', '-')} | "
-            f"{fmt(m['object_psnr'])} | {fmt(m['object_survival'], '{:.1%}')} | "
-            f"{fmt(m.get('picture_object_survives'), '{:.0%}')} | "
-            f"{c['used']}/{c['codebook_size']} ({c['share_used']:.1%}) | {c['perplexity']:.0f} |"
-        )
     sized = {camera: m["object_survival_by_size"] for camera, m in report["views"].items() if m.get("frames")}
-    if sized:
-        bins = list(next(iter(sized.values())))
-        lines += ["", "Object survival by the object's size in the frame (frames in brackets):", ""]
-        lines += ["| view | " + " | ".join(bins) + " |", "|---|" + "---:|" * len(bins)]
-        for camera, by_size in sized.items():
-            cells = [f"{fmt(b['survival'], '{:.1%}')} ({b['frames']})" for b in by_size.values()]
-            lines.append(f"| {camera} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return render_report("tokenizer_report.md", report=report, sized=sized)

@@ -23,6 +23,7 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.dataset.segmentation import has_masks, read_masks
+from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.metrics.image_fidelity import frame_measures
 from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
@@ -213,36 +214,18 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
 def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: int) -> None:
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
-    (output_dir / "fidelity.md").write_text(markdown_table(report))
+    (output_dir / "fidelity.md").write_text(markdown(report))
     plot(report, output_dir / "fidelity.png")
     if videos:
         av.logging.set_level(av.logging.ERROR)  # no encoder statistics on the console
         iio.imwrite(output_dir / "side_by_side.mp4", np.concatenate(videos), plugin="pyav", codec="libx264", fps=fps)
 
 
-def markdown_table(report: dict) -> str:
-    steps = len(report["per_step"]["prediction_psnr"])
-    per_step = report["per_step"]
-    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in per_step]
-    names = [f"{LABELS[m]} {kind}" for m in metrics for kind in ("pred", "recon")]
-    lines = [
-        f"# World-model fidelity ({len(report['episodes'])} episodes, {report['prompt_frames']} prompt frames)",
-        "",
-        f"LPIPS trunk: {report['lpips_trunk']}. Reconstruction = the tokenizer's own round trip of the real frame."
-        + (
-            " Object columns: over the frames and views that show the task object."
-            if len(metrics) > len(METRICS)
-            else ""
-        ),
-        "",
-        "| step | " + " | ".join(names) + " |",
-        "|---:|" + "---:|" * len(names),
-    ]
-    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    for i in range(steps):
-        cells = [fmt(per_step[f"{kind}_{m}"][i]) for m in metrics for kind in ("prediction", "reconstruction")]
-        lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+def markdown(report: dict) -> str:
+    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
+    return render_report(
+        "fidelity_report.md", report=report, metrics=metrics, labels=LABELS, object_columns=len(metrics) > len(METRICS)
+    )
 
 
 def plot(report: dict, path: Path) -> None:
