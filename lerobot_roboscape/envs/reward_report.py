@@ -301,6 +301,11 @@ def _mean(values: np.ndarray) -> float | None:
     return float(values.mean()) if len(values) else None
 
 
+def headline(report: dict) -> str:
+    """The report in one line, for a run's console: each reward's ROC-AUC of the return."""
+    return ", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in report["summary"].items())
+
+
 def markdown(report: dict, episodes: int, successes: int) -> str:
     return render_report("reward_report.md", report=report, episodes=episodes, successes=successes)
 

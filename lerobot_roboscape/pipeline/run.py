@@ -6,6 +6,7 @@ import io
 import time
 from pathlib import Path
 
+from lerobot_roboscape.envs import reward_report
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
 from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, stages
@@ -13,6 +14,8 @@ from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_ar
 from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
 from lerobot_roboscape.pipeline.config import PipelineConfig, preset
 from lerobot_roboscape.pipeline.report import write_report
+from lerobot_roboscape.tokenizer import report as tokenizer_report
+from lerobot_roboscape.world_model import fidelity as fidelity_report
 
 # The demo's stages, in order; each header names one, with the details of this run.
 STAGES = (
@@ -55,12 +58,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
 
     clock("tokenizer report", "tokenizer report on the held-out frames (whole frame, object, codebook; each view)")
-    views = stages.tokenizer_report(cfg, out, data, tokenizer)["views"]
-    print(
-        ", ".join(
-            f"{view} PSNR {m['psnr']:.1f} dB, object survives {m['object_survival']}" for view, m in views.items()
-        )
-    )
+    print(tokenizer_report.headline(stages.tokenizer_report(cfg, out, data, tokenizer)))
     artifacts["tokenizer report"] = Artifact(
         ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
     )
@@ -76,15 +74,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
         fidelity = stages.fidelity(cfg, out, data, tokenizer, models, domain)
         if fidelity is None:
             continue
-        mean = fidelity["mean"]
-        print(
-            f"{domain.upper()}: PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone "
-            f"{mean['reconstruction_psnr']:.1f}), SSIM {mean['prediction_ssim']:.2f}"
-            + "".join(
-                f", retrieval {region} {m['retrieval']:.2f}"
-                for region, m in fidelity.get("controllability", {}).get("world_model", {}).items()
-            )
-        )
+        print(f"{domain.upper()}: {fidelity_report.headline(fidelity)}")
         name = "fidelity report" + (" IND" if domain == "ind" else "")
         artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / layout.fidelity_dir(domain) / "fidelity.md")
     artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
@@ -96,14 +86,14 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.DONE_REPORT_DIR / "done_report.md")
     wm_env = stages.world_model_env(cfg, data.train, tokenizer, models, done, trained)
     rewards = stages.reward_report(cfg, out, data, wm_env, trained)
-    print(", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in rewards["summary"].items()))
+    print(reward_report.headline(rewards))
     artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
 
     clock("world-model rollout", "random actions in the roboscape_wm environment (world-model reward)")
     rollout = stages.world_model_rollout(out, wm_env)
-    print(f"{rollout['steps']} steps of {rollout['episodes']} episodes, return {rollout['returns']}")
-    artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout["video"])
-    artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout["plot"])
+    print(f"{rollout.steps} steps of {rollout.episodes} episodes, return {rollout.returns}")
+    artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout.video)
+    artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout.plot)
 
     clock("SFT", "SFT with lerobot-train: " + " and ".join(policy_stages.policy_specs(cfg)))
     sft = policy_stages.sft(cfg, out, data.train)

@@ -4,7 +4,7 @@ the settings it ran with; a rerun with the same settings skips it (so a killed r
 
 import json
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import av
@@ -274,7 +274,20 @@ def _str(path: Path | None) -> str | None:
     return None if path is None else str(path)
 
 
-def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episodes: int = 2, steps: int = 40) -> dict:
+@dataclass(frozen=True)
+class WorldModelRollout:
+    """What `world_model_rollout` made: its video (frame beside goal), its reward plot, and its episodes' returns."""
+
+    video: Path
+    plot: Path
+    steps: int
+    episodes: int
+    returns: list[float]
+
+
+def world_model_rollout(
+    out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episodes: int = 2, steps: int = 40
+) -> WorldModelRollout:
     """Random actions in `roboscape_wm`: a video of frame beside goal and the reward curve."""
     env = RoboscapeWorldModelEnv(replace(env_cfg, episode_length=steps), num_envs=episodes)
     env.reset(seed=0)
@@ -291,10 +304,4 @@ def world_model_rollout(out: Path, env_cfg: RoboscapeWorldModelEnvConfig, episod
     av.logging.set_level(av.logging.ERROR)
     iio.imwrite(video, np.stack(frames), plugin="pyav", codec="libx264", fps=env.metadata["render_fps"])
     plot_rollout_rewards(rewards, env.tasks(), plot)
-    return {
-        "video": video,
-        "plot": plot,
-        "steps": len(rewards),
-        "episodes": episodes,
-        "returns": [round(float(r), 2) for r in rewards.sum(0)],
-    }
+    return WorldModelRollout(video, plot, len(rewards), episodes, [round(float(r), 2) for r in rewards.sum(0)])

@@ -177,6 +177,13 @@ def curve_figure(curve: list[dict], cameras: list[str], path: Path) -> None:
     plt.close(fig)
 
 
+def headline(report: dict) -> str:
+    """The report in one line, for a run's console."""
+    return ", ".join(
+        f"{view} PSNR {m['psnr']:.1f} dB, object survives {m['object_survival']}" for view, m in report["views"].items()
+    )
+
+
 def markdown(report: dict) -> str:
     sized = {camera: m["object_survival_by_size"] for camera, m in report["views"].items() if m.get("frames")}
     return render_report("tokenizer_report.md", report=report, sized=sized)

@@ -221,6 +221,20 @@ def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: 
         iio.imwrite(output_dir / "side_by_side.mp4", np.concatenate(videos), plugin="pyav", codec="libx264", fps=fps)
 
 
+def headline(report: dict) -> str:
+    """The report in one line, for a run's console: the open loop's mean against the tokenizer's own, and the
+    retrieval of each region."""
+    mean = report["mean"]
+    return (
+        f"PSNR {mean['prediction_psnr']:.1f} dB (tokenizer alone {mean['reconstruction_psnr']:.1f}), "
+        f"SSIM {mean['prediction_ssim']:.2f}"
+        + "".join(
+            f", retrieval {region} {m['retrieval']:.2f}"
+            for region, m in report.get("controllability", {}).get("world_model", {}).items()
+        )
+    )
+
+
 def markdown(report: dict) -> str:
     metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
     return render_report(
