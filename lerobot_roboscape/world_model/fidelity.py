@@ -235,15 +235,20 @@ def headline(report: dict) -> str:
     )
 
 
+def _measured(report: dict) -> list[str]:
+    """The metrics the report holds: the object ones only where the data had masks."""
+    return [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
+
+
 def markdown(report: dict) -> str:
-    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
+    metrics = _measured(report)
     return render_report(
         "fidelity_report.md", report=report, metrics=metrics, labels=LABELS, object_columns=len(metrics) > len(METRICS)
     )
 
 
 def plot(report: dict, path: Path) -> None:
-    metrics = [m for m in METRICS + OBJECT_METRICS if f"prediction_{m}" in report["per_step"]]
+    metrics = _measured(report)
     fig, axes = plt.subplots(1, len(metrics), figsize=(4 * len(metrics), 3.2))
     for ax, metric in zip(axes, metrics, strict=True):
         for kind, style in (("prediction", "-o"), ("reconstruction", "--")):
