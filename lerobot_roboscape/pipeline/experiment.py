@@ -66,7 +66,10 @@ class ExperimentConfig:
         Dyna-style: it uses the simulator, so its row says how much). The settings below are starting points;
         what each lever measured goes in the report.
     kl_coef: the KL lever's weight (PPO's --kl_coef).
-    ensemble_members: action world models beside the run's own in the ensemble lever (trained like it, seeds 1..n).
+    ensemble_members: action world models beside the run's own in the ensemble lever (seeds 1..n).
+    ensemble_retrain_blocks: each member is the run's action model with its last this many blocks and heads drawn
+        afresh and trained alone (the trunk shared); null: whole models trained as the run's own.
+    ensemble_steps_share: each member's training steps, as a share of the run's action model's.
     disagreement_penalty: the ensemble lever's lambda (roboscape_wm's --env.disagreement_penalty).
     disagreement_threshold: the ensemble lever's halt (--env.disagreement_threshold; null: never halts).
     branches_per_episode: the branched lever's starts per demonstration (--env.branches_per_episode).
@@ -90,6 +93,8 @@ class ExperimentConfig:
     levers: list[str] = field(default_factory=list)
     kl_coef: float = 0.1
     ensemble_members: int = 2
+    ensemble_retrain_blocks: int | None = 1
+    ensemble_steps_share: float = 0.25
     disagreement_penalty: float = 1.0
     disagreement_threshold: float | None = None
     branches_per_episode: int = 4
@@ -110,6 +115,8 @@ class ExperimentConfig:
         for name in ("curve_episodes", "replay_episodes", "ensemble_members", "refresh_rounds", "refresh_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.ensemble_steps_share <= 1:
+            raise InvalidInputError(f"--ensemble_steps_share must be in (0, 1], got {self.ensemble_steps_share}")
         if self.curve_points < 2:
             raise InvalidInputError(
                 f"--curve_points must be >= 2 (SFT and the last checkpoint), got {self.curve_points}"
@@ -171,7 +178,9 @@ def lever_runs(
         runs[methods.RL_WORLD_MODEL_KL] = (wm, {"kl_coef": cfg.kl_coef})
     if "ensemble" in cfg.levers:
         data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
-        members = stages.ensemble_members(p, run, data, trained.tokenizer, cfg.ensemble_members)
+        members = stages.ensemble_members(
+            p, run, data, trained.tokenizer, cfg.ensemble_members, cfg.ensemble_retrain_blocks, cfg.ensemble_steps_share
+        )
         env = replace(
             wm,
             ensemble=[str(m) for m in members],

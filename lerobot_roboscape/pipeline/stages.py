@@ -94,18 +94,35 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     }
 
 
-def ensemble_members(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, n: int) -> list[Path]:
-    """`n` more action world models, trained as the run's own but from other seeds (1..n): an ensemble whose
-    disagreement guards PPO in the world model (envs/ensemble.py)."""
-    folders = [out / world_model_dir(f"action_seed{seed}") for seed in range(1, n + 1)]
-    return [
-        _world_model(cfg, folder, data, tokenizer_path, "action", replace(cfg.wm_train, seed=seed))
-        for seed, folder in enumerate(folders, start=1)
-    ]
+def ensemble_members(
+    cfg: PipelineConfig,
+    out: Path,
+    data: Datasets,
+    tokenizer_path: Path,
+    n: int,
+    retrain_blocks: int | None,
+    steps_share: float,
+) -> list[Path]:
+    """`n` more action world models, an ensemble whose disagreement guards PPO in the world model
+    (envs/ensemble.py), for `steps_share` of the run's own model's steps each, seeds 1..n: the run's model with its
+    last `retrain_blocks` blocks and heads drawn afresh and trained alone, or (null) whole models trained as the
+    run's own. Members feed the disagreement only: their done heads are not tuned."""
+    own = out / world_model_dir("action") / FINAL
+    tag = "action_seed" if retrain_blocks is None else f"action_top{retrain_blocks}_seed"
+    members = []
+    for seed in range(1, n + 1):
+        steps = max(round(cfg.wm_train.steps * steps_share), 1)
+        training = replace(cfg.wm_train, seed=seed, steps=steps)
+        start = {"init_from": str(own), "retrain_blocks": retrain_blocks} if retrain_blocks is not None else {}
+        folder = out / world_model_dir(f"{tag}{seed}")
+        members.append(
+            _world_model(cfg, folder, data, tokenizer_path, "action", training, done_tuning_steps=0, **start)
+        )
+    return members
 
 
 def _world_model(
-    cfg: PipelineConfig, folder: Path, data: Datasets, tokenizer_path: Path, control: str, training
+    cfg: PipelineConfig, folder: Path, data: Datasets, tokenizer_path: Path, control: str, training, **train_options
 ) -> Path:
     action = control == "action"
     train = TrainWorldModelConfig(
@@ -119,6 +136,7 @@ def _world_model(
         exploration_share=cfg.exploration_share,
         heldout_control=data.controllability if action else None,
         device=cfg.device,
+        **train_options,
     )
     return _train(folder, train, train_world_model, cfg.fresh)
 

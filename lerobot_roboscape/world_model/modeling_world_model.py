@@ -71,6 +71,22 @@ class STWorldModel(
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
 
+    def top(self, n_blocks: int) -> nn.ModuleList:
+        """The last `n_blocks` blocks and everything that reads them: the final norm, the token and done heads."""
+        if not 1 <= n_blocks <= len(self.blocks):
+            raise InvalidInputError(f"the model has {len(self.blocks)} blocks; cannot take the last {n_blocks}")
+        return nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
+
+    def reinitialise(self, modules: nn.Module) -> None:
+        """Draw `modules`' weights afresh, as __init__ draws them (from torch's current seed)."""
+        for module in modules.modules():
+            self._init_weights(module)
+            if isinstance(module, nn.LayerNorm):
+                module.reset_parameters()
+        for module in modules.modules():  # after the normal draw, which visits a block before its layers
+            if isinstance(module, STBlock):
+                module.zero_init_modulation()
+
     # ---- control -------------------------------------------------------------------------------------------
 
     def encode_control(self, actions=None, no_action=None, instructions=None) -> Control:

@@ -76,6 +76,13 @@ class TrainWorldModelConfig:
         episodes and on their real frames, for this many full-batch steps, so that it fires where roboscape_wm
         reads it (world_model/done_tuning.py); 0: off. The action model only.
     done_tuning_episodes: training episodes generated open loop for it, spread over the episodes (null: all).
+    init_from: a trained world model (a local directory or Hub repo id) to start from instead of random weights. Its
+        configuration is kept (layout, action statistics; --wm is not read but for its control, which must match)
+        and the data must fit its layout.
+    retrain_blocks: with init_from, draw the last this many blocks and the heads after them afresh (from
+        --train.seed) and train those alone, the rest frozen: a member of an ensemble that shares the model's trunk
+        and parts in its top, for a fraction of a whole model's training (bootstrapped DQN's heads); null: every
+        weight is trained on from init_from's.
     device: where to tokenize ("auto": cuda when available).
     """
 
@@ -96,6 +103,8 @@ class TrainWorldModelConfig:
     heldout_starts: list[Path] = field(default_factory=list)
     done_tuning_steps: int = 300
     done_tuning_episodes: int | None = 128
+    init_from: str | None = None
+    retrain_blocks: int | None = None
     device: str = "auto"
 
     def __post_init__(self):
@@ -111,6 +120,10 @@ class TrainWorldModelConfig:
                 raise InvalidInputError(f"heldout_starts: {path} is not a file (save_control_starts writes one)")
         if not 0.0 <= self.exploration_share <= 1.0:
             raise InvalidInputError(f"exploration_share must be in [0, 1], got {self.exploration_share}")
+        if self.retrain_blocks is not None and self.init_from is None:
+            raise InvalidInputError(
+                f"retrain_blocks={self.retrain_blocks} retrains the top of init_from's model; give init_from"
+            )
 
 
 def prepare_token_cache(
@@ -207,7 +220,10 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         batches = ResidentClips(batches, device)
         logger.info("token caches resident on %s: %.0f MiB", device, batches.nbytes / 2**20)
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
-    model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
+    if cfg.init_from is None:
+        model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
+    else:
+        model = start_from(cfg.init_from, cfg.retrain_blocks, cache, cfg.wm.control)
     model = fit(
         model,
         lambda m, batch: m(batch),
@@ -221,6 +237,32 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     )
     if cfg.done_tuning_steps and cfg.wm.control == "action":
         tune_done_on_open_loop(model, cache, episodes, cfg)
+    return model
+
+
+def start_from(init_from: str, retrain_blocks: int | None, cache: TokenCache, control: str) -> STWorldModel:
+    """A trained model to train on: whole, or its top drawn afresh and trainable alone (`retrain_blocks`)."""
+    model = STWorldModel.from_pretrained(init_from)
+    c = model.config
+    theirs = {"control": c.control, "n_cameras": c.n_cameras, "tokens_per_side": c.tokens_per_side}
+    theirs |= {"vocab_size": c.vocab_size, "action_dim": c.action_dim}
+    ours = {"control": control, "n_cameras": len(cache.cameras), "tokens_per_side": cache.tokens_per_side}
+    ours |= {"vocab_size": cache.vocab_size, "action_dim": cache.action_dim}
+    if differ := {name: (theirs[name], ours[name]) for name in ours if theirs[name] != ours[name]}:
+        raise InvalidInputError(f"init_from={init_from}: the model and the data (or --wm.control) differ in {differ}")
+    if retrain_blocks is not None:
+        top = model.top(retrain_blocks)
+        model.requires_grad_(False)
+        model.reinitialise(top)
+        top.requires_grad_(True)
+        trained = sum(p.numel() for p in top.parameters())
+        logger.info(
+            "init_from %s: its last %d blocks and heads drawn afresh, %d of %d weights trained",
+            init_from,
+            retrain_blocks,
+            trained,
+            sum(p.numel() for p in model.parameters()),
+        )
     return model
 
 

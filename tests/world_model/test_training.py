@@ -291,3 +291,46 @@ def test_a_loss_gone_non_finite_stops_training_at_the_next_logging_step(tmp_path
     config = TrainingConfig(steps=8, batch_size=2, log_freq=4, warmup_steps=1, mixed_precision="no")
     with pytest.raises(FloatingPointError, match="loss is nan at step 4; lower --train.lr"):
         fit(torch.nn.Linear(3, 1), loss_fn, batches, config, tmp_path, {})
+
+
+def test_a_member_started_from_a_model_retrains_its_top_alone(
+    action_wm, demo_dataset, trained_tokenizer, token_cache, tmp_path
+):
+    """`init_from` with `retrain_blocks`: the trunk keeps the trained model's weights bit for bit; the last blocks and
+    the heads are drawn afresh from the seed and trained, and the member's loss falls as they learn. A model and data
+    that differ, or retrain_blocks without a model, are refused by name."""
+    from lerobot_roboscape.envs.ensemble import mutual_information
+    from roboscape_core.errors import InvalidInputError
+
+    base = action_wm / FINAL
+    args = train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path, steps=20)
+    start = [f"--init_from={base}", "--retrain_blocks=1", "--train.seed=1", "--done_tuning_steps=0"]
+    train_world_model(draccus.parse(TrainWorldModelConfig, args=[*args, *start]))
+    trained, member = STWorldModel.from_pretrained(base), STWorldModel.from_pretrained(tmp_path / FINAL)
+    top = {
+        name for name, _ in member.named_parameters() if name.startswith(("blocks.1.", "ln_f.", "head.", "done_head."))
+    }
+    assert top and any(name.startswith("blocks.0.") for name, _ in member.named_parameters())
+    theirs = dict(trained.named_parameters())
+    for name, weight in member.named_parameters():
+        assert torch.equal(weight, theirs[name]) != (name in top), name  # frozen: equal; retrained: not
+    losses = [json.loads(line)["loss"] for line in (tmp_path / TRAIN_LOG).read_text().splitlines()]
+    assert losses[-1] < losses[0]
+    # The two disagree on a frame of the data: a member an ensemble can read.
+    k = member.config.frame_skip
+    batch = ClipSampler(token_cache, select_episodes(token_cache), 4, 2, seed=0, frame_skip=k)(step=0)
+    with torch.no_grad():
+        logits = [
+            m.eval().compute_logits(batch["tokens"], m.encode_control(batch["actions"], batch["no_action"]))[0][:, -1]
+            for m in (trained, member)
+        ]
+    assert (mutual_information(logits) > 1e-4).all()
+
+    with pytest.raises(InvalidInputError, match="differ in .*'control': \\('action', 'text'\\)"):
+        text = [a for a in args if not a.startswith("--wm.control")] + ["--wm.control=text"]
+        train_world_model(draccus.parse(TrainWorldModelConfig, args=[*text, *start, f"--output_dir={tmp_path / 't'}"]))
+    with pytest.raises(InvalidInputError, match="has 2 blocks; cannot take the last 3"):
+        again = [*args, *start[:1], "--retrain_blocks=3", f"--output_dir={tmp_path / 'b'}"]
+        train_world_model(draccus.parse(TrainWorldModelConfig, args=again))
+    with pytest.raises(InvalidInputError, match="give init_from"):
+        TrainWorldModelConfig(retrain_blocks=1)
