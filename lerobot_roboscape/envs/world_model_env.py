@@ -305,7 +305,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             zeros = np.zeros(self.num_envs, np.float32)
             reward = zeros
             parts = {"reward_sparse": zeros, "reward_dense": zeros, "distance_to_goal": self._distance}
-            parts["disagreement"] = zeros
+            disagreement = zeros
         else:
             self._substep = 0
             tokens, model_done, disagreement = self._generate(live)
@@ -327,6 +327,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "clipped_actions": clipped,
             "goal": self._pixels(self._goals),
         }
+        if self.ensemble is not None:
+            info["disagreement"] = disagreement
         # Ended episodes stay frozen and keep reporting how they ended until the next reset.
         return self._observation(), reward, self._book.terminated.copy(), self._book.truncated.copy(), info
 
@@ -366,7 +368,6 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "reward_sparse": paid.sparse.cpu().numpy() * live,
             "reward_dense": paid.dense.cpu().numpy() * live,
             "distance_to_goal": self._distance,
-            "disagreement": disagreement,
         }
         return reward.cpu().numpy() - self.config.disagreement_penalty * disagreement, parts
 

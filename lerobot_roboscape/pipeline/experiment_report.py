@@ -28,6 +28,10 @@ from lerobot_roboscape.pipeline.methods import (
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
+    RL_WORLD_MODEL_BRANCHED,
+    RL_WORLD_MODEL_ENSEMBLE,
+    RL_WORLD_MODEL_KL,
+    RL_WORLD_MODEL_REFRESH,
     SFT,
     initial_scene,
 )
@@ -95,7 +99,34 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
                     ),
                 }
             )
+            if "charts/disagreement" in history[0]:  # an ensemble guarded the run: how far from the data it went
+                rows[-1] |= {
+                    "first_disagreement": round(history[0]["charts/disagreement"], 4),
+                    "last_disagreement": round(float(np.mean([row["charts/disagreement"] for row in last])), 4),
+                    "last_halted": round(float(np.mean([row["charts/halted"] for row in last])), 3),
+                }
     return rows
+
+
+def lever_settings(cfg, levers) -> dict[str, str]:
+    """{lever's method: what it ran with, in words} of the levers that ran."""
+    retrained = cfg.ensemble_retrain_blocks
+    members = f"the run's action model and {cfg.ensemble_members} more " + (
+        f"(its last {retrained} block(s) and heads drawn afresh and retrained alone"
+        if retrained is not None
+        else "(whole models trained from other seeds"
+    )
+    halt = "" if cfg.disagreement_threshold is None else f"; episodes halt above {cfg.disagreement_threshold} nats"
+    settings = {
+        RL_WORLD_MODEL_KL: f"KL to the SFT policy x {cfg.kl_coef}",
+        RL_WORLD_MODEL_ENSEMBLE: f"{members}, {cfg.ensemble_steps_share:.0%} of its steps each); reward - "
+        f"{cfg.disagreement_penalty} x their disagreement{halt}",
+        RL_WORLD_MODEL_BRANCHED: f"{cfg.branches_per_episode} starts per demonstration, episodes of "
+        f"{cfg.branch_episode_length} steps",
+        RL_WORLD_MODEL_REFRESH: f"the done head refitted {cfg.refresh_rounds - 1} times on {cfg.refresh_episodes} "
+        "simulator episodes of the current policy",
+    }
+    return {method: settings[method] for method in levers}
 
 
 def write_experiment_report(
@@ -131,6 +162,7 @@ def write_experiment_report(
         "ppo_runs": runs,
         "curve": curve,
         "lever_curves": lever_curves,
+        "lever_settings": lever_settings(cfg, lever_curves),
         "replays": replays,
         "seconds": times,
     }
@@ -312,6 +344,7 @@ def markdown(cfg, summary: dict) -> str:
     lever_rows = [
         (
             method,
+            summary.get("lever_settings", {}).get(method, ""),
             [cells["ood"][f] for f in [*p.data.families, "all"]],
             summary["lever_curves"][method],
             beside.get((policy, method), 0),

@@ -63,6 +63,8 @@ class Rollout(NamedTuple):
     returns: np.ndarray  # (B,) episode returns
     successes: np.ndarray  # (B,) success at any step
     frames: list[np.ndarray]  # render() per step, when recorded
+    disagreement: np.ndarray | None  # (B,) an ensemble's disagreement summed over the episode; None: none reported
+    halted: np.ndarray | None  # (B,) the episode ended by the ensemble's halt
 
 
 @torch.no_grad()
@@ -78,6 +80,8 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
     raw_actions = None  # shaped as the policy's choice: a Gaussian sample, or OpenVLA's action token ids
     alive = np.ones(n, dtype=bool)
     returns, successes, frames = np.zeros(n), np.zeros(n, dtype=bool), []
+    disagreement, halted = np.zeros(n), np.zeros(n, dtype=bool)  # roboscape_wm with an ensemble reports them
+    reported = False
     for t in range(steps):
         for cam, image in observation["pixels"].items():
             pixels[cam][t] = image
@@ -96,6 +100,10 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
                 frames.append(np.concatenate(env.render(), axis=1))
             reward += step_reward * running
             successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & running
+            if "disagreement" in info:
+                reported = True
+                disagreement += np.asarray(info["disagreement"]) * running
+                halted |= np.asarray(info.get("halted", np.zeros(n, dtype=bool)), dtype=bool) & running
             ended_by_task |= task_ended & running
             ended_by_time |= time_ended & running
         returns += reward
@@ -123,6 +131,8 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
         returns,
         successes,
         frames,
+        disagreement if reported else None,
+        halted if reported else None,
     )
 
 
@@ -324,6 +334,12 @@ def train_ppo(cfg: PPOConfig) -> Path:
         }
         elapsed += seconds
         accelerator.log(metrics, step=iteration + 1)
+        if rollout.disagreement is not None:  # the guard's own reading: does the policy leave the data?
+            disagreement = accelerator.gather(torch.tensor(rollout.disagreement, device=device)).sum()
+            decisions = accelerator.gather(rollout.alive.sum(0).float()).sum().clamp_min(1)
+            halted = accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean()
+            metrics["charts/disagreement"] = float(disagreement / decisions)  # nats per decision
+            metrics["charts/halted"] = float(halted)
         if history is not None:
             history.append({"iteration": iteration + 1, "seconds": elapsed} | metrics)
         progress.set_postfix(

@@ -332,6 +332,7 @@ def test_an_ensemble_that_agrees_changes_nothing_and_one_that_parts_penalises_an
         return [(reward, terminated, info) for _, reward, terminated, _, info in steps]
 
     plain, same = run(), run(ensemble=[own], disagreement_penalty=5.0)
+    assert "disagreement" not in plain[0][2]  # no ensemble: nothing to report (PPO logs none)
     for (reward, _, _), (reward_same, _, info) in zip(plain, same, strict=True):
         np.testing.assert_allclose(reward_same, reward, atol=1e-4)
         assert (info["disagreement"] < 1e-4).all()

@@ -6,8 +6,9 @@ import pytest
 from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.pipeline.config import parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown
+from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
+from lerobot_roboscape.pipeline.methods import RL_WORLD_MODEL_ENSEMBLE as ENSEMBLE
 from lerobot_roboscape.pipeline.targets import claim_targets
 from roboscape_core.errors import InvalidInputError
 
@@ -128,7 +129,7 @@ def test_regenerate_command_gives_back_the_same_settings():
 
 
 def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_curve():
-    cfg = ExperimentConfig(pipeline=scale_config("smoke"), levers=["kl"], readme=None)
+    cfg = ExperimentConfig(pipeline=scale_config("smoke"), levers=["kl", "ensemble"], readme=None)
     results = table(40, 10, 30, 25, 30)
     curve = [{"iteration": i, "seconds": 60.0 * i, **cell(n, 20)} for i, n in ((0, 4), (5, 6), (10, 9))]
     summary = {
@@ -138,9 +139,14 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
         "targets": claim_targets(results, ["push"]),
         "differences": differences(results, ["push"]),
         "reward_ablation": {"mlp": {}},
-        "levers": {"mlp": {RL_WORLD_MODEL_KL: {"ood": {"push": cell(12), "all": cell(12)}}}},
-        "lever_curves": {RL_WORLD_MODEL_KL: curve},
-        "ppo_runs": [],
+        "levers": {"mlp": {m: {"ood": {"push": cell(12), "all": cell(12)}} for m in (RL_WORLD_MODEL_KL, ENSEMBLE)}},
+        "lever_curves": {RL_WORLD_MODEL_KL: curve, ENSEMBLE: curve},
+        "lever_settings": lever_settings(cfg, [RL_WORLD_MODEL_KL, ENSEMBLE]),
+        "ppo_runs": [
+            {"policy": "mlp", "method": ENSEMBLE, "iterations": 9, "ppo_seconds": 60.0, "decisions": 900}
+            | {"first_return": 0.1, "last_return": 0.2, "first_success": 0.0, "last_success": 0.1}
+            | {"first_disagreement": 0.012, "last_disagreement": 0.034, "last_halted": 0.25}
+        ],
         "curve": curve,
         "replays": [
             {"episode_index": i, "family": "push", "scene": "s", "world_model_return": 1.0, "video": f"{i}.mp4"}
@@ -160,6 +166,12 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     assert "outcome of 1 of 3" in lines[first + 3]
     row = next(line for line in text.splitlines() if line.startswith(f"| {RL_WORLD_MODEL_KL} |"))
     assert "12/50 (24% [" in row and "0: 4/20 (20% [" in row and "10: 9/20 (45% [" in row
+    assert "| KL to the SFT policy x 0.1 |" in row
+    guards = text.split("## Guards against gaming the world model")[1]
+    row = next(line for line in guards.splitlines() if line.startswith(f"| {ENSEMBLE} |"))
+    assert "2 more (its last 1 block(s) and heads drawn afresh and retrained alone, 25% of its steps each)" in row
+    assert "reward - 1.0 x their disagreement |" in row  # no threshold: no halt
+    assert f"({ENSEMBLE}), in nats per decision: 0.0120 at its first iteration, 0.0340 over its last 3 (25%" in text
     assert "The other protocol" not in text
     # The all-scene protocol's report, where the paper protocol's Table 1 was found: both tables.
     cfg = ExperimentConfig(pipeline=scale_config("smoke"), protocol="all_scenes", readme=None)

@@ -1,5 +1,6 @@
 import json
 
+import numpy as np
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -183,6 +184,27 @@ def test_a_chunked_policy_decides_every_k_steps_and_is_paid_their_summed_reward(
         rollout.raw_actions[0],
     )
     torch.testing.assert_close(evaluation.log_prob, rollout.log_probs[0])  # the k actions scored as one choice
+
+
+def test_an_ensembles_disagreement_and_halts_are_summed_over_the_running_steps(fresh_mlp):
+    """An env that reports an ensemble's disagreement (roboscape_wm with one) has it summed per episode over the
+    steps each episode ran, and its halts counted; an env that reports none has neither."""
+    policy, preprocessor, postprocessor = load_policy(fresh_mlp, "cpu")
+    io = PolicyIO(preprocessor, postprocessor)
+    env = ReachEnvConfig(episode_length=4).create_envs(2)["ppo_test_reach"][0]
+    assert collect_rollout(env, policy, io, seed=0).disagreement is None
+    plain_step = env.step
+
+    def step(actions):  # episode 0 halted at its second step; each running step reports 0.25 nats for episode 1
+        observation, reward, terminated, truncated, info = plain_step(actions)
+        halted = np.array([env.t >= 2, False])
+        terminated = terminated | halted
+        return observation, reward, terminated, truncated, info | {"disagreement": np.full(2, 0.25), "halted": halted}
+
+    env.step = step
+    rollout = collect_rollout(env, policy, io, seed=0)
+    np.testing.assert_allclose(rollout.disagreement, [0.5, 1.0])  # 2 running steps, then 4
+    assert rollout.halted.tolist() == [True, False]
 
 
 def test_target_kl_stops_the_update_once_the_policy_moved_that_far(fresh_mlp, tmp_path):
