@@ -159,6 +159,10 @@ class PipelineConfig:
         training, as `roboscape-train-tokenizer` names them (`--train.*` there).
     wm, wm_train, text_wm_train: the world models (`--wm.type=...`; each model's control is set by its stage) and
         the training of the action and of the text model, as `roboscape-train-wm` names them.
+    world_models: world models trained elsewhere, taken instead of training them here: a folder holding action/
+        and text/, each a `roboscape-train-wm` output_dir (pretrained_model/ beside its logs) trained on the tokens
+        of this run's tokenizer, as scripts/experiments/device_world_models.sh brings them back from a GPU;
+        null: train them.
     exploration_share: share of the action world model's training clips drawn from the exploratory episodes.
     reward_models: train the baseline reward models (embedding, proxy) and the success classifier.
     reward_train: their training (`roboscape-train-reward`'s `--train.*`).
@@ -187,6 +191,7 @@ class PipelineConfig:
     wm: WorldModelConfig = field(default_factory=TinyWorldModelConfig)
     wm_train: WorldModelTrainingConfig = _training(WorldModelTrainingConfig, 200, 4)
     text_wm_train: WorldModelTrainingConfig = _training(WorldModelTrainingConfig, 100, 4)
+    world_models: str | None = None
     exploration_share: float = 0.5
     reward_models: bool = False
     reward_train: RewardTrainingConfig = field(default_factory=RewardTrainingConfig)

@@ -1,7 +1,12 @@
 """Resuming a run: a stage writes into its own folder and, once complete, a stage.json with the settings it ran
 with; a rerun with the same settings skips it, so a killed run resumes where it stopped. A training stage keeps
-its checkpoints across a kill (`prepare`) and resumes from the last one."""
+its checkpoints across a kill (`prepare`) and resumes from the last one.
 
+A stage's settings name the models it reads by path, and a path stays the same when the model behind it is
+trained again with other settings. So the settings of every model a stage reads (a pretrained_model folder of
+another stage) count among its own: retraining the world models reruns the reports and runs made with them."""
+
+import hashlib
 import json
 import shutil
 import time
@@ -10,14 +15,37 @@ from dataclasses import asdict
 from pathlib import Path
 
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.training.checkpoints import FINAL
 
 STAGE_FILE = "stage.json"
 
 
 def _jsonable(settings) -> dict:
-    return json.loads(
+    plain = json.loads(
         json.dumps(settings, default=lambda v: asdict(v) if hasattr(v, "__dataclass_fields__") else str(v))
     )
+    inputs = {path: digest for path in sorted(_strings(plain)) if (digest := _model_digest(path))}
+    return plain | {"input_models": inputs} if inputs else plain
+
+
+def _strings(value) -> set[str]:
+    if isinstance(value, str):
+        return {value}
+    if isinstance(value, dict):
+        value = list(value.values())
+    return set().union(*map(_strings, value)) if isinstance(value, list) else set()
+
+
+def _model_digest(path: str) -> str | None:
+    """A digest of the settings of the stage that made the model at `path` (a pretrained_model folder beside a
+    stage.json); None for any other string."""
+    if not path.endswith(FINAL):
+        return None
+    record = Path(path).parent / STAGE_FILE
+    if Path(path).name != FINAL or not record.is_file():
+        return None
+    made_with = json.dumps(json.loads(record.read_text())["settings"], sort_keys=True)
+    return hashlib.sha256(made_with.encode()).hexdigest()[:16]
 
 
 _began: dict[Path, float] = {}  # when each stage folder's current run started

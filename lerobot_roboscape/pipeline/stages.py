@@ -2,8 +2,8 @@
 and returns what it made. A stage writes into its own folder under output_dir and, once complete, a stage.json with
 the settings it ran with; a rerun with the same settings skips it (so a killed run resumes where it stopped)."""
 
-import json
 import logging
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -37,16 +37,19 @@ from lerobot_roboscape.pipeline.methods import (
     REWARD_BASELINES,
     SUCCESS_CLASSIFIER,
 )
-from lerobot_roboscape.pipeline.resume import STAGE_FILE, run_once, train_once
+from lerobot_roboscape.pipeline.resume import run_once, train_once
 from lerobot_roboscape.reward.baselines import RewardModelConfig
 from lerobot_roboscape.reward.done_report import DoneChoice, DoneReportConfig, evaluate_done
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer, read_tokenizer_report
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
-from lerobot_roboscape.training.checkpoints import FINAL
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
 from lerobot_roboscape.training.loop import TrainingConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 # ---- models ------------------------------------------------------------------------------------------------------
@@ -78,16 +81,16 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
         training_dir=out / TOKENIZER_DIR,
         device=cfg.device,
     )
-    # The tokenizer's own stage record (its settings and the seconds of its run) names the model measured.
-    settings = {"report": report_cfg, "tokenizer": json.loads((out / TOKENIZER_DIR / STAGE_FILE).read_text())}
-    run_once(folder, settings, cfg.fresh, lambda: evaluate_tokenizer(report_cfg))
+    run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_tokenizer(report_cfg))
     return read_tokenizer_report(folder)
 
 
 def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:
     """Train the action and the text world models (each with its done head); returns {control: directory}. The
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
-    controllability set as it trains."""
+    controllability set as it trains. With --world_models, the models trained elsewhere are taken instead."""
+    if cfg.world_models is not None:
+        return {control: _given_world_model(cfg, out, tokenizer_path, control) for control in ("action", "text")}
     return {
         control: _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
         for control, training in (("action", cfg.wm_train), ("text", cfg.text_wm_train))
@@ -139,6 +142,36 @@ def _world_model(
         **train_options,
     )
     return _train(folder, train, train_world_model, cfg.fresh)
+
+
+def _given_world_model(cfg: PipelineConfig, out: Path, tokenizer_path: Path, control: str) -> Path:
+    """The `control` world model of --world_models (a roboscape-train-wm output_dir), copied with its logs and
+    curves into the folder the run's own would train in, once it is found to read the run's tokenizer's grids."""
+    source, folder = Path(cfg.world_models) / control, out / world_model_dir(control)
+    weights = source / FINAL / "model.safetensors"
+    if not weights.is_file():
+        raise MissingInputError(
+            f"--world_models={cfg.world_models}: no {weights}; it holds action/ and text/, each a roboscape-train-wm "
+            "output_dir (scripts/experiments/device_world_models.sh unpack writes them)"
+        )
+    # The weights' size and time name them: other models copied there rerun the stages that read them.
+    stat = weights.stat()
+    settings = {"world_model": str(source.resolve()), "bytes": stat.st_size, "modified_ns": stat.st_mtime_ns}
+
+    def take():
+        model = STWorldModel.from_pretrained(str(source / FINAL)).config
+        tokenizer = VisualTokenizer.from_pretrained(str(tokenizer_path)).config
+        theirs = {"control": model.control, "vocab_size": model.vocab_size, "tokens_per_side": model.tokens_per_side}
+        ours = {"control": control, "vocab_size": tokenizer.codebook_size, "tokens_per_side": tokenizer.tokens_per_side}
+        if theirs != ours:
+            raise InvalidInputError(
+                f"--world_models: {source / FINAL} is not the {control} model of this run's tokenizer "
+                f"({tokenizer_path}): it has {theirs}, the run needs {ours}"
+            )
+        shutil.copytree(source, folder, ignore=shutil.ignore_patterns(CHECKPOINTS))  # the model, its logs, curves
+
+    run_once(folder, settings, cfg.fresh, take)
+    return folder / FINAL
 
 
 def _with_checkpoints(training: TrainingConfig) -> TrainingConfig:

@@ -4,7 +4,9 @@
 # Here:
 #   bash scripts/experiments/device_world_models.sh pack outputs/bench   # .gpu/ (carry it): caches, sets, packages
 #   bash scripts/experiments/device_world_models.sh pack - env          # no run's data; PyAV and starts for roboscape_wm
-#   bash scripts/experiments/device_world_models.sh unpack DIR CONTROL   # DIR: the call's files; -> DIR/CONTROL/pretrained_model
+#   bash scripts/experiments/device_world_models.sh unpack FILES CONTROL [DEST]  # a call's files (read-only) ->
+#        DEST/CONTROL/pretrained_model (DEST: outputs/gpu_world_models); once action and text are there, the run
+#        goes on with them: roboscape-demo --scale=bench --output_dir=outputs/bench --world_models=DEST
 # There (each mode prepares the machine first, once; its files land in $OUT):
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
@@ -81,10 +83,11 @@ PY
 fi
 
 if [ "$mode" = unpack ]; then  # here: a call's weight pieces -> a model folder that from_pretrained loads
-  DIR=$1; CONTROL=$2
-  mkdir -p "$DIR/$CONTROL" && tar xzf "$DIR/${CONTROL}_run.tgz" -C "$DIR/$CONTROL" || exit 1
-  cat "$DIR/${CONTROL}.bf16.part-"* > "$DIR/$CONTROL/model.bf16.safetensors"
-  .venv/bin/python - "$DIR/$CONTROL" <<'PY'
+  FILES=$1; CONTROL=$2; DEST=${3:-outputs/gpu_world_models}
+  rm -rf "$DEST/$CONTROL" && mkdir -p "$DEST/$CONTROL" || exit 1
+  tar xzf "$FILES/${CONTROL}_run.tgz" -C "$DEST/$CONTROL" || exit 1
+  cat "$FILES/${CONTROL}.bf16.part-"* > "$DEST/$CONTROL/model.bf16.safetensors"
+  .venv/bin/python - "$DEST/$CONTROL" <<'PY'
 import sys
 from pathlib import Path
 from safetensors.torch import load_file, save_file

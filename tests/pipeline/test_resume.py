@@ -81,3 +81,78 @@ def test_a_stage_that_fills_its_config_in_place_is_still_skipped_next_time(tmp_p
         resume.train_once(folder, asked, False, lambda r, s=asked: train(r, s))
         resume.run_once(tmp_path / "report", Settings(3), False, lambda: Settings(3).__setattr__("lr", 0.5))
     assert runs == [False]
+
+
+@dataclass
+class ReportSettings:
+    model: str
+    episodes: int = 4
+
+
+def test_a_stage_reruns_when_a_model_it_reads_was_made_again_with_other_settings(tmp_path):
+    """The report names the model by path; the model's stage retrained with other settings keeps the path, so the
+    report is stale: it runs again. Retrained with the same settings (a resumed run), it stays done."""
+    from lerobot_roboscape.training.checkpoints import FINAL
+
+    model, report, runs = tmp_path / "world_model", tmp_path / "report", []
+
+    def train(steps):
+        resume.train_once(model, Settings(steps), False, lambda _: (model / FINAL).mkdir(exist_ok=True))
+
+    def read():
+        return resume.run_once(report, ReportSettings(str(model / FINAL)), False, lambda: runs.append(1))
+
+    train(10)
+    assert read() is True and read() is False
+    train(10)
+    assert read() is False
+    train(20)
+    assert read() is True and runs == [1, 1]
+    assert not resume.is_done(tmp_path / "other", ReportSettings(str(tmp_path / "elsewhere" / FINAL)), False)
+
+
+def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models, trained_tokenizer, tmp_path):
+    """--world_models: each model is copied with its logs into the folder the run's own would train in, once; new
+    weights there are taken again and rerun what read the old ones; a model of the wrong control, or none, is
+    refused by name."""
+    import shutil
+
+    from lerobot_roboscape.pipeline import stages
+    from lerobot_roboscape.pipeline.config import scale_config
+    from lerobot_roboscape.pipeline.layout import world_model_dir
+    from lerobot_roboscape.training.checkpoints import FINAL
+    from roboscape_core.errors import InvalidInputError, MissingInputError
+    from tests.harness import assert_same_weights
+
+    given, out = tmp_path / "from_gpu", tmp_path / "run"
+    for control, model in world_models.items():
+        shutil.copytree(model, given / control / FINAL)
+        (given / control / "heldout_curve.jsonl").write_text('{"step": 1}\n')
+    cfg = scale_config("smoke", (f"--world_models={given}",))
+    models = stages.world_models(cfg, out, None, trained_tokenizer)  # no data: nothing is trained
+    for control, path in models.items():
+        assert path == out / world_model_dir(control) / FINAL
+        assert_same_weights(world_models[control] / "model.safetensors", path / "model.safetensors")
+        assert (path.parent / "heldout_curve.jsonl").is_file()
+    reader = ReportSettings(str(models["action"]))
+    resume.run_once(tmp_path / "fidelity", reader, False, lambda: None)
+    copied = (models["action"] / "model.safetensors").stat().st_mtime_ns
+    stages.world_models(cfg, out, None, trained_tokenizer)
+    assert (models["action"] / "model.safetensors").stat().st_mtime_ns == copied  # taken once
+    assert resume.is_done(tmp_path / "fidelity", reader, False)
+
+    (given / "action" / FINAL / "model.safetensors").write_bytes(
+        (world_models["action"] / "model.safetensors").read_bytes()
+    )
+    stages.world_models(cfg, out, None, trained_tokenizer)
+    assert (models["action"] / "model.safetensors").stat().st_mtime_ns != copied  # new weights: taken again
+    assert not resume.is_done(tmp_path / "fidelity", reader, False)  # and what read the old ones reruns
+
+    shutil.rmtree(given / "text")
+    shutil.copytree(world_models["action"], given / "text" / FINAL)
+    with pytest.raises(InvalidInputError, match="is not the text model of this run's tokenizer.*'control': 'action'"):
+        stages.world_models(cfg, out, None, trained_tokenizer)
+    with pytest.raises(MissingInputError, match="nowhere/action/pretrained_model/model.safetensors"):
+        stages.world_models(
+            scale_config("smoke", (f"--world_models={tmp_path / 'nowhere'}",)), out, None, trained_tokenizer
+        )
