@@ -2,6 +2,7 @@
 and returns what it made. A stage writes into its own folder under output_dir and, once complete, a stage.json with
 the settings it ran with; a rerun with the same settings skips it (so a killed run resumes where it stopped)."""
 
+import json
 import logging
 import shutil
 from dataclasses import dataclass, replace
@@ -43,12 +44,13 @@ from lerobot_roboscape.reward.done_report import DoneChoice, DoneReportConfig, e
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer, read_tokenizer_report
+from lerobot_roboscape.tokenizer.token_cache import tokenizer_fingerprint
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
-from lerobot_roboscape.training.loop import TrainingConfig
+from lerobot_roboscape.training.loop import TRAIN_CONFIG, TrainingConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
+from lerobot_roboscape.world_model.train import TOKENIZER_FINGERPRINT, TrainWorldModelConfig, train_world_model
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
@@ -160,9 +162,15 @@ def _given_world_model(cfg: PipelineConfig, out: Path, tokenizer_path: Path, con
 
     def take():
         model = STWorldModel.from_pretrained(str(source / FINAL)).config
-        tokenizer = VisualTokenizer.from_pretrained(str(tokenizer_path)).config
+        tokenizer = VisualTokenizer.from_pretrained(str(tokenizer_path))
         theirs = {"control": model.control, "vocab_size": model.vocab_size, "tokens_per_side": model.tokens_per_side}
-        ours = {"control": control, "vocab_size": tokenizer.codebook_size, "tokens_per_side": tokenizer.tokens_per_side}
+        ours = {"control": control, "vocab_size": tokenizer.config.codebook_size}
+        ours["tokens_per_side"] = tokenizer.config.tokens_per_side
+        trained = source / TRAIN_CONFIG  # its training run's record names the tokens it learned
+        if trained.is_file() and TOKENIZER_FINGERPRINT in (record := json.loads(trained.read_text())):
+            theirs["tokenizer"], ours["tokenizer"] = record[TOKENIZER_FINGERPRINT], tokenizer_fingerprint(tokenizer)
+        else:
+            logger.warning("%s names no tokenizer: only its token grid is checked against the run's", trained)
         if theirs != ours:
             raise InvalidInputError(
                 f"--world_models: {source / FINAL} is not the {control} model of this run's tokenizer "

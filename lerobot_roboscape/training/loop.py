@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 HELDOUT_CURVE = "heldout_curve.jsonl"
 # One line per logging step: the losses, and the throughput since the previous one (samples/s, TFLOP/s, MFU).
 TRAIN_LOG = "train_log.jsonl"
+TRAIN_CONFIG = "train_config.json"  # the run's settings, beside its log
 # Dense bf16 peak of the GPUs MFU is read against (their data sheets), by a name nvidia-smi reports.
 PEAK_BF16_TFLOPS = {"H200": 989.0, "H100": 989.0, "A100": 312.0, "L40S": 362.0, "L4": 121.0, "4090": 165.0}
 
@@ -247,7 +248,7 @@ def fit(
         start = json.loads((resume_from / "training_step.json").read_text())["step"]
         logger.info("resumed from %s at step %d", resume_from, start)
     if accelerator.is_main_process:
-        (output_dir / "train_config.json").write_text(json.dumps(run_config, indent=2, default=str))
+        (output_dir / TRAIN_CONFIG).write_text(json.dumps(run_config, indent=2, default=str))
         _truncate_curve(output_dir / HELDOUT_CURVE, start)
         _truncate_curve(output_dir / TRAIN_LOG, start)
     began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating

@@ -33,6 +33,7 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
+TOKENIZER_FINGERPRINT = "tokenizer_fingerprint"  # in the run's TRAIN_CONFIG: the tokens the model learned
 
 
 @dataclass
@@ -195,7 +196,10 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     sampler = ClipSampler(
         cache, episodes, cfg.wm.window, cfg.train.batch_size, cfg.train.seed, frame_skip=cfg.wm.frame_skip
     )
-    batches, run_config = sampler, {**asdict(cfg), "token_cache": str(cache.root)}
+    # The tokenizer's fingerprint names the tokens the model reads: a run that takes the model checks it.
+    run_config = {**asdict(cfg), "token_cache": str(cache.root)}
+    run_config[TOKENIZER_FINGERPRINT] = cache.manifest["tokenizer_fingerprint"]
+    batches = sampler
     if cfg.exploration is not None:
         explore_cache, explore_stats = prepare_token_cache(
             cfg.exploration, cfg.tokenizer, cfg.cache_dir, cfg.exploration_token_cache, cfg.device

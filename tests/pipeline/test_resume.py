@@ -1,6 +1,7 @@
 """The pipeline's stage bookkeeping: a completed stage is skipped only when its settings are unchanged, and an
 interrupted training stage resumes only into a run of the same settings."""
 
+import json
 from dataclasses import dataclass
 
 import pytest
@@ -120,13 +121,17 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
     from lerobot_roboscape.pipeline import stages
     from lerobot_roboscape.pipeline.config import scale_config
     from lerobot_roboscape.pipeline.layout import world_model_dir
+    from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+    from lerobot_roboscape.tokenizer.token_cache import tokenizer_fingerprint
     from lerobot_roboscape.training.checkpoints import FINAL
+    from lerobot_roboscape.training.loop import TRAIN_CONFIG
     from roboscape_core.errors import InvalidInputError, MissingInputError
     from tests.harness import assert_same_weights
 
     given, out = tmp_path / "from_gpu", tmp_path / "run"
     for control, model in world_models.items():
         shutil.copytree(model, given / control / FINAL)
+        shutil.copy2(model.parent / TRAIN_CONFIG, given / control)  # names the tokenizer it learned from
         (given / control / "heldout_curve.jsonl").write_text('{"step": 1}\n')
     cfg = scale_config("smoke", (f"--world_models={given}",))
     models = stages.world_models(cfg, out, None, trained_tokenizer)  # no data: nothing is trained
@@ -148,6 +153,11 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
     assert (models["action"] / "model.safetensors").stat().st_mtime_ns != copied  # new weights: taken again
     assert not resume.is_done(tmp_path / "fidelity", reader, False)  # and what read the old ones reruns
 
+    record = json.loads((given / "action" / TRAIN_CONFIG).read_text())
+    assert record["tokenizer_fingerprint"] == tokenizer_fingerprint(VisualTokenizer.from_pretrained(trained_tokenizer))
+    (given / "action" / TRAIN_CONFIG).write_text(json.dumps(record | {"tokenizer_fingerprint": "0" * 64}))
+    with pytest.raises(InvalidInputError, match="action model of this run's tokenizer.*'tokenizer': '0000"):
+        stages.world_models(cfg, tmp_path / "another_run", None, trained_tokenizer)
     shutil.rmtree(given / "text")
     shutil.copytree(world_models["action"], given / "text" / FINAL)
     with pytest.raises(InvalidInputError, match="is not the text model of this run's tokenizer.*'control': 'action'"):
