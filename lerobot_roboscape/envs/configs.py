@@ -43,6 +43,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         dataset_repo_id: LeRobot dataset whose episodes give the initial frames and instructions (default: the one
             named by world_models).
         dataset_root: its local directory (default: the LeRobot cache / Hub).
+        starts_file: the starts saved from that dataset (envs/starts.py: export_starts, with this config's families,
+            split, scenes, starts_per_scene, branches_per_episode and episode_length), read instead of it: the env
+            then runs where the dataset is not (a GPU machine without its videos). Null: read the dataset.
         tokenizer: trained tokenizer, local directory or Hub repo id.
         action_world_model: action world model, local directory or Hub repo id.
         text_world_model: text world model that generates the goal frames (goal_source=text_model).
@@ -110,6 +113,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     world_models: str | None = None
     dataset_repo_id: str | None = None
     dataset_root: str | None = None
+    starts_file: str | None = None
     tokenizer: str = "outputs/tokenizer/pretrained_model"
     action_world_model: str = "outputs/world_model_action/pretrained_model"
     text_world_model: str | None = "outputs/world_model_text/pretrained_model"
@@ -185,7 +189,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         if (self.disagreement_penalty or self.disagreement_threshold is not None) and not self.ensemble:
             raise InvalidInputError(
                 "disagreement_penalty and disagreement_threshold need ensemble: more action world models "
-                "(roboscape-train-wm --wm.control=action with other --train.seed values)"
+                "(roboscape-train-wm --wm.control=action with other --train.seed values, or --init_from the env's "
+                "model with --retrain_blocks)"
             )
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
             raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")

@@ -33,10 +33,10 @@ def model_refs(config) -> tuple[str, str, str | None, str]:
             str(bundle.text_world_model) if uses_text else None,
             config.dataset_repo_id or bundle.dataset_repo_id,
         )
-    if not config.dataset_repo_id:
+    if not config.dataset_repo_id and not config.starts_file:
         raise InvalidInputError(
-            "roboscape_wm needs dataset_repo_id (the dataset of the initial frames), or "
-            "world_models (a repo that names it)"
+            "roboscape_wm needs dataset_repo_id (the dataset of the initial frames), world_models (a repo that "
+            "names it) or starts_file (its starts, saved)"
         )
     return (
         config.tokenizer,

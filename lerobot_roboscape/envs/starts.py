@@ -1,11 +1,16 @@
-"""Where `roboscape_wm`'s episodes start: frames of a LeRobot dataset's episodes (`dataset_starts`), or frames given
-to `reset` (another env's first observation), whose episode index is FROM_FRAMES."""
+"""Where `roboscape_wm`'s episodes start: frames of a LeRobot dataset's episodes (`dataset_starts`), the same saved
+to a file that the env reads without the dataset (`export_starts`, `file_starts`), or frames given to `reset`
+(another env's first observation), whose episode index is FROM_FRAMES."""
 
+import json
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from lerobot_roboscape.dataset.reader import (
     action_range,
@@ -63,3 +68,91 @@ def dataset_starts(
             f"no episode of {dataset.root} matches families={cfg.families} split={cfg.split!r} scenes={cfg.scenes}"
         )
     return starts, cameras, action_range(dataset)
+
+
+# ---- a starts file: roboscape_wm without its dataset -------------------------------------------------------------
+
+STARTS_FORMAT = 1
+# The config's fields that select and shape the starts: a file made with others would be the wrong starts.
+SELECTION = ("families", "split", "scenes", "starts_per_scene", "branches_per_episode", "episode_length")
+
+
+def export_starts(cfg, path: str | Path, device: str = "cpu") -> Path:
+    """The starts of `roboscape_wm` (config `cfg`), read from its dataset and tokenized as the env does, saved to
+    `path` (safetensors): an env given `starts_file=path` then runs without the dataset (or its videos), on a
+    machine that has only the models."""
+    from lerobot_roboscape.envs.loading import model_refs
+    from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+
+    tokenizer_ref, _, _, repo_id = model_refs(cfg)
+    tokenizer = VisualTokenizer.from_pretrained(tokenizer_ref).to(device).eval()
+    n_cameras = len(camera_names(open_dataset(repo_id, cfg.dataset_root)))
+
+    @torch.no_grad()
+    def encode(frames: dict[str, np.ndarray]) -> torch.Tensor:
+        return tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in frames.values()])
+
+    starts, cameras, (low, high) = dataset_starts(cfg, repo_id, n_cameras, encode)
+    tensors = {
+        "first_tokens": torch.stack([s.first_tokens for s in starts]).cpu(),
+        "last_tokens": torch.stack([s.last_tokens for s in starts]).cpu(),
+        "episode_first_tokens": torch.stack([s.goal_prompt for s in starts]).cpu(),
+    }
+    rows = [
+        {"episode_index": s.episode_index, "task": s.task, "facts": s.facts, "horizon": s.horizon, "frame": s.frame}
+        for s in starts
+    ]
+    metadata = {
+        "format": STARTS_FORMAT,
+        "dataset": f"{repo_id} at {cfg.dataset_root}",
+        "cameras": cameras,
+        "action_range": [np.asarray(low).tolist(), np.asarray(high).tolist()],
+        "selection": {name: getattr(cfg, name) for name in SELECTION},
+        "starts": rows,
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    save_file({k: v.contiguous() for k, v in tensors.items()}, partial, metadata={"starts": json.dumps(metadata)})
+    partial.replace(path)
+    return path
+
+
+def file_starts(cfg, n_cameras: int) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray], str]:
+    """The starts saved by `export_starts` in cfg.starts_file, as `dataset_starts` returns them, and the dataset
+    they were read from. The file must have been made with the config's selection of starts."""
+    path = Path(cfg.starts_file)
+    try:
+        with safe_open(path, "pt") as f:
+            metadata = json.loads(f.metadata()["starts"])
+            tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
+    except (OSError, KeyError, ValueError, SafetensorError) as error:
+        raise InvalidInputError(
+            f"starts_file {path} is not a starts file (export_starts writes one): {error}"
+        ) from error
+    if metadata.get("format") != STARTS_FORMAT:
+        raise InvalidInputError(
+            f"starts_file {path} has format {metadata.get('format')}, this version reads {STARTS_FORMAT}"
+        )
+    asked = json.loads(json.dumps({name: getattr(cfg, name) for name in SELECTION}))
+    if differ := {k: (metadata["selection"][k], asked[k]) for k in SELECTION if metadata["selection"][k] != asked[k]}:
+        raise InvalidInputError(f"starts_file {path} was made with other starts (file, config): {differ}")
+    if len(metadata["cameras"]) != n_cameras:
+        raise InvalidInputError(
+            f"starts_file {path} has cameras {metadata['cameras']} but the world model expects {n_cameras} views"
+        )
+    starts = [
+        EpisodeStart(
+            row["episode_index"],
+            row["task"],
+            tensors["first_tokens"][i],
+            tensors["last_tokens"][i],
+            row["facts"],
+            row["horizon"],
+            row["frame"],
+            tensors["episode_first_tokens"][i] if row["frame"] else None,
+        )
+        for i, row in enumerate(metadata["starts"])
+    ]
+    low, high = (np.asarray(bound, dtype=np.float32) for bound in metadata["action_range"])
+    return starts, metadata["cameras"], (low, high), metadata["dataset"]

@@ -39,7 +39,7 @@ from lerobot_roboscape.envs.loading import (
     load_reward_model,
     model_refs,
 )
-from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts
+from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts, file_starts
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
@@ -127,9 +127,14 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     f"{config.success_classifier} is a {self.success_classifier.config.kind} reward model, not a "
                     "success classifier (roboscape-train-reward --reward.kind=success)"
                 )
-        self.starts, self.cameras, self.action_range = dataset_starts(
-            config, self.dataset_repo_id, self.action_model.config.n_cameras, self.encode
-        )
+        n_cameras = self.action_model.config.n_cameras
+        if config.starts_file:
+            self.starts, self.cameras, self.action_range, self.starts_source = file_starts(config, n_cameras)
+        else:
+            self.starts, self.cameras, self.action_range = dataset_starts(
+                config, self.dataset_repo_id, n_cameras, self.encode
+            )
+            self.starts_source = f"{self.dataset_repo_id} at {config.dataset_root}"
         self.goal_bank = GoalBank(
             config, self.text_model, self.frame_skip, self.device, self.done_of, self.autocast, self._goal_settings()
         )
@@ -220,7 +225,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return {
             "text_world_model": str(cfg.text_world_model),
             "tokenizer": str(cfg.tokenizer),
-            "dataset": f"{self.dataset_repo_id} at {cfg.dataset_root}",
+            "dataset": self.starts_source,
             "done_source": cfg.done_source,
             "success_classifier": str(cfg.success_classifier),
             "theta": cfg.theta,

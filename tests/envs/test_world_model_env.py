@@ -156,6 +156,48 @@ def test_branched_starts_begin_at_real_frames_along_an_episode_and_share_its_goa
     assert set(info["start_frame"]) <= {s.frame for s in env.starts}
 
 
+def test_starts_saved_to_a_file_run_the_env_without_its_dataset(env_config, tmp_path):
+    """export_starts writes the env's starts (branched ones too); an env given the file and no dataset has the same
+    starts and action range, and plays the same episodes. A file made with another selection, or not a starts
+    file, is refused by name."""
+    from lerobot_roboscape.envs.starts import export_starts
+
+    selection = dict(starts_per_scene=1, branches_per_episode=2, precision="float32")
+    path = export_starts(env_config(**selection), tmp_path / "starts.safetensors")
+    from_data = RoboscapeWorldModelEnv(env_config(**selection), num_envs=2)
+    from_file = RoboscapeWorldModelEnv(
+        env_config(**selection, starts_file=str(path), dataset_repo_id=None, dataset_root=None), num_envs=2
+    )
+    assert len(from_file.starts) == len(from_data.starts) and from_file.cameras == from_data.cameras
+    for a, b in zip(from_file.starts, from_data.starts, strict=True):
+        assert (a.episode_index, a.task, a.facts, a.horizon, a.frame) == (
+            b.episode_index,
+            b.task,
+            b.facts,
+            b.horizon,
+            b.frame,
+        )
+        assert torch.equal(a.first_tokens, b.first_tokens) and torch.equal(a.goal_prompt, b.goal_prompt)
+    np.testing.assert_array_equal(from_file.action_range[0], from_data.action_range[0])
+    assert from_file._goal_settings() == from_data._goal_settings()  # one goal file serves both
+    episodes = []
+    for env in (from_data, from_file):
+        observation, _ = env.reset(seed=3)
+        steps = [env.step(np.full((2, 7), 0.2, np.float32)) for _ in range(8)]
+        episodes.append((observation, [(o, r) for o, r, *_ in steps]))
+    for camera, frames in episodes[0][0]["pixels"].items():
+        np.testing.assert_array_equal(episodes[1][0]["pixels"][camera], frames)
+    for (o_data, r_data), (o_file, r_file) in zip(episodes[0][1], episodes[1][1], strict=True):
+        np.testing.assert_allclose(r_file, r_data, atol=1e-6)
+        np.testing.assert_array_equal(o_file["pixels"]["third_view"], o_data["pixels"]["third_view"])
+
+    with pytest.raises(InvalidInputError, match="made with other starts .*'branches_per_episode': \\(2, 1\\)"):
+        RoboscapeWorldModelEnv(env_config(starts_per_scene=1, starts_file=str(path)), num_envs=1)
+    (tmp_path / "not_starts.safetensors").write_bytes(b"nonsense")
+    with pytest.raises(InvalidInputError, match="not_starts.safetensors is not a starts file"):
+        RoboscapeWorldModelEnv(env_config(starts_file=str(tmp_path / "not_starts.safetensors")), num_envs=1)
+
+
 def test_goal_from_the_dataset_episode(env_config, token_cache):
     env = RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame", text_world_model=None), num_envs=1)
     _, info = env.reset(seed=0, options={"episode_index": 1})
