@@ -12,6 +12,9 @@
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
+# A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
+#   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
+#     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
 #
 # The GPU image has PyTorch but not LeRobot's data stack: `pack` takes the pure-Python packages training imports from
 # .venv (2.5 MB compressed) and a stand-in for PyAV, never called (training reads token caches, not videos). The
@@ -101,8 +104,11 @@ PY
 fi
 
 # ---- on the device machine ----------------------------------------------------------------------------------------
-export PYTHONPATH=$G/stub:$W/site:$(pwd) PYTHONUNBUFFERED=1
-PY=python3
+# The repository's packages as the .venv's editable installs name them (roboscape_core, the policy and env plugins).
+R=$(pwd)
+export PYTHONPATH=$G/stub:$W/site:$R:$R/packages/roboscape_core:$R/policies/lerobot_policy_roboscape_mlp:$R/plugins/lerobot_env_roboscape${PYTHONPATH:+:$PYTHONPATH}
+export PYTHONUNBUFFERED=1
+PY=${PY:-python3}  # a dry run here: PY="$PWD/.venv/bin/python -S" with the .venv's site-packages last on PYTHONPATH
 if [ ! -f $W/unpacked ]; then
   mkdir -p $W/site $W/sets $W/caches $W/1xgpt $W/before
   tar xzf $G/site.tgz -C $W/site || exit 3
