@@ -60,9 +60,10 @@ class ExperimentConfig:
     sft_dataset_root: their local root (null: the run's demonstrations).
     levers: guards against a policy that games the world model, each its own PPO run in the world model beside the
         plain one, judged by the simulator success of its checkpoints (OOD): "kl" (a KL penalty to the SFT
-        policy), "ensemble" (the disagreement of `ensemble_members` more action models, trained here from other
-        seeds, penalised and/or halting episodes), "branched" (short episodes from real frames along the
-        demonstrations), "refresh" (the done head refitted on simulator rollouts of the current policy,
+        policy), "ensemble" (the disagreement of `ensemble_members` more action models trained here, by default the
+        run's own with its top retrained alone, penalised and/or halting episodes), "branched" (short episodes from
+        real frames along the demonstrations), "refresh" (the done head refitted on simulator rollouts of the
+        current policy,
         Dyna-style: it uses the simulator, so its row says how much). The settings below are starting points;
         what each lever measured goes in the report.
     kl_coef: the KL lever's weight (PPO's --kl_coef).
