@@ -63,9 +63,8 @@ class ExperimentConfig:
         policy), "ensemble" (the disagreement of `ensemble_members` more action models trained here, by default the
         run's own with its top retrained alone, penalised and/or halting episodes), "branched" (short episodes from
         real frames along the demonstrations), "refresh" (the done head refitted on simulator rollouts of the
-        current policy,
-        Dyna-style: it uses the simulator, so its row says how much). The settings below are starting points;
-        what each lever measured goes in the report.
+        current policy, Dyna-style: it uses the simulator, so its row says how much). The settings below are
+        starting points; what each lever measured goes in the report.
     kl_coef: the KL lever's weight (PPO's --kl_coef).
     ensemble_members: action world models beside the run's own in the ensemble lever (seeds 1..n).
     ensemble_retrain_blocks: each member is the run's action model with its last this many blocks and heads drawn
