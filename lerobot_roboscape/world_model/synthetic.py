@@ -18,7 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
 from lerobot_roboscape.world_model.controllability import retrieval_accuracy
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 WORLDS = ("wiring", "motion", "text")
 ACTION_SCALE = 0.35  # the planner uses at most this share of the translation range
@@ -172,6 +174,30 @@ def retrieval(model, world: SyntheticWorld, starts: int = 32, K: int = 4, horizo
     agreement = (rollout[:, :, None] == future[:, None]).mean(axis=(3, 4))
     accuracy = float(np.mean([retrieval_accuracy(a) for a in agreement]))
     return accuracy, rollout, future
+
+
+def world_model(
+    world: SyntheticWorld, window: int, seed: int = 0, normalize_actions: bool = True, **overrides
+) -> STWorldModel:
+    """The tiny preset (its architecture and control path) sized to the world's grid, a frame per action (the
+    worlds move one cell per action), its initial weights drawn from `seed`; the actions normalised by the world's
+    statistics unless `normalize_actions` is off; any other config field as `overrides`."""
+    if normalize_actions and world.kind != "text":
+        stats = world.action_stats()
+        overrides.update(action_mean=stats["mean"].tolist(), action_std=stats["std"].tolist())
+    torch.manual_seed(seed)
+    config = TinyWorldModelConfig(
+        control="text" if world.kind == "text" else "action",
+        action_dim=ACTION_DIM,
+        frame_skip=1,
+        n_cameras=1,
+        tokens_per_side=world.grid,
+        vocab_size=world.vocab_size,
+        window=window,
+        prompt_frames=1,
+        **overrides,
+    )
+    return STWorldModel(config)
 
 
 def train_on_world(

@@ -25,9 +25,8 @@ from pathlib import Path
 
 import torch
 
-from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.synthetic import ACTION_DIM, SyntheticWorld, retrieval, train_on_world
+from lerobot_roboscape.world_model.synthetic import SyntheticWorld, retrieval, train_on_world, world_model
 
 OUT = Path("docs/results/world_model/control_levers")
 WINDOW = 5  # the retrieval horizon (4) and its prompt frame
@@ -53,22 +52,8 @@ GUIDANCE = (2.0, 4.0)
 
 def build_model(world: SyntheticWorld, variant: dict, seed: int = 0) -> STWorldModel:
     overrides = dict(variant)
-    if overrides.pop("normalize_actions", False) and world.kind != "text":
-        stats = world.action_stats()
-        overrides.update(action_mean=stats["mean"].tolist(), action_std=stats["std"].tolist())
-    torch.manual_seed(seed)
-    config = TinyWorldModelConfig(
-        control="text" if world.kind == "text" else "action",
-        action_dim=ACTION_DIM,
-        frame_skip=1,  # the levers at one frame per action: the worlds move one cell per step
-        n_cameras=1,
-        tokens_per_side=world.grid,
-        vocab_size=world.vocab_size,
-        window=WINDOW,
-        prompt_frames=1,
-        **overrides,
-    )
-    return STWorldModel(config)
+    normalize = overrides.pop("normalize_actions", False)
+    return world_model(world, WINDOW, seed, normalize_actions=normalize, **overrides)
 
 
 def guided_retrievals(model: STWorldModel, world: SyntheticWorld) -> dict:

@@ -25,34 +25,16 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.envs.ensemble import Ensemble
-from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
-from lerobot_roboscape.world_model.synthetic import ACTION_DIM, SyntheticWorld, train_on_world
+from lerobot_roboscape.world_model.synthetic import ACTION_DIM, SyntheticWorld, train_on_world, world_model
 
 WINDOW = 4
 CONDITIONS = ("in the data", "actions off the data", "frames off the data")
 
 
 def build(world: SyntheticWorld, seed: int) -> STWorldModel:
-    stats = world.action_stats()
-    torch.manual_seed(seed)
-    return STWorldModel(
-        TinyWorldModelConfig(
-            control="action",
-            action_dim=ACTION_DIM,
-            frame_skip=1,
-            n_cameras=1,
-            tokens_per_side=world.grid,
-            vocab_size=world.vocab_size,
-            window=WINDOW,
-            prompt_frames=1,
-            d_model=64,
-            n_head=2,
-            action_mean=stats["mean"].tolist(),
-            action_std=stats["std"].tolist(),
-        )
-    )
+    return world_model(world, WINDOW, seed, d_model=64, n_head=2)
 
 
 def cheap_member(model: STWorldModel, world: SyntheticWorld, seed: int, steps: int) -> tuple[STWorldModel, dict]:

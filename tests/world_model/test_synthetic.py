@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.synthetic import ACTION_DIM, SyntheticWorld, retrieval, train_on_world
+from lerobot_roboscape.world_model.synthetic import SyntheticWorld, retrieval, train_on_world, world_model
 
 pytestmark = pytest.mark.slow  # the tiny model trained to solve three worlds: minutes on 2 cores
 GRID, WINDOW, HORIZON = 6, 5, 4
@@ -19,23 +18,8 @@ SOLVED, EVAL_EVERY, MAX_STEPS = 0.95, 100, {"wiring": 2000, "motion": 2000, "tex
 
 
 def tiny_model(world: SyntheticWorld, seed: int = 0) -> STWorldModel:
-    """The tiny preset (its architecture and control path), sized to the world's grid; a frame per action, as the
-    worlds move one cell per action."""
-    stats = world.action_stats() if world.kind != "text" else None
-    torch.manual_seed(seed)
-    config = TinyWorldModelConfig(
-        control="text" if world.kind == "text" else "action",
-        action_dim=ACTION_DIM,
-        frame_skip=1,
-        n_cameras=1,
-        tokens_per_side=world.grid,
-        vocab_size=world.vocab_size,
-        window=WINDOW,
-        prompt_frames=1,
-        action_mean=None if stats is None else stats["mean"].tolist(),
-        action_std=None if stats is None else stats["std"].tolist(),
-    )
-    return STWorldModel(config)
+    """The tiny preset sized to the world's grid, a frame per action."""
+    return world_model(world, WINDOW, seed)
 
 
 @pytest.fixture(scope="module")
