@@ -71,21 +71,22 @@ class STWorldModel(
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
 
-    def top(self, n_blocks: int) -> nn.ModuleList:
-        """The last `n_blocks` blocks and everything that reads them: the final norm, the token and done heads."""
+    def redraw_top(self, n_blocks: int) -> nn.ModuleList:
+        """Draw the last `n_blocks` blocks and everything that reads them (the final norm, the token and done heads)
+        afresh, as __init__ draws them (from torch's current seed), and leave them alone trainable: the rest is
+        frozen. Returns them."""
         if not 1 <= n_blocks <= len(self.blocks):
             raise InvalidInputError(f"the model has {len(self.blocks)} blocks; cannot take the last {n_blocks}")
-        return nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
-
-    def reinitialise(self, modules: nn.Module) -> None:
-        """Draw `modules`' weights afresh, as __init__ draws them (from torch's current seed)."""
-        for module in modules.modules():
+        top = nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
+        for module in top.modules():
             self._init_weights(module)
             if isinstance(module, nn.LayerNorm):
                 module.reset_parameters()
-        for module in modules.modules():  # after the normal draw, which visits a block before its layers
+        for module in top.modules():  # after the normal draw, which visits a block before its layers
             if isinstance(module, STBlock):
                 module.zero_init_modulation()
+        self.requires_grad_(False)
+        return top.requires_grad_(True)
 
     # ---- control -------------------------------------------------------------------------------------------
 

@@ -255,11 +255,7 @@ def start_from(init_from: str, retrain_blocks: int | None, cache: TokenCache, co
     if differ := {name: (theirs[name], ours[name]) for name in ours if theirs[name] != ours[name]}:
         raise InvalidInputError(f"init_from={init_from}: the model and the data (or --wm.control) differ in {differ}")
     if retrain_blocks is not None:
-        top = model.top(retrain_blocks)
-        model.requires_grad_(False)
-        model.reinitialise(top)
-        top.requires_grad_(True)
-        trained = sum(p.numel() for p in top.parameters())
+        trained = sum(p.numel() for p in model.redraw_top(retrain_blocks).parameters())
         logger.info(
             "init_from %s: its last %d blocks and heads drawn afresh, %d of %d weights trained",
             init_from,

@@ -41,11 +41,8 @@ def cheap_member(model: STWorldModel, world: SyntheticWorld, seed: int, steps: i
     """`model` with its last block and heads drawn afresh from `seed` and trained alone (as train_wm.start_from)."""
     member = build(world, 0)
     member.load_state_dict(model.state_dict())
-    top = member.top(1)
-    member.requires_grad_(False)
     torch.manual_seed(seed)
-    member.reinitialise(top)
-    top.requires_grad_(True)
+    member.redraw_top(1)
     return member, trained(member, world, seed, steps)
 
 
