@@ -39,8 +39,6 @@ def _strings(value) -> set[str]:
 def _model_digest(path: str) -> str | None:
     """A digest of the settings of the stage that made the model at `path` (a pretrained_model folder beside a
     stage.json); None for any other string."""
-    if not path.endswith(FINAL):
-        return None
     record = Path(path).parent / STAGE_FILE
     if Path(path).name != FINAL or not record.is_file():
         return None

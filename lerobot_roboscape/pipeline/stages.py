@@ -114,9 +114,8 @@ def ensemble_members(
     run's own. Members feed the disagreement only: their done heads are not tuned."""
     own = out / world_model_dir("action") / FINAL
     tag = "action_seed" if retrain_blocks is None else f"action_top{retrain_blocks}_seed"
-    members = []
+    steps, members = max(round(cfg.wm_train.steps * steps_share), 1), []
     for seed in range(1, n + 1):
-        steps = max(round(cfg.wm_train.steps * steps_share), 1)
         training = replace(cfg.wm_train, seed=seed, steps=steps)
         start = {"init_from": str(own), "retrain_blocks": retrain_blocks} if retrain_blocks is not None else {}
         folder = out / world_model_dir(f"{tag}{seed}")
