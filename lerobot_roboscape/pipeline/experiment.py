@@ -8,6 +8,7 @@ tokenizer, both world models and the done report (and the SFT checkpoint, unless
 what a run with the same settings completed, so a killed run resumes.
 """
 
+import hashlib
 import json
 import logging
 from dataclasses import dataclass, field, replace
@@ -15,24 +16,23 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
-import torch
 from lerobot.configs.default import DatasetConfig
 
+from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.evaluation.success_rate import read_cells
 from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages
+from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages, world_model_runs
 from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import DoneRefresh
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
-from lerobot_roboscape.reward.done_report import REPORT_JSON, DoneChoice
-from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
+from lerobot_roboscape.reward.done_report import REPORT_JSON, DoneChoice, token_episodes
 from lerobot_roboscape.rl.ppo_state import checkpoint_seconds
 from lerobot_roboscape.robot import CONTROL_FREQ
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
+from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.training.checkpoints import FINAL, spread_checkpoints
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
 from roboscape_core.errors import InvalidInputError, MissingInputError
@@ -81,6 +81,12 @@ class ExperimentConfig:
     curve_points: points of each such curve: the SFT checkpoint and checkpoints evenly spread over the run (at least
         2: SFT and the last).
     replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
+    world_model_runs: a folder: PPO in the world model runs where its models were trained (a lent GPU, when they
+        are too slow for this machine's CPUs: pipeline/world_model_runs.py). The first run of the experiment
+        writes DIR/pack (the SFT checkpoint, the starts, each run's settings) and stops; once the runs are brought
+        back into DIR/runs (scripts/experiments/device_world_models.sh claim, then unpack-runs), the next takes
+        them as its own and goes on. The run here then needs no world models; "refresh" cannot go (it needs the
+        simulator beside the world model).
     report_dir: where the report (report.md, results.json, figures, videos) goes.
     readme: the README whose results block (between its bench-results markers) is rewritten; null: none.
     """
@@ -104,6 +110,7 @@ class ExperimentConfig:
     curve_episodes: int = 10
     curve_points: int = 6
     replay_episodes: int = 8
+    world_model_runs: str | None = None
     report_dir: str = "docs/results/bench"
     readme: str | None = "README.md"
 
@@ -115,6 +122,11 @@ class ExperimentConfig:
         for name in ("curve_episodes", "replay_episodes", "ensemble_members", "refresh_rounds", "refresh_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
+        if self.world_model_runs is not None and "refresh" in self.levers:
+            raise InvalidInputError(
+                "--levers=[refresh] cannot run with --world_model_runs: it refits the done head on simulator "
+                "rollouts during PPO, and the simulator stays here while those runs go where the world models are"
+            )
         if not 0 < self.ensemble_steps_share <= 1:
             raise InvalidInputError(f"--ensemble_steps_share must be in (0, 1], got {self.ensemble_steps_share}")
         if self.curve_points < 2:
@@ -130,22 +142,27 @@ class TrainedStages:
     demonstrations: DatasetConfig
     tokenizer: Path
     models: dict[str, Path]
-    done: DoneChoice
+    done: DoneChoice | None
     reward_models: dict[str, Path]
 
 
-def trained_stages(cfg: PipelineConfig, out: Path) -> TrainedStages:
-    """The demonstrations, tokenizer, world models, done report and reward models of the run in `out`."""
+def trained_stages(cfg: PipelineConfig, out: Path, world_models: bool = True) -> TrainedStages:
+    """The demonstrations, tokenizer, world models, done report and reward models of the run in `out` (without
+    `world_models`: the demonstrations and the tokenizer alone, for runs in world models trained elsewhere)."""
     train = DatasetConfig(repo_id=layout.DEMOS_REPO_ID, root=str(out / layout.DEMOS_DIR))
     tokenizer = out / layout.TOKENIZER_DIR / FINAL
     models = {control: out / layout.world_model_dir(control) / FINAL for control in ("action", "text")}
     done = out / layout.DONE_REPORT_DIR / REPORT_JSON
-    for path in (Path(train.root) / "meta" / "info.json", tokenizer, *models.values(), done):
+    needed = [Path(train.root) / "meta" / "info.json", tokenizer] + ([*models.values(), done] if world_models else [])
+    for path in needed:
         if not path.exists():
+            stop = "" if world_models else " --stop_after=tokenizer"
             raise MissingInputError(
                 f"{path} is missing: the experiment runs on a pipeline run's trained stages; run roboscape-demo "
-                f"--scale={cfg.scale} --output_dir={out} first"
+                f"--scale={cfg.scale} --output_dir={out}{stop} first"
             )
+    if not world_models:
+        return TrainedStages(train, tokenizer, {}, None, {})
     reward_models = {
         kind: out / layout.reward_model_dir(kind) / FINAL
         for kind in (*methods.REWARD_BASELINES, methods.SUCCESS_CLASSIFIER)
@@ -167,9 +184,14 @@ def sft_policy(cfg: ExperimentConfig, out: Path, demonstrations: DatasetConfig) 
 
 
 def lever_runs(
-    cfg: ExperimentConfig, run: Path, trained: TrainedStages, wm_env: RoboscapeWorldModelEnvConfig
+    cfg: ExperimentConfig,
+    run: Path,
+    trained: TrainedStages,
+    wm_env: RoboscapeWorldModelEnvConfig,
+    members: list[str] | None = None,
 ) -> dict[str, tuple]:
-    """{method: (its env, PPO's settings)} of the levers asked for, beside PPO in the world model's own env."""
+    """{method: (its env, PPO's settings)} of the levers asked for, beside PPO in the world model's own env. The
+    ensemble's `members` are trained here unless given."""
     p = cfg.pipeline
     envs = policy_stages.rl_envs(p, run, trained.demonstrations, wm_env)
     wm = envs[methods.RL_WORLD_MODEL]
@@ -177,13 +199,21 @@ def lever_runs(
     if "kl" in cfg.levers:
         runs[methods.RL_WORLD_MODEL_KL] = (wm, {"kl_coef": cfg.kl_coef})
     if "ensemble" in cfg.levers:
-        data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
-        members = stages.ensemble_members(
-            p, run, data, trained.tokenizer, cfg.ensemble_members, cfg.ensemble_retrain_blocks, cfg.ensemble_steps_share
-        )
+        if members is None:
+            data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
+            trained_members = stages.ensemble_members(
+                p,
+                run,
+                data,
+                trained.tokenizer,
+                cfg.ensemble_members,
+                cfg.ensemble_retrain_blocks,
+                cfg.ensemble_steps_share,
+            )
+            members = [str(m) for m in trained_members]
         env = replace(
             wm,
-            ensemble=[str(m) for m in members],
+            ensemble=members,
             disagreement_penalty=cfg.disagreement_penalty,
             disagreement_threshold=cfg.disagreement_threshold,
         )
@@ -206,6 +236,77 @@ def lever_runs(
     return runs
 
 
+def pack_world_model_runs(
+    cfg: ExperimentConfig, run: Path, out: Path, trained: TrainedStages, sft: dict[str, Path], dest: Path
+) -> Path:
+    """Pack the protocol's runs in the world model (PPO in it, its reward ablation, the levers) for the machine
+    where the world models are trained: their settings as they would run here, the starts, the SFT checkpoint and
+    the done report's episodes as tokens (pipeline/world_model_runs.py)."""
+    p = cfg.pipeline
+    if len(sft) != 1:
+        raise InvalidInputError(f"--world_model_runs packs one policy's runs; this run has SFT checkpoints {list(sft)}")
+    (policy, checkpoint), placeholder = next(iter(sft.items())), Path(world_model_runs.ON_DEVICE)
+    wm_env = stages.world_model_env(
+        p, trained.demonstrations, trained.tokenizer, dict.fromkeys(("action", "text"), placeholder)
+    )
+    envs = {
+        method: (env, {})
+        for method, env in policy_stages.rl_envs(p, out, trained.demonstrations, wm_env).items()
+        if isinstance(env, RoboscapeWorldModelEnvConfig)
+    } | lever_runs(cfg, run, trained, wm_env, members=[world_model_runs.ON_DEVICE])
+    jobs = {
+        methods.method_tag(method): world_model_runs.Job(
+            method,
+            policy_stages.ppo_config(p, out, policy, method, checkpoint, env, settings),
+            ensemble=bool(env.ensemble),
+        )
+        for method, (env, settings) in envs.items()
+    }
+    data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
+    device = resolve_device(p.device)
+    tokenizer = VisualTokenizer.from_pretrained(trained.tokenizer).to(device).eval()
+    sets = {"validation": data.validation, "heldout": stages.spread(data.heldout, p.data.report_episodes)}
+    done_sets = {
+        name: token_episodes(open_dataset(d.repo_id, d.root, d.episodes), tokenizer, p.wm.frame_skip, device)
+        for name, d in sets.items()
+    }
+    replay = {"tag": methods.method_tag(methods.RL_WORLD_MODEL), "episodes": cfg.replay_episodes}
+    ensemble = {
+        "members": cfg.ensemble_members,
+        "retrain_blocks": cfg.ensemble_retrain_blocks,
+        "steps_share": cfg.ensemble_steps_share,
+    }
+    return world_model_runs.pack(
+        dest,
+        jobs,
+        checkpoint,
+        trained.tokenizer,
+        done_sets,
+        p.wm.frame_skip,
+        replay=replay,
+        ensemble=ensemble,
+        curve_checkpoints=cfg.curve_points - 1,
+    )
+
+
+def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy: str) -> dict:
+    """The runs `run_pack` made, brought back into `folder`, taken as this protocol's own (each into the folder its
+    method's run would have here, its seconds kept): {"runs": {method: final checkpoint}, "results": what the
+    device reported}."""
+    results = world_model_runs.read_results(folder)
+    record = hashlib.sha256((folder / world_model_runs.RESULTS).read_bytes()).hexdigest()[:16]
+    runs = {}
+    for run in results["runs"].values():
+        dest = out / layout.rl_dir(policy, run["method"])
+        settings = {"world_model_run": str(run["folder"]), "results": record}
+        if not resume.is_done(dest, settings, cfg.pipeline.fresh):
+            resume.start(dest)
+            world_model_runs.copy_run(run["folder"], dest)
+            resume.mark_done(dest, settings, seconds=run["seconds"])
+        runs[run["method"]] = dest / run["final"].relative_to(run["folder"])
+    return {"runs": runs, "results": results}
+
+
 def checkpoint_curve(
     cfg: ExperimentConfig,
     out: Path,
@@ -217,10 +318,8 @@ def checkpoint_curve(
     """OOD simulator success of the SFT checkpoint (iteration 0) and of `curve_points` - 1 checkpoints the PPO run
     of `method` saved (evenly spread, its last among them), `curve_episodes` per family, on initial states apart
     from Table 1's: [{iteration, seconds, cell}]."""
-    run = out / layout.rl_dir(policy, method) / CHECKPOINTS
-    saved = sorted(f for f in run.iterdir() if f.name.isdigit())
     points = [(0, 0.0, sft)]
-    for folder in [saved[int(i)] for i in np.unique(np.linspace(0, len(saved) - 1, cfg.curve_points - 1).round())]:
+    for folder in spread_checkpoints(out / layout.rl_dir(policy, method), cfg.curve_points - 1):
         points.append((int(folder.name), checkpoint_seconds(folder), folder / FINAL))
     jobs = [
         policy_stages.eval_job(
@@ -253,54 +352,53 @@ def curve_tag(method: str) -> str:
 
 
 def replay_in_simulator(
-    cfg: ExperimentConfig, out: Path, env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path
+    cfg: ExperimentConfig,
+    out: Path,
+    env_cfg: RoboscapeWorldModelEnvConfig | None,
+    checkpoint: Path,
+    rollouts_file: Path | None = None,
 ) -> list[dict]:
     """The policy after PPO in the world model, rolled out in `roboscape_wm` from `replay_episodes` starts (spread
-    over the starts, so over families and scenes), and its actions replayed open loop in the simulator from the
-    same scene and initial state. Writes side-by-side videos (world model | its goal | simulator) and returns, per
-    start, what each world said: the world model's return and success, the simulator's success."""
+    over the starts, so over families and scenes), or its rollouts made where the world models are
+    (`rollouts_file`), and its actions replayed open loop in the simulator from the same scene and initial state.
+    Writes side-by-side videos (world model | its goal | simulator) and returns, per start, what each world said:
+    the world model's return and success, the simulator's success."""
     folder = out / REPLAY_DIR
-    settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": cfg.replay_episodes}
-    resume.run_once(folder, settings, cfg.pipeline.fresh, lambda: _replay(cfg, folder, env_cfg, checkpoint))
+    if rollouts_file is None:
+        settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": cfg.replay_episodes}
+    else:
+        settings = {
+            "rollouts": str(rollouts_file),
+            "bytes": rollouts_file.stat().st_size,
+            "checkpoint": str(checkpoint),
+        }
+
+    def replay():
+        if rollouts_file is None:
+            rollouts = world_model_runs.roll_out(env_cfg, checkpoint, cfg.replay_episodes, cfg.pipeline.device)
+        else:
+            rollouts = world_model_runs.load_rollouts(rollouts_file)
+        _replay(cfg, folder, rollouts)
+
+    resume.run_once(folder, settings, cfg.pipeline.fresh, replay)
     return json.loads((folder / "replay.json").read_text())
 
 
-@torch.no_grad()
-def _replay(cfg: ExperimentConfig, folder: Path, env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path) -> None:
-    p = cfg.pipeline
+def _replay(cfg: ExperimentConfig, folder: Path, rollouts: world_model_runs.Rollouts) -> None:
     folder.mkdir(parents=True)
-    env = RoboscapeWorldModelEnv(env_cfg, num_envs=cfg.replay_episodes)
-    chosen = [env.starts[int(i)] for i in np.linspace(0, len(env.starts) - 1, cfg.replay_episodes).round()]
-    policy, preprocessor, postprocessor = load_policy(checkpoint, resolve_device(p.device))
-    policy.eval()
-    policy.reset()
-    io = PolicyIO(preprocessor, postprocessor)
-    observation, _ = env.reset(seed=0, options={"episode_index": [s.episode_index for s in chosen]})
-    frames, actions = [env.render()], []
-    returns, succeeded = np.zeros(env.num_envs), np.zeros(env.num_envs, dtype=bool)
-    for _ in range(env.call("_max_episode_steps")[0]):
-        action = io.env_action(policy.select_action(io.batch(observation["pixels"], env.tasks())))
-        observation, reward, terminated, truncated, info = env.step(action)
-        frames.append(env.render())
-        actions.append(action)
-        returns += reward
-        succeeded |= info["is_success"]
-        if (terminated | truncated).all():
-            break
-    actions = np.stack(actions)  # (T, B, A)
     rows, strips = [], []
-    for i, start in enumerate(chosen):
-        family, scene, seed = start.facts["task_family"], start.facts["scene"], int(start.facts["seed"])
-        job = EpisodeJob(family, scene, seed, "optimal", p.data.image_size)
-        replayed = replay_actions(worker_env(job), job, actions[:, i], {})
-        simulator = np.concatenate([replayed.images[camera] for camera in env.cameras], axis=1)  # (T, 2H, W, 3)
-        clip = [np.concatenate([frames[t][i], simulator[t]], axis=1) for t in range(len(simulator))]
+    for i, start in enumerate(rollouts.starts):
+        family, scene, seed = start["task_family"], start["scene"], int(start["seed"])
+        job = EpisodeJob(family, scene, seed, "optimal", cfg.pipeline.data.image_size)
+        replayed = replay_actions(worker_env(job), job, rollouts.actions[:, i], {})
+        simulator = np.concatenate([replayed.images[camera] for camera in rollouts.cameras], axis=1)  # (T, 2H, W, 3)
+        clip = [np.concatenate([rollouts.frames[t, i], simulator[t]], axis=1) for t in range(len(simulator))]
         row = {
-            "episode_index": start.episode_index,
+            "episode_index": start["episode_index"],
             "family": family,
             "scene": scene,
-            "world_model_return": round(float(returns[i]), 3),
-            "world_model_success": bool(succeeded[i]),
+            "world_model_return": round(float(rollouts.returns[i]), 3),
+            "world_model_success": bool(rollouts.success[i]),
             "simulator_success": bool(replayed.success.any()),
         }
         outcome = f"wm-{'success' if row['world_model_success'] else 'failure'}_sim-" + (
@@ -311,7 +409,6 @@ def _replay(cfg: ExperimentConfig, folder: Path, env_cfg: RoboscapeWorldModelEnv
         rows.append(row)
         strips.append(_strip(clip))
     iio.imwrite(folder / "replay.png", np.concatenate(strips[:REPLAY_STRIPS], axis=0))
-    env.close()
     write_text_atomically(folder / "replay.json", json.dumps(rows, indent=2))
 
 
@@ -326,38 +423,64 @@ STEPS = ("world-model env", "SFT", "levers", "PPO", "Table 1", "checkpoint curve
 
 
 def run_experiment(cfg: ExperimentConfig) -> Path:
-    """Run every step of the protocol (skipping those complete); returns the report."""
+    """Run every step of the protocol (skipping those complete); returns the report. With --world_model_runs, the
+    runs in the world model are packed for the machine where its models train (returns the pack) until they are
+    brought back, then taken as this protocol's own."""
     p, run = cfg.pipeline, Path(cfg.pipeline.output_dir).resolve()
-    trained = trained_stages(p, run)
+    elsewhere = Path(cfg.world_model_runs).resolve() if cfg.world_model_runs else None
+    trained = trained_stages(p, run, world_models=elsewhere is None)
     out = run / layout.protocol_dir(cfg.protocol)  # this protocol's policy runs
     clock = StageClock(STEPS)
-    clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
-    wm_env = stages.world_model_env(
-        p, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
-    )
-    wm_env = replace(wm_env, goal_file=str(run / layout.GOAL_FILE))  # one set of goals for every protocol
+    wm_env, rollouts = None, None
+    if elsewhere is not None:
+        clock("world-model env", f"none here: the runs in roboscape_wm go where its models are ({elsewhere})")
+    else:
+        clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
+        wm_env = stages.world_model_env(
+            p, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
+        )
+        wm_env = replace(wm_env, goal_file=str(run / layout.GOAL_FILE))  # one set of goals for every protocol
     sft_data = "the initial scene" if cfg.protocol == methods.PAPER_PROTOCOL else "every training scene"
     clock("SFT", f"the SFT checkpoint: {cfg.sft_checkpoint or f'SFT with lerobot-train on {sft_data}'}")
     sft = sft_policy(cfg, out, trained.demonstrations)
+    policy = next(iter(sft))
     clock("levers", f"the guards against gaming the world model: {', '.join(cfg.levers) or 'none'}")
-    levers = lever_runs(cfg, run, trained, wm_env)
+    if elsewhere is None:
+        levers = lever_runs(cfg, run, trained, wm_env)
+    elif not (elsewhere / world_model_runs.RUNS_DIR / world_model_runs.RESULTS).is_file():
+        pack = pack_world_model_runs(cfg, run, out, trained, sft, elsewhere / world_model_runs.PACK_DIR)
+        clock.done()
+        print(
+            f"The runs in the world model are packed in {pack}: run them where the world models train "
+            f"(scripts/experiments/device_world_models.sh claim), bring them back into "
+            f"{elsewhere / world_model_runs.RUNS_DIR} and run this command again."
+        )
+        return pack
     clock(
         "PPO",
         "PPO in roboscape_wm and in roboscape_maniskill"
         + (" (and the reward ablation)" if p.reward_ablation else "")
-        + (" (and each lever)" if levers else ""),
+        + (" (and each lever)" if cfg.levers else "")
+        + (f" (those in roboscape_wm brought back from {elsewhere})" if elsewhere else ""),
     )
-    rl = policy_stages.rl(p, out, trained.demonstrations, wm_env, sft, levers)
+    rl = policy_stages.rl(p, out, trained.demonstrations, wm_env, sft, levers if elsewhere is None else None)
+    if elsewhere is not None:
+        taken = take_world_model_runs(cfg, out, elsewhere / world_model_runs.RUNS_DIR, policy)
+        rl[policy] |= taken["runs"]
+        levers = {m: None for m in taken["runs"] if m in methods.LEVERS.values()}
+        if replay := taken["results"].get("replay"):
+            rollouts = elsewhere / world_model_runs.RUNS_DIR / replay["file"]
     checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     results = policy_stages.simulator_eval(p, out, trained.demonstrations, checkpoints)
-    policy = next(iter(sft))
     clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")
     curve = checkpoint_curve(cfg, out, trained.demonstrations, policy, sft[policy])
     lever_curves = {m: checkpoint_curve(cfg, out, trained.demonstrations, policy, sft[policy], m) for m in levers}
     clock("replay", "world-model rollouts replayed in the simulator")
-    ppo_env = policy_stages.rl_envs(p, out, trained.demonstrations, wm_env)[methods.RL_WORLD_MODEL]
-    replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL])
+    ppo_env = None
+    if elsewhere is None:
+        ppo_env = policy_stages.rl_envs(p, out, trained.demonstrations, wm_env)[methods.RL_WORLD_MODEL]
+    replays = replay_in_simulator(cfg, out, ppo_env, rl[policy][methods.RL_WORLD_MODEL], rollouts)
     clock("report", "the claim's report")
     report = write_experiment_report(cfg, out, results, curve, replays, lever_curves)
     clock.done()

@@ -38,6 +38,7 @@ from lerobot_roboscape.pipeline.methods import (
 from lerobot_roboscape.pipeline.report import machine, render_pipeline_report
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
+from lerobot_roboscape.pipeline.world_model_runs import GOALS, RESULTS, RUNS_DIR
 from lerobot_roboscape.training.records import read_history
 
 matplotlib.use("Agg")
@@ -146,7 +147,8 @@ def write_experiment_report(
     policies = list(table)
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
-    times = step_times(out, runs, Path(p.output_dir).resolve() / GOAL_FILE)
+    elsewhere = world_model_runs_record(cfg)
+    times = step_times(out, runs, Path(elsewhere["goals"]) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
     summary = {
         "protocol": cfg.protocol,
         "scale": p.scale,
@@ -166,6 +168,8 @@ def write_experiment_report(
         "replays": replays,
         "seconds": times,
     }
+    if elsewhere:
+        summary["world_model_runs"] = elsewhere
     other = other_protocol(cfg, out)
     if other:
         summary["other_protocol"] = other
@@ -188,6 +192,17 @@ def write_experiment_report(
     if cfg.readme:
         update_readme(Path(cfg.readme), readme_block(cfg, summary))
     return folder / "report.md"
+
+
+def world_model_runs_record(cfg) -> dict | None:
+    """Where the runs in the world model ran, when they ran elsewhere (--world_model_runs): the folder they came
+    back to, the GPU, the done threshold chosen there, the goals' file."""
+    if not cfg.world_model_runs:
+        return None
+    folder = Path(cfg.world_model_runs).resolve() / RUNS_DIR
+    results = json.loads((folder / RESULTS).read_text())
+    record = {k: results[k] for k in ("gpu", "done", "time_budget_s")}
+    return {"folder": str(folder), **record, "goals": str(folder / GOALS)}
 
 
 PROTOCOL_TABLE = "table1.json"  # each protocol's Table 1, in its folder of the run (layout.protocol_dir)
@@ -255,8 +270,9 @@ def protocol(cfg) -> str:
         if cfg.protocol == PAPER_PROTOCOL
         else "The all-scene protocol (`--protocol=all_scenes`): the policy learned every training scene. "
     )
+    elsewhere = world_model_runs_record(cfg)
     budget = (
-        f"the same {p.ppo.time_budget_s / 60:g} min of PPO's clock (rollouts and updates)"
+        f"{'' if elsewhere else 'the same '}{p.ppo.time_budget_s / 60:g} min of PPO's clock (rollouts and updates)"
         if p.ppo.time_budget_s
         else f"the same number of iterations ({p.ppo.iterations})"
     )
@@ -273,8 +289,20 @@ def protocol(cfg) -> str:
     envs += " and `roboscape_maniskill` in every training scene"
     return name + (
         f"Task families {', '.join(p.data.families)}. PPO starts from {sft}, one multi-task run per env, "
-        f"{p.ppo.num_envs} parallel episodes of {steps} per iteration, for {budget} on the same machine, one run at a "
-        f"time: {envs}. The world model's reward is the paper's: alpha x the sparse done reward + beta x the "
+        f"{p.ppo.num_envs} parallel episodes of {steps} per iteration, for {budget}"
+        + (
+            f" on the same machine, one run at a time: {envs}."
+            if not cfg.world_model_runs
+            else f": {envs}. The runs in `roboscape_wm` ran where its models were trained "
+            f"({elsewhere['gpu'] or 'no GPU'}, `--world_model_runs`), side by side, one process each, for "
+            + (
+                f"{elsewhere['time_budget_s'] / 60:g} min of PPO's clock"
+                if elsewhere["time_budget_s"]
+                else "the same iterations"
+            )
+            + "; those in the simulator here, one at a time; the table of PPO's runs gives each its env steps."
+        )
+        + " The world model's reward is the paper's: alpha x the sparse done reward + beta x the "
         "similarity to the goal frame the text model generated"
         + ("; the reward ablation pays one term only" if p.reward_ablation else "")
         + f". Success is measured in the simulator, {p.eval.episodes} episodes per (split, family) on the same "

@@ -119,13 +119,14 @@ def lerobot_eval_in_world_model(
 
 
 def rl_envs(
-    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, wm_env: RoboscapeWorldModelEnvConfig
+    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, wm_env: RoboscapeWorldModelEnvConfig | None
 ) -> dict:
     """{method: env config} of the RL runs: the world model (every training scene), the simulator in every
     training scene and, as the paper's baseline ran it (section 3.2: it "only initializes a single type of
     environment"), the simulator in one scene; with `reward_ablation`, the world model paid only its sparse and
     only its dense reward. The world model's goals are generated once into `wm_env.goal_file` (default: the run's
-    own, in `out`), before PPO's clock starts, and shared by its runs."""
+    own, in `out`), before PPO's clock starts, and shared by its runs. Without `wm_env` (its runs go where the world
+    models are: pipeline/world_model_runs.py), the simulator's alone."""
     sim = RoboscapeManiSkillEnvConfig(
         families=cfg.data.families,
         split="ind",
@@ -134,6 +135,11 @@ def rl_envs(
         dataset_repo_id=demonstrations.repo_id,
         dataset_root=demonstrations.root,
     )
+    envs = {RL_MANISKILL: sim}
+    if cfg.ppo_one_scene:
+        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[initial_scene()])
+    if wm_env is None:
+        return envs
     wm = replace(
         wm_env,
         split="ind",
@@ -141,9 +147,7 @@ def rl_envs(
         starts_per_scene=cfg.env.starts_per_scene,
         goal_file=wm_env.goal_file or str(out / GOAL_FILE),
     )
-    envs = {RL_WORLD_MODEL: wm, RL_MANISKILL: sim}
-    if cfg.ppo_one_scene:
-        envs[RL_MANISKILL_ONE_SCENE] = replace(sim, scenes=[initial_scene()])
+    envs = {RL_WORLD_MODEL: wm} | envs
     if cfg.reward_ablation:
         envs |= {RL_WORLD_MODEL_SPARSE: replace(wm, beta=0.0), RL_WORLD_MODEL_DENSE: replace(wm, alpha=0.0)}
     return envs
@@ -161,11 +165,24 @@ def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
     return last_checkpoint(folder) / FINAL
 
 
+def ppo_config(
+    cfg: PipelineConfig, out: Path, policy: str, method: str, sft_checkpoint: Path, env, settings: dict
+) -> PPOConfig:
+    """PPO's settings for one run: the pipeline's, those of its method (`settings`), from the SFT checkpoint."""
+    return PPOConfig(
+        policy_path=str(sft_checkpoint),
+        env=env,
+        output_dir=out / rl_dir(policy, method),
+        device=cfg.device,
+        **(asdict(cfg.ppo) | settings),
+    )
+
+
 def rl(
     cfg: PipelineConfig,
     out: Path,
     demonstrations: DatasetConfig,
-    wm_env: RoboscapeWorldModelEnvConfig,
+    wm_env: RoboscapeWorldModelEnvConfig | None,
     checkpoints: dict[str, Path],
     levers: dict[str, tuple] | None = None,
 ) -> dict[str, dict[str, Path]]:
@@ -180,16 +197,7 @@ def rl(
             settings = dict(settings)
             refresh = settings.pop("done_refresh", None)
             run = partial(ppo_with_done_refresh, refresh=refresh) if refresh is not None else ppo
-            runs[name][method] = run(
-                PPOConfig(
-                    policy_path=str(sft_checkpoint),
-                    env=env,
-                    output_dir=out / rl_dir(name, method),
-                    device=cfg.device,
-                    **(asdict(cfg.ppo) | settings),
-                ),
-                cfg.fresh,
-            )
+            runs[name][method] = run(ppo_config(cfg, out, name, method, sft_checkpoint, env, settings), cfg.fresh)
     return runs
 
 

@@ -76,11 +76,12 @@ def prepare(folder: Path, settings, fresh: bool) -> bool:
     return False
 
 
-def mark_done(folder: Path, settings) -> None:
-    """Record the stage's settings and the seconds its (last) run took."""
+def mark_done(folder: Path, settings, seconds: float | None = None) -> None:
+    """Record the stage's settings and the seconds its (last) run took (`seconds`: those it took elsewhere)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    seconds = time.time() - _began.pop(folder, time.time())
+    began = _began.pop(folder, time.time())
+    seconds = time.time() - began if seconds is None else seconds
     write_text_atomically(
         folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2)
     )

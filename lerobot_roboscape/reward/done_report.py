@@ -24,6 +24,8 @@ import matplotlib
 import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
@@ -52,6 +54,9 @@ class DoneReportConfig:
     validation: other episodes, successful and failed, on which the threshold and the source are chosen.
     tokenizer: the world models' tokenizer.
     world_model: the action world model (its done head, and the open-loop frames).
+    dataset_tokens: the held-out episodes as a token episodes file (`save_token_episodes`), read instead of
+        `dataset` on a machine without it.
+    validation_tokens: the validation episodes likewise, instead of `validation`.
     success_classifier: a success classifier (`roboscape-train-reward --reward.kind=success`); None: the done head
         only.
     output_dir: where done_report.json, done_report.md and done_curves.png go.
@@ -62,6 +67,8 @@ class DoneReportConfig:
 
     dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape_heldout"))
     validation: DatasetConfig = field(default_factory=lambda: DatasetConfig(repo_id="local/roboscape_validation"))
+    dataset_tokens: str | None = None
+    validation_tokens: str | None = None
     tokenizer: str = "outputs/tokenizer/pretrained_model"
     world_model: str = "outputs/world_model_action/pretrained_model"
     success_classifier: str | None = None
@@ -124,29 +131,97 @@ class DoneSources:
         return out
 
 
-def score_episodes(dataset, sources: DoneSources, open_loop: bool, batch_size: int, device) -> list[EpisodeScores]:
-    cameras = camera_names(dataset)
-    episodes, pending = [], []
-    k = sources.model.config.frame_skip
+@dataclass
+class TokenEpisode:
+    """An episode as the done sources read it: its model frames' tokens, the actions between them, its labels."""
+
+    index: int
+    task: str
+    tokens: torch.Tensor  # (T, S): every k-th frame (the model's frame skip k)
+    actions: torch.Tensor  # ((T - 1) * k, A): the recorded actions between them
+    labels: np.ndarray  # (T,) recorded done at those frames
+    success: bool
+
+
+def token_episodes(dataset, tokenizer: VisualTokenizer, frame_skip: int, device) -> list[TokenEpisode]:
+    """Every episode of `dataset` tokenized at the model frames of a world model with this frame skip."""
+    cameras, episodes = camera_names(dataset), []
     for index in episode_indices(dataset):
         episode = read_episode(dataset, index)
-        frames = model_frames(len(episode.action), k)  # the model reads every k-th step
-        tokens = sources.tokenizer.encode_views(
-            [torch.from_numpy(episode.images[c][frames]).permute(0, 3, 1, 2).to(device) for c in cameras]
+        frames = model_frames(len(episode.action), frame_skip)
+        with torch.no_grad():
+            tokens = tokenizer.encode_views(
+                [torch.from_numpy(episode.images[c][frames]).permute(0, 3, 1, 2).to(device) for c in cameras]
+            )
+        actions = torch.from_numpy(episode.action[: (len(frames) - 1) * frame_skip]).to(device)
+        success = bool(episode.done_label.max() > 0.5)
+        episodes.append(TokenEpisode(index, episode.task, tokens, actions, episode.done_label[frames], success))
+    return episodes
+
+
+TOKEN_EPISODES_FORMAT = 1
+
+
+def save_token_episodes(episodes: list[TokenEpisode], frame_skip: int, path: Path, source: str) -> Path:
+    """`episodes` in one safetensors file, so a machine without the dataset (or its videos) can report on them."""
+    tensors, rows = {}, []
+    for i, e in enumerate(episodes):
+        tensors |= {f"{i}.tokens": e.tokens.cpu(), f"{i}.actions": e.actions.cpu()}
+        tensors[f"{i}.labels"] = torch.from_numpy(np.ascontiguousarray(e.labels))
+        rows.append({"index": e.index, "task": e.task, "success": e.success})
+    metadata = {"format": TOKEN_EPISODES_FORMAT, "frame_skip": frame_skip, "source": source, "episodes": rows}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    save_file(tensors, partial, metadata={"episodes": json.dumps(metadata)})
+    partial.replace(path)
+    return path
+
+
+def load_token_episodes(path: Path, frame_skip: int, device) -> list[TokenEpisode]:
+    """The episodes `save_token_episodes` wrote, for a world model with this frame skip."""
+    try:
+        with safe_open(str(path), "pt") as f:
+            metadata = json.loads(f.metadata()["episodes"])
+            tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
+    except (OSError, KeyError, ValueError, SafetensorError) as error:
+        raise InvalidInputError(
+            f"{path} is not a token episodes file (save_token_episodes writes one): {error}"
+        ) from error
+    if metadata.get("format") != TOKEN_EPISODES_FORMAT or metadata["frame_skip"] != frame_skip:
+        raise InvalidInputError(
+            f"{path} holds episodes of format {metadata.get('format')} at frame skip {metadata.get('frame_skip')}; "
+            f"this version reads format {TOKEN_EPISODES_FORMAT} and the world model's frame skip is {frame_skip}"
         )
-        actions = torch.from_numpy(episode.action[: (len(frames) - 1) * k]).to(device)
-        scores = {(s, "teacher_forced"): v for s, v in sources.teacher_forced(tokens, actions).items()}
-        labels = episode.done_label[frames]
-        episodes.append(EpisodeScores(index, episode.task, bool(episode.done_label.max() > 0.5), labels, scores))
-        if open_loop and len(tokens) > sources.model.config.prompt_frames:
-            pending.append((episodes[-1], tokens, actions))
+    return [
+        TokenEpisode(
+            row["index"],
+            row["task"],
+            tensors[f"{i}.tokens"].to(device),
+            tensors[f"{i}.actions"].to(device),
+            tensors[f"{i}.labels"].numpy(),
+            row["success"],
+        )
+        for i, row in enumerate(metadata["episodes"])
+    ]
+
+
+def score_episodes(
+    episodes: list[TokenEpisode], sources: DoneSources, open_loop: bool, batch_size: int
+) -> list[EpisodeScores]:
+    scored, pending = [], []
+    for e in episodes:
+        scores = {(s, "teacher_forced"): v for s, v in sources.teacher_forced(e.tokens, e.actions).items()}
+        scored.append(EpisodeScores(e.index, e.task, e.success, e.labels, scores))
+        if open_loop and len(e.tokens) > sources.model.config.prompt_frames:
+            pending.append((scored[-1], e.tokens, e.actions))
     pending.sort(key=lambda item: len(item[2]))  # batches of similar lengths pad less
     for start in range(0, len(pending), batch_size):
         chunk = pending[start : start + batch_size]
         for (episode, _, _), scores in zip(chunk, sources.open_loop([(t, a) for _, t, a in chunk]), strict=True):
             episode.scores |= {(s, "open_loop"): v for s, v in scores.items()}
         logger.info("open loop: %d/%d episodes", min(start + batch_size, len(pending)), len(pending))
-    return episodes
+    return scored
 
 
 def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float | None:
@@ -238,11 +313,15 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
             raise InvalidInputError(f"{cfg.success_classifier} is a {classifier.config.kind} model, not a success one")
     sources = DoneSources(tokenizer, model, classifier)
 
-    def episodes_of(data: DatasetConfig, open_loop: bool) -> list[EpisodeScores]:
-        dataset = open_dataset(data.repo_id, data.root, data.episodes)
-        return score_episodes(dataset, sources, open_loop, cfg.batch_size, device)
+    def episodes_of(data: DatasetConfig, tokens: str | None, open_loop: bool) -> list[EpisodeScores]:
+        k = model.config.frame_skip
+        if tokens:
+            episodes = load_token_episodes(Path(tokens), k, device)
+        else:
+            episodes = token_episodes(open_dataset(data.repo_id, data.root, data.episodes), tokenizer, k, device)
+        return score_episodes(episodes, sources, open_loop, cfg.batch_size)
 
-    validation = episodes_of(cfg.validation, open_loop=False)
+    validation = episodes_of(cfg.validation, cfg.validation_tokens, open_loop=False)
     chosen = {}
     for source in sources.names:
         best = np.array([e.scores[(source, "teacher_forced")].max() for e in validation])
@@ -251,7 +330,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
         if not both:
             logger.warning(
                 "%s: %d of %d validation episodes succeeded; a threshold needs both kinds, %s keeps %.2f",
-                cfg.validation.root,
+                cfg.validation_tokens or cfg.validation.root,
                 int(success.sum()),
                 len(success),
                 source,
@@ -265,7 +344,7 @@ def evaluate_done(cfg: DoneReportConfig) -> dict:
         }
         chosen[source]["validation"]["confusion"] = confusion(best, success, chosen[source]["theta"])
     source = max(sources.names, key=lambda s: chosen[s]["validation"]["frame_roc_auc"] or 0.0)
-    heldout = episodes_of(cfg.dataset, cfg.open_loop)
+    heldout = episodes_of(cfg.dataset, cfg.dataset_tokens, cfg.open_loop)
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "chosen": {"source": source, "theta": chosen[source]["theta"], "theta_from": chosen[source]["theta_from"]},

@@ -12,6 +12,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 from lerobot.utils.constants import CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
 
 from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
@@ -48,3 +49,10 @@ def publish_checkpoint(output_dir: Path, step: int, tmp: Path, keep: int | None 
         for old in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))[:-keep]:
             shutil.rmtree(old)
     return root / name
+
+
+def spread_checkpoints(output_dir: Path, n: int) -> list[Path]:
+    """`n` of a run's saved checkpoints (or all, if fewer) evenly spread over them, the first and the last among
+    them, in order."""
+    saved = sorted(f for f in (Path(output_dir) / CHECKPOINTS).iterdir() if f.name.isdigit())
+    return [saved[int(i)] for i in np.unique(np.linspace(0, len(saved) - 1, n).round())] if saved else []
