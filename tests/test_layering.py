@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import lerobot_roboscape
 
 # The library's folders and top-level modules, upstream first.
@@ -48,11 +50,18 @@ def test_no_module_imports_from_a_later_stage():
     assert not backwards, "\n".join(sorted(backwards))
 
 
-def test_the_world_model_env_imports_without_the_simulator():
-    """A GPU machine without ManiSkill (scripts/experiments/device_world_models.sh) runs roboscape_wm."""
-    code = (
-        "import sys, lerobot_roboscape.envs.world_model_env; print(sorted({'mani_skill', 'sapien'} & set(sys.modules)))"
-    )
+@pytest.mark.parametrize(
+    "module",
+    [
+        "lerobot_roboscape.envs.world_model_env",
+        "lerobot_roboscape.pipeline.world_model_runs",
+        "lerobot_roboscape.cli.train_wm",
+    ],
+)
+def test_what_the_gpu_machine_runs_imports_without_the_simulator(module):
+    """A GPU machine without ManiSkill (scripts/experiments/device_world_models.sh) trains the world models and runs
+    PPO in roboscape_wm."""
+    code = f"import sys, {module}; print(sorted({{'mani_skill', 'sapien'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 

@@ -296,7 +296,7 @@ def protocol(cfg) -> str:
             else f": {envs}. The runs in `roboscape_wm` ran where its models were trained "
             f"({elsewhere['gpu'] or 'no GPU'}, `--world_model_runs`), side by side, one process each, for "
             + (
-                f"{elsewhere['time_budget_s'] / 60:g} min of PPO's clock"
+                f"{elsewhere['time_budget_s'] / 60:.3g} min of PPO's clock"
                 if elsewhere["time_budget_s"]
                 else "the same iterations"
             )

@@ -40,10 +40,9 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL_SPARSE,
     initial_scene,
 )
-from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
+from lerobot_roboscape.pipeline.ppo_run import ppo
+from lerobot_roboscape.pipeline.resume import is_done, mark_done, start
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
-from lerobot_roboscape.rl.ppo import train_ppo
-from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 
 # ---- policies ----------------------------------------------------------------------------------------------------
 
@@ -151,18 +150,6 @@ def rl_envs(
     if cfg.reward_ablation:
         envs |= {RL_WORLD_MODEL_SPARSE: replace(wm, beta=0.0), RL_WORLD_MODEL_DENSE: replace(wm, alpha=0.0)}
     return envs
-
-
-def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
-    """One PPO run (resumed from its last checkpoint when interrupted); returns its final checkpoint."""
-    folder = Path(cfg.output_dir)
-    train_once(
-        folder,
-        cfg,
-        fresh,
-        lambda resume: train_ppo(replace(cfg, resume=resume and last_checkpoint(folder) is not None)),
-    )
-    return last_checkpoint(folder) / FINAL
 
 
 def ppo_config(

@@ -18,7 +18,7 @@ import json
 import logging
 import shutil
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -31,7 +31,7 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.starts import SELECTION, export_starts
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.pipeline.policy_stages import ppo
+from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.reward.done_report import (
     DoneChoice,
@@ -139,20 +139,33 @@ def read_plan(folder: Path) -> dict:
 # ---- there: the runs ---------------------------------------------------------------------------------------------
 
 
-def run_pack(
-    pack_dir: Path,
-    action: Path,
-    text: Path,
-    members: list[Path],
-    out: Path,
-    time_budget_s: float | None = None,
-    device: str = "auto",
-) -> dict:
-    """Run the pack's PPO runs in the world models `action` and `text` (and the ensemble `members`) into `out`:
-    the done report first (its threshold is every env's), then every start's goal, then the runs, all at once (each
-    for `time_budget_s` of PPO's clock, if given, instead of the packed budget), then the plain run's rollouts for
-    the replay. Returns the results (also `out/results.json`)."""
-    pack_dir, out = Path(pack_dir).resolve(), Path(out).resolve()
+@dataclass
+class RunPackConfig:
+    """Args:
+    pack: the folder `roboscape-experiment --world_model_runs=DIR` packed (DIR/pack).
+    action, text: the world models the runs go in (pretrained_model folders).
+    members: more action models, the ensemble whose disagreement the ensemble lever's env reads.
+    output_dir: where the runs, the done report, the goals and the replay's rollouts go (then brought back to
+        DIR/runs).
+    time_budget_s: PPO's clock of each run, instead of the packed budget (null: the packed one).
+    device: "auto", "cpu" or "cuda".
+    """
+
+    pack: str = ""
+    action: str = ""
+    text: str = ""
+    members: list[str] = field(default_factory=list)
+    output_dir: str = ""
+    time_budget_s: float | None = None
+    device: str = "auto"
+
+
+def run_pack(cfg: RunPackConfig) -> dict:
+    """Run the pack's PPO runs in the world models into `output_dir`: the done report first (its threshold is every
+    env's), then every start's goal, then the runs, all at once, one process each, then the plain run's rollouts for
+    the replay. Returns the results (also `output_dir/results.json`)."""
+    pack_dir, out, device, members = Path(cfg.pack).resolve(), Path(cfg.output_dir).resolve(), cfg.device, cfg.members
+    action, text = cfg.action, cfg.text
     plan = read_plan(pack_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = DoneReportConfig(
@@ -181,8 +194,8 @@ def run_pack(
         )
         env = replace(env, done_source=done.source, theta=done.theta, theta_sps=done.theta)
         settings = {k: v for k, v in run["ppo"].items() if k != "output_dir"} | {"device": device}
-        if time_budget_s is not None:
-            settings["time_budget_s"] = time_budget_s
+        if cfg.time_budget_s is not None:
+            settings["time_budget_s"] = cfg.time_budget_s
         jobs[tag] = PPOConfig(policy_path=str(pack_dir / "sft"), env=env, output_dir=out / "rl" / tag, **settings)
     for config in {c.env.starts_file: c.env for c in jobs.values()}.values():  # every goal, once, before the clocks
         RoboscapeWorldModelEnv(config, num_envs=1).close()

@@ -7,11 +7,18 @@
 #   bash scripts/experiments/device_world_models.sh unpack FILES CONTROL [DEST]  # a call's files (read-only) ->
 #        DEST/CONTROL/pretrained_model (DEST: outputs/gpu_world_models); once action and text are there, the run
 #        goes on with them: roboscape-demo --scale=bench --output_dir=outputs/bench --world_models=DEST
+#   CLAIM=DIR/pack bash scripts/experiments/device_world_models.sh pack outputs/bench  # also the experiment's runs
+#        in the world model (roboscape-experiment --world_model_runs=DIR writes DIR/pack), for mode claim
+#   bash scripts/experiments/device_world_models.sh unpack-runs FILES DIR  # claim's runs -> DIR/runs; then the
+#        same roboscape-experiment command again takes them and goes on here
 # There (each mode prepares the machine first, once; its files land in $OUT):
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
+#   bash scripts/experiments/device_world_models.sh claim A_STEPS A_LIMIT T_STEPS T_LIMIT PPO_S [BATCH] [LR]
+#        # issue 49 in one call: both models, the ensemble's members, then the packed runs in them (each PPO_S s of
+#        # PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models' curves), logs
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
@@ -19,7 +26,9 @@
 # The GPU image has PyTorch but not LeRobot's data stack: `pack` takes the pure-Python packages training imports from
 # .venv (2.5 MB compressed) and a stand-in for PyAV, never called (training reads token caches, not videos). The
 # token caches travel exported (tokenizer/token_cache.py) and train without their datasets. What comes back is at most
-# 8 files of 16 MiB: a model's weights in bf16, cut in pieces, and a tarball of its logs and curves.
+# 8 files of 16 MiB: a model's weights in bf16, cut in pieces, and a tarball of its logs and curves; or (claim) the
+# PPO runs made in the models, which stay there.
+# WM=bench runs a dry run's models at the bench preset (the gpu preset trains at ~1 step/min on 2 CPU cores).
 set -uo pipefail
 mode=$1; shift
 G=$(pwd)/.gpu
@@ -32,6 +41,10 @@ if [ "$mode" = pack ]; then
   rm -rf .gpu && mkdir -p .gpu/stub/av .gpu/stub/av-15.1.0.dist-info
   start=$(date +%s)
   if [ "$RUN" != - ]; then .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data || exit 1; fi
+  if [ -n "${CLAIM:-}" ]; then
+    [ -f "$CLAIM/plan.json" ] || { echo "CLAIM=$CLAIM has no plan.json (roboscape-experiment --world_model_runs=DIR writes DIR/pack)" >&2; exit 1; }
+    cp -r "$CLAIM" .gpu/claim || exit 1
+  fi
   # The generation race's references (mode generation only): 1xgpt's model code (the `fetch` tool's mirror) and our
   # package before the cache was filled block by block (benchmark_cache_memory.py's reference). Training needs
   # neither: without the mirror, the pack goes on without them.
@@ -103,10 +116,18 @@ PY
   exit $?
 fi
 
+if [ "$mode" = unpack-runs ]; then  # here: claim's runs -> DIR/runs, where roboscape-experiment takes them
+  FILES=$1; DIR=$2
+  rm -rf "$DIR/runs" && mkdir -p "$DIR" || exit 1
+  cat "$FILES/runs.tgz.part-"* | tar xz -C "$DIR" || exit 1
+  echo "$DIR/runs: $(ls "$DIR/runs/rl" | tr '\n' ' ')"
+  exit 0
+fi
+
 # ---- on the device machine ----------------------------------------------------------------------------------------
 # The repository's packages as the .venv's editable installs name them (roboscape_core, the policy and env plugins).
 R=$(pwd)
-export PYTHONPATH=$G/stub:$W/site:$R:$R/packages/roboscape_core:$R/policies/lerobot_policy_roboscape_mlp:$R/plugins/lerobot_env_roboscape${PYTHONPATH:+:$PYTHONPATH}
+export PYTHONPATH=$G/stub:$W/site:$R:$R/packages/roboscape_core:$R/policies/lerobot_policy_roboscape_mlp:$R/plugins/lerobot_env_roboscape:$R/policies/lerobot_policy_openvla${PYTHONPATH:+:$PYTHONPATH}
 export PYTHONUNBUFFERED=1
 PY=${PY:-python3}  # a dry run here: PY="$PWD/.venv/bin/python -S" with the .venv's site-packages last on PYTHONPATH
 if [ ! -f $W/unpacked ]; then
@@ -148,12 +169,28 @@ PY
   touch $W/ready
 fi
 D=$G/data
-common=(--tokenizer=$D/tokenizer --wm.type=gpu --dataset.repo_id=local/roboscape_demos
+common=(--tokenizer=$D/tokenizer --wm.type=${WM:-gpu} --dataset.repo_id=local/roboscape_demos
         --token_cache=$(cat $W/caches/demos.path) --train.mixed_precision=bf16 --train.log_freq=50)
 action=(--wm.control=action --exploration.repo_id=local/roboscape_explore --exploration_share=0.25
         --exploration_token_cache=$(cat $W/caches/explore.path) --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors]
         --done_tuning_episodes=32)
 keep() { tr '\r' '\n' | awk '!/it\/s|s\/it/ || /\| *[0-9]*00\//'; }  # the progress bar every 100 steps
+# fit CONTROL STEPS BATCH LR LIMIT [EVAL]: train one model into $W/CONTROL (log: $OUT/CONTROL.log); prints the model,
+# the final one or the last checkpoint of a run the limit stopped.
+fit() {
+  local control=$1 steps=$2 bs=$3 lr=$4 limit=$5 eval=${6:-500} run=$W/$1 started=$(date +%s) extra=()
+  rm -rf $run
+  [ "$control" = action ] && extra=("${action[@]}" --train.eval_freq=$eval) || extra=(--wm.control=text)
+  timeout $limit $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${extra[@]}" --train.steps=$steps \
+    --train.batch_size=$bs --train.lr=$lr --train.save_freq=$eval --output_dir=$run 2>&1 | keep > $OUT/$control.log
+  echo "$control rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - started ))" | tee -a $OUT/$control.log >&2
+  local model=$run/pretrained_model
+  [ -f $model/model.safetensors ] || model=$(ls -d $run/checkpoints/*/pretrained_model 2>/dev/null | tail -1)
+  [ -n "$model" ] || { echo "$control: no model saved in $limit s" >&2; return 1; }
+  echo $model
+}
+# records CONTROL DEST: a trained model's logs and curves (not its weights)
+records() { mkdir -p $2; for f in train_log.jsonl heldout_curve.jsonl train_config.json done_tuning.json; do cp $W/$1/$f $2/ 2>/dev/null; done; true; }
 
 case $mode in
   bench)  # the bench preset over the batches, the GPU preset at the middle one
@@ -175,14 +212,7 @@ t=[json.loads(l) for l in open('$run/train_log.jsonl')][-1]; print(json.dumps({*
     done ;;
   train)
     CONTROL=$1; STEPS=$2; BS=$3; LR=$4; LIMIT=$5; EVAL=${6:-500}
-    run=$W/$CONTROL; rm -rf $run
-    extra=(); [ "$CONTROL" = action ] && extra=("${action[@]}" --train.eval_freq=$EVAL) || extra=(--wm.control=text)
-    start=$(date +%s)
-    timeout $LIMIT $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${extra[@]}" --train.steps=$STEPS \
-      --train.batch_size=$BS --train.lr=$LR --train.save_freq=$EVAL --output_dir=$run 2>&1 | keep > $OUT/$CONTROL.log
-    echo "$CONTROL rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - start ))" | tee -a $OUT/$CONTROL.log
-    # The final model, or the last checkpoint of a run the limit stopped.
-    model=$run/pretrained_model; [ -f $model/model.safetensors ] || model=$(ls -d $run/checkpoints/*/pretrained_model | tail -1)
+    model=$(fit $CONTROL $STEPS $BS $LR $LIMIT $EVAL) || exit 1
     $PY - $model $W/$CONTROL.bf16.safetensors <<'PY'
 import sys
 from safetensors.torch import load_file, save_file
@@ -192,8 +222,41 @@ PY
     split -b 15M $W/$CONTROL.bf16.safetensors $OUT/$CONTROL.bf16.part-
     mkdir -p $W/pack/pretrained_model && cp $model/config.json $W/pack/pretrained_model/
     cp -r $model/text_encoder $W/pack/pretrained_model/ 2>/dev/null
-    for f in train_log.jsonl heldout_curve.jsonl train_config.json done_tuning.json; do cp $run/$f $W/pack/ 2>/dev/null; done
+    records $CONTROL $W/pack
     tar czf $OUT/${CONTROL}_run.tgz -C $W/pack . && rm -rf $W/pack
+    ls -la $OUT ;;
+  claim)
+    A_STEPS=$1; A_LIMIT=$2; T_STEPS=$3; T_LIMIT=$4; PPO_S=$5; BS=${6:-64}; LR=${7:-1e-3}
+    C=$G/claim
+    [ -f $C/plan.json ] || { echo "no $C/plan.json: pack with CLAIM=<roboscape-experiment's --world_model_runs>/pack" >&2; exit 2; }
+    start=$(date +%s)
+    action_model=$(fit action $A_STEPS $BS $LR $A_LIMIT 500) || exit 1
+    text_model=$(fit text $T_STEPS $BS $LR $T_LIMIT) || exit 1
+    # The ensemble's members: the action model with its top redrawn, trained alone, side by side.
+    read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
+print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
+    members=()
+    if [ "$N" -gt 0 ]; then
+      steps=$($PY -c "print(max(round($A_STEPS * $SHARE), 1))")
+      top=(); [ "$R" != None ] && top=(--init_from=$action_model --retrain_blocks=$R)
+      for seed in $(seq 1 $N); do
+        $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" --train.seed=$seed \
+          --train.steps=$steps --train.batch_size=$BS --train.lr=$LR --train.save_freq=$steps --done_tuning_steps=0 \
+          --output_dir=$W/member$seed 2>&1 | keep > $W/member$seed.log &
+      done
+      wait
+      for seed in $(seq 1 $N); do members+=("$W/member$seed/pretrained_model"); done
+      for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee $OUT/members.log
+    fi
+    echo "models and members in $(( $(date +%s) - start )) s" | tee $OUT/claim.log
+    rm -rf $W/runs
+    list=$(IFS=,; echo "${members[*]}")
+    $PY -m lerobot_roboscape.cli.run_world_model_pack --pack=$C --action=$action_model --text=$text_model \
+      "--members=[$list]" --output_dir=$W/runs --time_budget_s=$PPO_S 2>&1 | keep | tee -a $OUT/claim.log
+    [ -f $W/runs/results.json ] || exit 1
+    for control in action text; do records $control $W/runs/world_models/$control; done
+    tar czf - -C $W runs | split -b 15M - $OUT/runs.tgz.part-
+    echo "claim done in $(( $(date +%s) - start )) s" | tee -a $OUT/claim.log
     ls -la $OUT ;;
   *) echo "unknown mode $mode" >&2; exit 2 ;;
 esac

@@ -105,7 +105,14 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
 
     out = tmp_path / "wm_runs" / "runs"
     results = world_model_runs.run_pack(
-        pack, world_models["action"], world_models["text"], [world_models["action"]], out, device="cpu"
+        world_model_runs.RunPackConfig(
+            pack=str(pack),
+            action=str(world_models["action"]),
+            text=str(world_models["text"]),
+            members=[str(world_models["action"])],
+            output_dir=str(out),
+            device="cpu",
+        )
     )
     assert set(results["runs"]) == set(jobs) and (out / world_model_runs.GOALS).is_file()
     assert results["done"] == json.loads((out / "done_report" / "done_report.json").read_text())["chosen"]
