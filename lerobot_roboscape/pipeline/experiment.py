@@ -263,30 +263,29 @@ def pack_world_model_runs(
         for method, (env, settings) in envs.items()
     }
     data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
-    device = resolve_device(p.device)
-    tokenizer = VisualTokenizer.from_pretrained(trained.tokenizer).to(device).eval()
     sets = {"validation": data.validation, "heldout": stages.spread(data.heldout, p.data.report_episodes)}
-    done_sets = {
-        name: token_episodes(open_dataset(d.repo_id, d.root, d.episodes), tokenizer, p.wm.frame_skip, device)
-        for name, d in sets.items()
+    extra = {
+        "replay": {"tag": methods.method_tag(methods.RL_WORLD_MODEL), "episodes": cfg.replay_episodes},
+        "ensemble": {
+            "members": cfg.ensemble_members,
+            "retrain_blocks": cfg.ensemble_retrain_blocks,
+            "steps_share": cfg.ensemble_steps_share,
+        },
+        "curve_checkpoints": cfg.curve_points - 1,
     }
-    replay = {"tag": methods.method_tag(methods.RL_WORLD_MODEL), "episodes": cfg.replay_episodes}
-    ensemble = {
-        "members": cfg.ensemble_members,
-        "retrain_blocks": cfg.ensemble_retrain_blocks,
-        "steps_share": cfg.ensemble_steps_share,
-    }
-    return world_model_runs.pack(
-        dest,
-        jobs,
-        checkpoint,
-        trained.tokenizer,
-        done_sets,
-        p.wm.frame_skip,
-        replay=replay,
-        ensemble=ensemble,
-        curve_checkpoints=cfg.curve_points - 1,
-    )
+
+    def write():
+        device = resolve_device(p.device)
+        tokenizer = VisualTokenizer.from_pretrained(trained.tokenizer).to(device).eval()
+        done_sets = {
+            name: token_episodes(open_dataset(d.repo_id, d.root, d.episodes), tokenizer, p.wm.frame_skip, device)
+            for name, d in sets.items()
+        }
+        world_model_runs.pack(dest, jobs, checkpoint, trained.tokenizer, done_sets, p.wm.frame_skip, **extra)
+
+    settings = {"jobs": jobs, "sft": str(checkpoint), "tokenizer": str(trained.tokenizer), "done_sets": sets, **extra}
+    resume.run_once(dest, settings | {"frame_skip": p.wm.frame_skip}, p.fresh, write)
+    return dest
 
 
 def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy: str) -> dict:
@@ -448,13 +447,21 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     if elsewhere is None:
         levers = lever_runs(cfg, run, trained, wm_env)
     elif not (elsewhere / world_model_runs.RUNS_DIR / world_model_runs.RESULTS).is_file():
+        # Pack, then do here what needs no world model while the runs go: PPO in the simulator, its Table 1 cells.
         pack = pack_world_model_runs(cfg, run, out, trained, sft, elsewhere / world_model_runs.PACK_DIR)
-        clock.done()
-        print(
+        wait = (
             f"The runs in the world model are packed in {pack}: run them where the world models train "
             f"(scripts/experiments/device_world_models.sh claim), bring them back into "
             f"{elsewhere / world_model_runs.RUNS_DIR} and run this command again."
         )
+        print(wait)
+        clock("PPO", "PPO in roboscape_maniskill (those in roboscape_wm run where its models are)")
+        rl = policy_stages.rl(p, out, trained.demonstrations, None, sft)
+        clock("Table 1", "success in the simulator of SFT and of PPO in the simulator, IND and OOD")
+        checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
+        policy_stages.simulator_eval(p, out, trained.demonstrations, checkpoints)
+        clock.done()
+        print(wait)
         return pack
     clock(
         "PPO",

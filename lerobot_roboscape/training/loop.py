@@ -63,6 +63,10 @@ class TrainingConfig:
     tf32: on a GPU, TF32 tensor cores for the matmuls left in fp32.
     peak_tflops: the device's peak bf16 TFLOP/s that MFU is read against; null: looked up from the GPU's name
         (PEAK_BF16_TFLOPS), none on a CPU (then only TFLOP/s are reported).
+    time_budget_s: end the run after about this many seconds (evaluations and resumes included) instead of after
+        `steps` (then its upper bound): at every logging step the run's last step is set from the pace so far, and
+        the cosine decays over the steps it will take; it ends as a run of that many steps does (final evaluation,
+        checkpoint and model). For a lease of fixed length, whatever the device's speed. Null: `steps`.
     resume: continue from the last checkpoint in output_dir.
     """
 
@@ -81,6 +85,7 @@ class TrainingConfig:
     compile: bool | None = None
     tf32: bool = True
     peak_tflops: float | None = None
+    time_budget_s: float | None = None
     resume: bool = False
 
     def __post_init__(self):
@@ -170,34 +175,51 @@ class Throughput:
         return figures
 
 
-def _save_checkpoint(accelerator: Accelerator, model: nn.Module, step: int, output_dir: Path, keep: int) -> None:
+def _save_checkpoint(
+    accelerator: Accelerator, model: nn.Module, step: int, output_dir: Path, keep: int, seconds: float
+) -> None:
     tmp = begin_checkpoint(output_dir, step) if accelerator.is_main_process else None
-    tmp = Path(accelerate_broadcast_path(accelerator, tmp))
+    tmp = Path(from_main_process(accelerator, tmp))
     accelerator.save_state(tmp)  # every process writes its part
     if accelerator.is_main_process:
         accelerator.unwrap_model(model).save_pretrained(tmp / FINAL)
-        (tmp / "training_step.json").write_text(json.dumps({"step": step}))
+        (tmp / "training_step.json").write_text(json.dumps({"step": step, "seconds": seconds}))
         publish_checkpoint(output_dir, step, tmp, keep)
     accelerator.wait_for_everyone()
 
 
-def accelerate_broadcast_path(accelerator: Accelerator, path: Path | None) -> str:
+def from_main_process(accelerator: Accelerator, value):
+    """The main process's `value` (a path to write to, a planned step), on every process."""
     from accelerate.utils import broadcast_object_list
 
-    holder = [str(path) if path is not None else None]
+    holder = [value]
     if accelerator.num_processes > 1:
         broadcast_object_list(holder)
     return holder[0]
 
 
-def cosine_with_warmup(config: TrainingConfig) -> Callable[[int], float]:
-    def factor(step: int) -> float:
-        if step < config.warmup_steps:
-            return (step + 1) / config.warmup_steps
-        progress = (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps)
+class CosineWithWarmup:
+    """The learning rate's factor at a step: linear warm-up, then a cosine to 1/10 at the run's last step, `steps`,
+    which a time budget moves. An object, not a function: LambdaLR saves its attributes with the scheduler's state,
+    so a resumed run keeps the last step it planned."""
+
+    def __init__(self, warmup_steps: int, steps: int):
+        self.warmup_steps, self.steps = warmup_steps, steps
+
+    def __call__(self, step: int) -> float:
+        if step < self.warmup_steps:
+            return (step + 1) / self.warmup_steps
+        progress = (step - self.warmup_steps) / max(1, self.steps - self.warmup_steps)
         return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
 
-    return factor
+
+def planned_last_step(config: TrainingConfig, step: int, seconds: float, paced: tuple[int, float]) -> int:
+    """The run's last step under its time budget: `step` steps done after `seconds`, at the pace since `paced`
+    (a step and the seconds then, after the first step's compilation and warm-up)."""
+    since_step, since_seconds = paced
+    per_step = (seconds - since_seconds) / max(step - since_step, 1)
+    left = int((config.time_budget_s - seconds) / max(per_step, 1e-9))
+    return max(min(config.steps, step + left), step)
 
 
 def fit(
@@ -237,21 +259,24 @@ def fit(
     # Fused AdamW: one kernel for every parameter's update (CUDA only).
     fused = accelerator.device.type == "cuda"
     optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95), fused=fused)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(config))
+    schedule = CosineWithWarmup(config.warmup_steps, config.steps)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
     if config.compile if config.compile is not None else accelerator.device.type == "cuda":
         accelerator.unwrap_model(model).compile()  # in place: the state dict's keys stay as they are
     accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
-    start = 0
+    start, before = 0, 0.0  # the step and the seconds a resumed run had
     if resume_from is not None:
         accelerator.load_state(resume_from)
-        start = json.loads((resume_from / "training_step.json").read_text())["step"]
+        record = json.loads((resume_from / "training_step.json").read_text())
+        start, before = record["step"], record.get("seconds", 0.0)
         logger.info("resumed from %s at step %d", resume_from, start)
     if accelerator.is_main_process:
         (output_dir / TRAIN_CONFIG).write_text(json.dumps(run_config, indent=2, default=str))
         _truncate_curve(output_dir / HELDOUT_CURVE, start)
         _truncate_curve(output_dir / TRAIN_LOG, start)
     began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating
+    paced = None  # (step, seconds) after the first step: the time budget's pace is read from there
     batch_size = config.batch_size * accelerator.num_processes
     throughput = Throughput(batch_size, flops_per_sample, peak_flops(config, accelerator.device), accelerator.device)
 
@@ -284,20 +309,28 @@ def fit(
                 )
             if step == start:
                 throughput.mark(step + 1)  # the first step (compilation, warm-up) is not throughput
+                paced = (step + 1, before + time.time() - began)
             else:
                 logs |= throughput.read(step + 1)
+            if config.time_budget_s is not None and step > start:
+                planned = planned_last_step(config, step + 1, before + time.time() - began, paced)
+                schedule.steps = progress.total = from_main_process(accelerator, planned)
             logs["lr"] = scheduler.get_last_lr()[0]
             accelerator.log(logs, step=step + 1)
             _log_line(output_dir, accelerator, step + 1, logs)
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in PROGRESS_KEYS})
-        last = step + 1 == config.steps
+        last = step + 1 == schedule.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
             tic = time.time()
             seconds = tic - began - evaluating
             _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, seconds)
             evaluating += time.time() - tic
         if (step + 1) % config.save_freq == 0 or last:
-            _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints)
+            _save_checkpoint(
+                accelerator, model, step + 1, output_dir, config.keep_checkpoints, before + time.time() - began
+            )
+        if last:
+            break
     accelerator.end_training()
     unwrapped = accelerator.unwrap_model(model)
     if accelerator.is_main_process:

@@ -16,9 +16,11 @@
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
-#   bash scripts/experiments/device_world_models.sh claim A_STEPS A_LIMIT T_STEPS T_LIMIT PPO_S [BATCH] [LR]
-#        # issue 49 in one call: both models, the ensemble's members, then the packed runs in them (each PPO_S s of
-#        # PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models' curves), logs
+#   bash scripts/experiments/device_world_models.sh claim A_S T_S PPO_S [BATCH] [LR]
+#        # issue 49 in one call: the action model for A_S seconds of training (then its done tuning), the text model
+#        # for T_S, the ensemble's members (their share of A_S, side by side), then the packed runs in them (each
+#        # PPO_S s of PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models'
+#        # curves), logs. Plan about A_S + T_S + PPO_S + 200 s for the call (start-up, done tuning, goals, saves).
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
@@ -175,12 +177,14 @@ action=(--wm.control=action --exploration.repo_id=local/roboscape_explore --expl
         --exploration_token_cache=$(cat $W/caches/explore.path) --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors]
         --done_tuning_episodes=32)
 keep() { tr '\r' '\n' | awk '!/it\/s|s\/it/ || /\| *[0-9]*00\//'; }  # the progress bar every 100 steps
-# fit CONTROL STEPS BATCH LR LIMIT [EVAL]: train one model into $W/CONTROL (log: $OUT/CONTROL.log); prints the model,
-# the final one or the last checkpoint of a run the limit stopped.
+# fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/CONTROL (log: $OUT/CONTROL.log), for
+# BUDGET_S seconds if given (--train.time_budget_s: its steps fit the time, whatever the GPU's pace); prints the
+# model, the final one or the last checkpoint of a run the limit stopped.
 fit() {
   local control=$1 steps=$2 bs=$3 lr=$4 limit=$5 eval=${6:-500} run=$W/$1 started=$(date +%s) extra=()
   rm -rf $run
   [ "$control" = action ] && extra=("${action[@]}" --train.eval_freq=$eval) || extra=(--wm.control=text)
+  [ -n "${7:-}" ] && extra+=(--train.time_budget_s=$7)
   timeout $limit $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${extra[@]}" --train.steps=$steps \
     --train.batch_size=$bs --train.lr=$lr --train.save_freq=$eval --output_dir=$run 2>&1 | keep > $OUT/$control.log
   echo "$control rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - started ))" | tee -a $OUT/$control.log >&2
@@ -226,23 +230,24 @@ PY
     tar czf $OUT/${CONTROL}_run.tgz -C $W/pack . && rm -rf $W/pack
     ls -la $OUT ;;
   claim)
-    A_STEPS=$1; A_LIMIT=$2; T_STEPS=$3; T_LIMIT=$4; PPO_S=$5; BS=${6:-64}; LR=${7:-1e-3}
+    A_S=$1; T_S=$2; PPO_S=$3; BS=${4:-64}; LR=${5:-1e-3}
     C=$G/claim
     [ -f $C/plan.json ] || { echo "no $C/plan.json: pack with CLAIM=<roboscape-experiment's --world_model_runs>/pack" >&2; exit 2; }
     start=$(date +%s)
-    action_model=$(fit action $A_STEPS $BS $LR $A_LIMIT 500) || exit 1
-    text_model=$(fit text $T_STEPS $BS $LR $T_LIMIT) || exit 1
+    action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 )) 500 $A_S) || exit 1
+    text_model=$(fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S) || exit 1
     # The ensemble's members: the action model with its top redrawn, trained alone, side by side.
     read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
 print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
     members=()
     if [ "$N" -gt 0 ]; then
-      steps=$($PY -c "print(max(round($A_STEPS * $SHARE), 1))")
+      budget=$($PY -c "print(max(round($A_S * $SHARE), 1))")
       top=(); [ "$R" != None ] && top=(--init_from=$action_model --retrain_blocks=$R)
       for seed in $(seq 1 $N); do
-        $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" --train.seed=$seed \
-          --train.steps=$steps --train.batch_size=$BS --train.lr=$LR --train.save_freq=$steps --done_tuning_steps=0 \
-          --output_dir=$W/member$seed 2>&1 | keep > $W/member$seed.log &
+        timeout $(( budget + 120 )) $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" \
+          --train.seed=$seed --train.steps=1000000 --train.time_budget_s=$budget --train.batch_size=$BS \
+          --train.lr=$LR --train.save_freq=1000000 --done_tuning_steps=0 --output_dir=$W/member$seed 2>&1 \
+          | keep > $W/member$seed.log &
       done
       wait
       for seed in $(seq 1 $N); do members+=("$W/member$seed/pretrained_model"); done

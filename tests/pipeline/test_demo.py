@@ -172,3 +172,38 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
     assert report.read_text().splitlines()[2] == "**Does RL in the world model make the policy better out of domain?**"
     text = readme.read_text()
     assert "old" not in text and "PPO in WM minus SFT" in text and text.endswith(f"{README_END}\nrest\n")
+
+
+def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo, experiment, tmp_path):
+    """--world_model_runs: the first run packs the runs in the world model and does the simulator's part; the runs,
+    made elsewhere (here on the CPU, with the demo's models), are taken back by the same command, which goes on."""
+    from lerobot_roboscape.pipeline.layout import rl_dir
+    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, RL_WORLD_MODEL_KL
+    from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
+
+    run = demo[0] / "demo"
+    args = [
+        "--protocol=paper",
+        "--pipeline.scale=smoke",
+        f"--pipeline.output_dir={run}",
+        "--levers=[kl]",
+        "--curve_episodes=1",
+        "--replay_episodes=1",
+        f"--world_model_runs={tmp_path}",
+        f"--report_dir={tmp_path / 'claim'}",
+        "--readme=null",
+    ]
+    cfg = parse_config(ExperimentConfig, args, "pipeline.")
+    pack = run_experiment(cfg)
+    assert pack == tmp_path / "pack" and not (tmp_path / "claim").exists()
+    protocol = run / "protocol_paper"
+    assert (protocol / rl_dir("roboscape_mlp", RL_MANISKILL) / STAGE_FILE).is_file()  # done here meanwhile
+    assert not (protocol / rl_dir("roboscape_mlp", RL_WORLD_MODEL)).exists()
+
+    models = {c: str(run / f"world_model_{c}" / "pretrained_model") for c in ("action", "text")}
+    run_pack(RunPackConfig(pack=str(pack), **models, output_dir=str(tmp_path / "runs"), device="cpu"))
+    report = run_experiment(cfg)
+    claim = json.loads((tmp_path / "claim" / "results.json").read_text())
+    assert claim["world_model_runs"]["folder"] == str(tmp_path / "runs") and "--world_model_runs" in report.read_text()
+    assert {RL_WORLD_MODEL, RL_WORLD_MODEL_KL, RL_MANISKILL} <= {r["method"] for r in claim["ppo_runs"]}
+    assert claim["replays"] and claim["lever_curves"][RL_WORLD_MODEL_KL]

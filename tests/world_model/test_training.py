@@ -1,5 +1,6 @@
 import dataclasses
 import json
+from pathlib import Path
 
 import draccus
 import numpy as np
@@ -334,3 +335,35 @@ def test_a_member_started_from_a_model_retrains_its_top_alone(
         train_world_model(draccus.parse(TrainWorldModelConfig, args=again))
     with pytest.raises(InvalidInputError, match="give init_from"):
         TrainWorldModelConfig(retrain_blocks=1)
+
+
+def test_a_time_budget_ends_the_run_on_time_with_its_cosine_decayed(tmp_path):
+    """With --train.time_budget_s the run plans its last step from its pace and ends there as a run of that many
+    steps does: its learning rate decayed to the floor, its checkpoint and model saved, its seconds recorded."""
+    import time
+
+    from lerobot_roboscape.training.loop import TrainingConfig, fit
+
+    class Tiny(torch.nn.Linear):
+        def save_pretrained(self, path):
+            Path(path).mkdir(parents=True, exist_ok=True)
+            torch.save(self.state_dict(), Path(path) / "weights.pt")
+
+    def loss_fn(model, batch):
+        time.sleep(0.02)  # a step's pace
+        loss = model(batch["x"]).pow(2).mean()
+        return loss, {"loss": loss.detach()}
+
+    batches = lambda step, process: {"x": torch.ones(2, 3)}  # noqa: E731
+    config = TrainingConfig(
+        steps=100_000, batch_size=2, lr=1e-2, log_freq=2, warmup_steps=2, save_freq=100_000, time_budget_s=2.0
+    )
+    began = time.time()
+    fit(Tiny(3, 1), loss_fn, batches, dataclasses.replace(config, mixed_precision="no"), tmp_path, {})
+    seconds = time.time() - began
+    log = [json.loads(line) for line in (tmp_path / TRAIN_LOG).read_text().splitlines()]
+    record = json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())
+    assert 20 < record["step"] < 1000 and record["step"] >= log[-1]["step"]
+    assert 1.5 < record["seconds"] < seconds + 0.5 and seconds < 6.0
+    assert log[-1]["lr"] < 0.2 * config.lr  # the cosine spanned the steps the run took
+    assert (tmp_path / FINAL / "weights.pt").is_file()
