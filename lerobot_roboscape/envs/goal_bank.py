@@ -6,7 +6,6 @@ the settings they were made with), so PPO's runs share one generation made befor
 
 import json
 import logging
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -14,9 +13,8 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
 
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
@@ -32,8 +30,7 @@ def goal_generation_seconds(path: Path) -> float | None:
     """Seconds the text model spent generating the goals of a goal file (`goal_file`), when it recorded them."""
     if not Path(path).is_file():
         return None
-    with safe_open(str(path), "pt") as f:
-        seconds = f.metadata().get("seconds")
+    seconds = load_tensors(path, "the goal bank (--env.goal_file)")[0].get("seconds")
     return None if seconds is None else float(seconds)
 
 
@@ -102,16 +99,16 @@ class GoalBank:
         """Read the goals of `path`, generate every start's missing one and write them all back (atomically)."""
         settings = self.settings
         if path.is_file():
-            with safe_open(str(path), "pt", device=str(self.device)) as f:
-                made_with = json.loads(f.metadata()["settings"])
-                if made_with != settings:
-                    differ = {k: made_with.get(k) for k in settings if made_with.get(k) != settings[k]}
-                    raise InvalidInputError(
-                        f"goal file {path} was made with other settings {differ}; delete it or choose another "
-                        "--env.goal_file"
-                    )
-                indices, tokens = f.get_tensor("episode_index").tolist(), f.get_tensor("tokens")
-                reached, steps = f.get_tensor("reached").tolist(), f.get_tensor("steps").tolist()
+            metadata, tensors = load_tensors(path, "the goal bank (--env.goal_file)", ("settings",), self.device)
+            made_with = json.loads(metadata["settings"])
+            if made_with != settings:
+                differ = {k: made_with.get(k) for k in settings if made_with.get(k) != settings[k]}
+                raise InvalidInputError(
+                    f"goal file {path} was made with other settings {differ}; delete it or choose another "
+                    "--env.goal_file"
+                )
+            indices, tokens = tensors["episode_index"].tolist(), tensors["tokens"]
+            reached, steps = tensors["reached"].tolist(), tensors["steps"].tolist()
             for i, index in enumerate(indices):
                 self.cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
         missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self.cache]
@@ -129,10 +126,7 @@ class GoalBank:
             "reached": torch.tensor([g.reached for _, g in goals]),
             "steps": torch.tensor([g.steps for _, g in goals]),
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        save_file(tensors, str(tmp), metadata={"settings": json.dumps(settings), "seconds": str(seconds)})
-        os.replace(tmp, path)
+        save_tensors(path, tensors, {"settings": json.dumps(settings), "seconds": str(seconds)})
 
     def _fill(self, starts: list[EpisodeStart]) -> None:
         for s, goal in zip(starts, self.generate(starts), strict=True):

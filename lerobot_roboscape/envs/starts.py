@@ -9,8 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
 
 from lerobot_roboscape.dataset.reader import (
     action_range,
@@ -22,6 +20,7 @@ from lerobot_roboscape.dataset.reader import (
     read_frames,
 )
 from lerobot_roboscape.envs.goal_bank import EpisodeStart
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from roboscape_core.errors import InvalidInputError
 
 # The episode index of a start made from given frames (`reset(options={"frames": ...})`), not from the dataset.
@@ -110,26 +109,15 @@ def export_starts(cfg, path: str | Path, device: str = "cpu") -> Path:
         "selection": {name: getattr(cfg, name) for name in SELECTION},
         "starts": rows,
     }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    save_file({k: v.contiguous() for k, v in tensors.items()}, partial, metadata={"starts": json.dumps(metadata)})
-    partial.replace(path)
-    return path
+    return save_tensors(path, tensors, {"starts": json.dumps(metadata)})
 
 
 def file_starts(cfg, n_cameras: int) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray], str]:
     """The starts saved by `export_starts` in cfg.starts_file, as `dataset_starts` returns them, and the dataset
     they were read from. The file must have been made with the config's selection of starts."""
     path = Path(cfg.starts_file)
-    try:
-        with safe_open(path, "pt") as f:
-            metadata = json.loads(f.metadata()["starts"])
-            tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
-    except (OSError, KeyError, ValueError, SafetensorError) as error:
-        raise InvalidInputError(
-            f"starts_file {path} is not a starts file (export_starts writes one): {error}"
-        ) from error
+    records, tensors = load_tensors(path, "export_starts", ("starts",))
+    metadata = json.loads(records["starts"])
     if metadata.get("format") != STARTS_FORMAT:
         raise InvalidInputError(
             f"starts_file {path} has format {metadata.get('format')}, this version reads {STARTS_FORMAT}"

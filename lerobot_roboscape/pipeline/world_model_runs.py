@@ -24,13 +24,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import safe_open
-from safetensors.torch import load_file, save_file
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.starts import SELECTION, export_starts
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.reward.done_report import (
@@ -251,12 +250,8 @@ def copy_run(source: Path, dest: Path) -> None:
 
 
 def _cast(path: Path, dtype: torch.dtype) -> None:
-    tensors = {k: v.to(dtype) if v.is_floating_point() else v for k, v in load_file(path).items()}
-    with safe_open(str(path), "pt") as f:
-        metadata = f.metadata()
-    partial = path.with_name(path.name + ".partial")
-    save_file(tensors, partial, metadata=metadata)
-    partial.replace(path)
+    metadata, tensors = load_tensors(path, "save_pretrained")
+    save_tensors(path, {k: v.to(dtype) if v.is_floating_point() else v for k, v in tensors.items()}, metadata)
 
 
 def read_results(folder: Path) -> dict:
@@ -326,16 +321,13 @@ def save_rollouts(rollouts: Rollouts, path: Path) -> Path:
         "returns": torch.from_numpy(rollouts.returns.astype(np.float32)),
         "success": torch.from_numpy(rollouts.success.astype(np.uint8)),
     }
-    partial = Path(path).with_name(Path(path).name + ".partial")
-    metadata = {"starts": json.dumps(rollouts.starts), "cameras": json.dumps(rollouts.cameras)}
-    save_file(tensors, partial, metadata=metadata)
-    partial.replace(path)
-    return Path(path)
+    return save_tensors(path, tensors, {"starts": json.dumps(rollouts.starts), "cameras": json.dumps(rollouts.cameras)})
 
 
 def load_rollouts(path: Path) -> Rollouts:
-    with safe_open(str(path), "np") as f:
-        metadata = {k: json.loads(v) for k, v in f.metadata().items()}
-        t = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
+    records, tensors = load_tensors(path, "save_rollouts", ("starts", "cameras"))
+    t = {name: tensor.numpy() for name, tensor in tensors.items()}
     returns, success = t["returns"].astype(np.float64), t["success"].astype(bool)
-    return Rollouts(t["frames"], t["actions"], returns, success, metadata["starts"], metadata["cameras"])
+    return Rollouts(
+        t["frames"], t["actions"], returns, success, *(json.loads(records[k]) for k in ("starts", "cameras"))
+    )

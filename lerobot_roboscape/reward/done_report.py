@@ -24,12 +24,11 @@ import matplotlib
 import numpy as np
 import torch
 from lerobot.configs.default import DatasetConfig
-from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
 from torchmetrics.functional.classification import binary_auroc
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.io.templates import render_report
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.reward.baselines import RewardModel
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
@@ -170,24 +169,13 @@ def save_token_episodes(episodes: list[TokenEpisode], frame_skip: int, path: Pat
         tensors[f"{i}.labels"] = torch.from_numpy(np.ascontiguousarray(e.labels))
         rows.append({"index": e.index, "task": e.task, "success": e.success})
     metadata = {"format": TOKEN_EPISODES_FORMAT, "frame_skip": frame_skip, "source": source, "episodes": rows}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    save_file(tensors, partial, metadata={"episodes": json.dumps(metadata)})
-    partial.replace(path)
-    return path
+    return save_tensors(path, tensors, {"episodes": json.dumps(metadata)})
 
 
 def load_token_episodes(path: Path, frame_skip: int, device) -> list[TokenEpisode]:
     """The episodes `save_token_episodes` wrote, for a world model with this frame skip."""
-    try:
-        with safe_open(str(path), "pt") as f:
-            metadata = json.loads(f.metadata()["episodes"])
-            tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
-    except (OSError, KeyError, ValueError, SafetensorError) as error:
-        raise InvalidInputError(
-            f"{path} is not a token episodes file (save_token_episodes writes one): {error}"
-        ) from error
+    records, tensors = load_tensors(path, "save_token_episodes", ("episodes",))
+    metadata = json.loads(records["episodes"])
     if metadata.get("format") != TOKEN_EPISODES_FORMAT or metadata["frame_skip"] != frame_skip:
         raise InvalidInputError(
             f"{path} holds episodes of format {metadata.get('format')} at frame skip {metadata.get('frame_skip')}; "

@@ -29,11 +29,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from lerobot.configs.default import DatasetConfig
-from safetensors import safe_open
-from safetensors.torch import load_file, save_file
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
 from lerobot_roboscape.dataset.segmentation import read_masks
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.metrics.image_fidelity import OBJECT, OBJECT_DILATION, dilate, psnr
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
@@ -152,23 +151,16 @@ def save_control_starts(starts: list[ControlStart], path: str | Path, frame_skip
         for name in CONTROL_STARTS_FIELDS
     }
     facts = [{"start": s.start, "episodes": s.episodes, "task": s.task} for s in starts]
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    save_file(tensors, tmp, metadata={"starts": json.dumps(facts), "frame_skip": str(frame_skip)})
-    tmp.replace(path)
+    save_tensors(path, tensors, {"starts": json.dumps(facts), "frame_skip": str(frame_skip)})
 
 
 def load_control_starts(path: str | Path, frame_skip: int, device="cpu") -> list[ControlStart]:
     """The starts `save_control_starts` wrote; refuses a file read for another frame skip."""
-    with safe_open(str(path), "pt") as f:
-        metadata = f.metadata() or {}
-    if "starts" not in metadata:
-        raise InvalidInputError(f"{path}: not a controllability set saved by save_control_starts")
+    metadata, tensors = load_tensors(path, "save_control_starts", ("starts", "frame_skip"), device)
     if int(metadata["frame_skip"]) != frame_skip:
         raise InvalidInputError(
             f"{path} was read for frame_skip={metadata['frame_skip']}, the model steps every {frame_skip} control steps"
         )
-    tensors = load_file(str(path), device=str(device))
     return [
         ControlStart(
             facts["start"], facts["episodes"], facts["task"], *(tensors[f"{i}.{n}"] for n in CONTROL_STARTS_FIELDS)

@@ -194,7 +194,7 @@ def test_starts_saved_to_a_file_run_the_env_without_its_dataset(env_config, tmp_
     with pytest.raises(InvalidInputError, match="made with other starts .*'branches_per_episode': \\(2, 1\\)"):
         RoboscapeWorldModelEnv(env_config(starts_per_scene=1, starts_file=str(path)), num_envs=1)
     (tmp_path / "not_starts.safetensors").write_bytes(b"nonsense")
-    with pytest.raises(InvalidInputError, match="not_starts.safetensors is not a starts file"):
+    with pytest.raises(InvalidInputError, match="not_starts.safetensors is not a file that export_starts writes"):
         RoboscapeWorldModelEnv(env_config(starts_file=str(tmp_path / "not_starts.safetensors")), num_envs=1)
 
 
