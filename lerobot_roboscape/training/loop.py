@@ -65,8 +65,9 @@ class TrainingConfig:
         (PEAK_BF16_TFLOPS), none on a CPU (then only TFLOP/s are reported).
     time_budget_s: end the run after about this many seconds (evaluations and resumes included) instead of after
         `steps` (then its upper bound): at every logging step the run's last step is set from the pace so far, and
-        the cosine decays over the steps it will take; it ends as a run of that many steps does (final evaluation,
-        checkpoint and model). For a lease of fixed length, whatever the device's speed. Null: `steps`.
+        the cosine decays over the steps it will take; at the deadline it ends, whatever the plan, as a run of that
+        many steps does (final evaluation, checkpoint and model). For a lease of fixed length, whatever the
+        device's speed. Null: `steps`.
     resume: continue from the last checkpoint in output_dir.
     """
 
@@ -319,6 +320,10 @@ def fit(
             accelerator.log(logs, step=step + 1)
             _log_line(output_dir, accelerator, step + 1, logs)
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in PROGRESS_KEYS})
+        # The deadline, between logging steps too (the main process's clock decides for all).
+        overdue = config.time_budget_s is not None and before + time.time() - began >= config.time_budget_s
+        if config.time_budget_s is not None and step + 1 < schedule.steps and from_main_process(accelerator, overdue):
+            schedule.steps = progress.total = step + 1
         last = step + 1 == schedule.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
             tic = time.time()

@@ -17,10 +17,11 @@
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
 #   bash scripts/experiments/device_world_models.sh claim A_S T_S PPO_S [BATCH] [LR]
-#        # issue 49 in one call: the action model for A_S seconds of training (then its done tuning), the text model
-#        # for T_S, the ensemble's members (their share of A_S, side by side), then the packed runs in them (each
-#        # PPO_S s of PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models'
-#        # curves), logs. Plan about A_S + T_S + PPO_S + 200 s for the call (start-up, done tuning, goals, saves).
+#        # issue 49 in one call: the action model for A_S seconds of training (then its done tuning), then the text
+#        # model for T_S beside the ensemble's members (their share of A_S), then the packed runs in them (each PPO_S
+#        # s of PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models' curves),
+#        # logs. The call lasts about A_S + max(T_S, members) + PPO_S + 250 s (start-up, compilation, done tuning,
+#        # goals, saves): `claim 180 90 90` fits a 600 s call, unmeasured until a lease runs it.
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
@@ -235,8 +236,9 @@ PY
     [ -f $C/plan.json ] || { echo "no $C/plan.json: pack with CLAIM=<roboscape-experiment's --world_model_runs>/pack" >&2; exit 2; }
     start=$(date +%s)
     action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 )) 500 $A_S) || exit 1
-    text_model=$(fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S) || exit 1
-    # The ensemble's members: the action model with its top redrawn, trained alone, side by side.
+    # Then the text model and the ensemble's members (the action model with its top redrawn, trained alone) side by
+    # side: their budgets are wall-clock, and one 30M model leaves the GPU room.
+    fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S > $W/text.path &
     read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
 print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
     members=()
@@ -248,11 +250,12 @@ print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else
           --train.seed=$seed --train.steps=1000000 --train.time_budget_s=$budget --train.batch_size=$BS \
           --train.lr=$LR --train.save_freq=1000000 --done_tuning_steps=0 --output_dir=$W/member$seed 2>&1 \
           | keep > $W/member$seed.log &
+        members+=("$W/member$seed/pretrained_model")
       done
-      wait
-      for seed in $(seq 1 $N); do members+=("$W/member$seed/pretrained_model"); done
-      for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee $OUT/members.log
     fi
+    wait
+    text_model=$(cat $W/text.path); [ -n "$text_model" ] || exit 1
+    for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee $OUT/members.log
     echo "models and members in $(( $(date +%s) - start )) s" | tee $OUT/claim.log
     rm -rf $W/runs
     list=$(IFS=,; echo "${members[*]}")

@@ -367,3 +367,28 @@ def test_a_time_budget_ends_the_run_on_time_with_its_cosine_decayed(tmp_path):
     assert 1.5 < record["seconds"] < seconds + 0.5 and seconds < 6.0
     assert log[-1]["lr"] < 0.2 * config.lr  # the cosine spanned the steps the run took
     assert (tmp_path / FINAL / "weights.pt").is_file()
+
+
+def test_a_time_budget_ends_the_run_at_its_deadline_even_between_logging_steps(tmp_path):
+    """Steps slower than the budget's first plan: the run still ends at its deadline, with its model saved."""
+    import time
+
+    from lerobot_roboscape.training.loop import TrainingConfig, fit
+
+    class Tiny(torch.nn.Linear):
+        def save_pretrained(self, path):
+            Path(path).mkdir(parents=True, exist_ok=True)
+            torch.save(self.state_dict(), Path(path) / "weights.pt")
+
+    def loss_fn(model, batch):
+        time.sleep(0.1)
+        loss = model(batch["x"]).pow(2).mean()
+        return loss, {"loss": loss.detach()}
+
+    config = TrainingConfig(
+        steps=1000, batch_size=2, log_freq=500, save_freq=1000, time_budget_s=1.0, mixed_precision="no"
+    )
+    began = time.time()
+    fit(Tiny(3, 1), loss_fn, lambda step, process: {"x": torch.ones(2, 3)}, config, tmp_path, {})
+    assert time.time() - began < 4.0 and (tmp_path / FINAL / "weights.pt").is_file()
+    assert 5 <= json.loads((last_checkpoint(tmp_path) / "training_step.json").read_text())["step"] <= 20
