@@ -198,37 +198,40 @@ def run_pack(cfg: RunPackConfig) -> dict:
         jobs[tag] = PPOConfig(policy_path=str(pack_dir / "sft"), env=env, output_dir=out / "rl" / tag, **settings)
     for config in {c.env.starts_file: c.env for c in jobs.values()}.values():  # every goal, once, before the clocks
         RoboscapeWorldModelEnv(config, num_envs=1).close()
+    # A run that fails is recorded as failed; the others still come back.
+    runs, finals = {}, {}
     with ProcessPoolExecutor(max_workers=max(len(jobs), 1), mp_context=get_context("spawn")) as pool:
-        finals = dict(zip(jobs, pool.map(ppo, jobs.values()), strict=True))
+        futures = {tag: pool.submit(ppo, config) for tag, config in jobs.items()}
+        for tag, future in futures.items():
+            runs[tag] = {"method": plan["runs"][tag]["method"], "folder": f"rl/{tag}"}
+            try:
+                finals[tag] = future.result()
+            except Exception as error:  # noqa: BLE001 (any failure of one run: recorded, the others kept)
+                logger.exception("PPO run %s failed", tag)
+                runs[tag]["error"] = f"{type(error).__name__}: {error}"
+                continue
+            runs[tag] |= {"seconds": stage_seconds(out / "rl" / tag), "final": str(finals[tag].relative_to(out))}
     results = {
         "done": chosen,
         "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
         "time_budget_s": next(iter(jobs.values())).time_budget_s if jobs else None,
-        "runs": {
-            tag: {
-                "method": plan["runs"][tag]["method"],
-                "folder": f"rl/{tag}",
-                "seconds": stage_seconds(out / "rl" / tag),
-                "final": str(finals[tag].relative_to(out)),
-            }
-            for tag in jobs
-        },
+        "runs": runs,
     }
     replay = plan.get("replay")
-    if replay and replay["tag"] in jobs:
+    if replay and replay["tag"] in finals:
         rollouts = roll_out(jobs[replay["tag"]].env, finals[replay["tag"]], replay["episodes"], device)
         save_rollouts(rollouts, out / ROLLOUTS)
         results["replay"] = {"tag": replay["tag"], "file": ROLLOUTS}
-    slim(out / "rl", plan["curve_checkpoints"])
+    slim([out / "rl" / tag for tag in finals], plan["curve_checkpoints"])
     write_text_atomically(out / RESULTS, json.dumps(results, indent=2))
     return results
 
 
-def slim(runs: Path, checkpoints: int) -> None:
-    """Keep what the experiment reads of each run in `runs`, in half the bytes: `checkpoints` of its checkpoints
-    spread over the run (those the checkpoint curve evaluates, its last among them), their policy weights in bf16
+def slim(runs: list[Path], checkpoints: int) -> None:
+    """Keep what the experiment reads of each of `runs`, in half the bytes: `checkpoints` of its checkpoints spread
+    over the run (those the checkpoint curve evaluates, its last among them), their policy weights in bf16
     (`copy_run` casts them back) and without the optimiser's state."""
-    for run in Path(runs).iterdir():
+    for run in runs:
         kept = set(spread_checkpoints(run, checkpoints))
         for folder in (run / CHECKPOINTS).iterdir():
             if folder.is_dir() and folder not in kept:
@@ -255,17 +258,26 @@ def _cast(path: Path, dtype: torch.dtype) -> None:
 
 
 def read_results(folder: Path) -> dict:
-    """What `run_pack` wrote into `folder` (brought back here), its runs' folders made absolute."""
+    """What `run_pack` wrote into `folder` (brought back here): the runs that completed, their folders made
+    absolute (a failed one is left out, with a warning naming its error); the plain run and its rollouts must be
+    there."""
     path = Path(folder) / RESULTS
     if not path.is_file():
         raise MissingInputError(f"{path} is missing: the world-model runs have not been brought back into {folder}")
     results = json.loads(path.read_text())
-    for run in results["runs"].values():
+    for tag, run in list(results["runs"].items()):
+        if "error" in run:
+            logger.warning("%s: the run %r failed where it ran (%s); it is left out", path, run["method"], run["error"])
+            del results["runs"][tag]
+            continue
         run["folder"], run["final"] = Path(folder) / run["folder"], Path(folder) / run["final"]
         if not run["final"].is_dir():
             raise MissingInputError(f"{path}: the final checkpoint {run['final']} of {run['method']!r} is missing")
-    if not (Path(folder) / results.get("replay", {}).get("file", ROLLOUTS)).is_file():
-        raise MissingInputError(f"{path}: the rollouts of the replay ({ROLLOUTS}) are missing from {folder}")
+    if "replay" not in results or not (Path(folder) / results["replay"]["file"]).is_file():
+        raise MissingInputError(
+            f"{path}: the plain run in the world model or the rollouts of its replay ({ROLLOUTS}) did not come back "
+            f"into {folder}"
+        )
     return results
 
 

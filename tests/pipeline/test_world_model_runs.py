@@ -143,9 +143,15 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
     written = (final.parents[2] / STAGE_FILE).stat().st_mtime_ns
     take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
     assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns == written
-    (out / world_model_runs.RESULTS).write_text(json.dumps(results | {"gpu": "another"}))
-    take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
-    assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns != written
+    # A run that failed there is left out, the others taken; without the plain run's rollouts, nothing is.
+    failed = {"method": "RL w. World Model, KL to SFT", "folder": "rl/kl", "error": "RuntimeError: out of memory"}
+    (out / world_model_runs.RESULTS).write_text(json.dumps(results | {"runs": results["runs"] | {"kl": failed}}))
+    taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
+    assert "RL w. World Model, KL to SFT" not in taken["runs"] and len(taken["runs"]) == 3
+    assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns != written  # other results: taken again
+    (out / world_model_runs.RESULTS).write_text(json.dumps({k: v for k, v in results.items() if k != "replay"}))
+    with pytest.raises(FileNotFoundError, match="did not come back"):
+        take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
 
 
 def test_a_pack_or_results_of_another_kind_are_refused_by_name(tmp_path):
