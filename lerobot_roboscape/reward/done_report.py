@@ -165,7 +165,8 @@ def save_token_episodes(episodes: list[TokenEpisode], frame_skip: int, path: Pat
     """`episodes` in one safetensors file, so a machine without the dataset (or its videos) can report on them."""
     tensors, rows = {}, []
     for i, e in enumerate(episodes):
-        tensors |= {f"{i}.tokens": e.tokens.cpu(), f"{i}.actions": e.actions.cpu()}
+        # Codes below 2**15 (the token cache keeps them in 16 bits too): a quarter of int64's bytes to carry.
+        tensors |= {f"{i}.tokens": e.tokens.to(torch.int16), f"{i}.actions": e.actions}
         tensors[f"{i}.labels"] = torch.from_numpy(np.ascontiguousarray(e.labels))
         rows.append({"index": e.index, "task": e.task, "success": e.success})
     metadata = {"format": TOKEN_EPISODES_FORMAT, "frame_skip": frame_skip, "source": source, "episodes": rows}
@@ -185,7 +186,7 @@ def load_token_episodes(path: Path, frame_skip: int, device) -> list[TokenEpisod
         TokenEpisode(
             row["index"],
             row["task"],
-            tensors[f"{i}.tokens"].to(device),
+            tensors[f"{i}.tokens"].to(device, torch.long),
             tensors[f"{i}.actions"].to(device),
             tensors[f"{i}.labels"].numpy(),
             row["success"],
