@@ -110,13 +110,13 @@ def pack(
         if selection not in starts:
             starts[selection] = f"starts_{len(starts)}.safetensors"
             export_starts(env, partial / starts[selection])
-        ppo = {f.name: getattr(job.ppo, f.name) for f in fields(job.ppo) if f.name not in ("env", "policy_path")}
+        settings = {f.name: getattr(job.ppo, f.name) for f in fields(job.ppo) if f.name not in ("env", "policy_path")}
         runs[tag] = {
             "method": job.method,
             "ensemble": job.ensemble,
             "starts": starts[selection],
             "env": {k: v for k, v in asdict(env).items() if k not in _MACHINE_FIELDS},
-            "ppo": json.loads(json.dumps(ppo, default=str)),
+            "ppo": json.loads(json.dumps(settings, default=str)),
         }
     plan = {"format": PLAN_FORMAT, "runs": runs, **extra}
     write_text_atomically(partial / PLAN, json.dumps(plan, indent=2))
