@@ -21,7 +21,7 @@
 #        # model for T_S beside the ensemble's members (their share of A_S), then the packed runs in them (each PPO_S
 #        # s of PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models' curves),
 #        # logs. The call lasts about A_S + max(T_S, members) + PPO_S + 250 s (start-up, compilation, done tuning,
-#        # goals, saves): `claim 180 90 90` fits a 600 s call, unmeasured until a lease runs it.
+#        # goals, saves): `claim 150 75 75` should fit a 600 s call, unmeasured until a lease runs it.
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
