@@ -128,6 +128,7 @@ if [ "$mode" = unpack-runs ]; then  # here: claim's runs -> DIR/runs, where robo
 fi
 
 # ---- on the device machine ----------------------------------------------------------------------------------------
+T0=$(date +%s)  # the call's start: claim keeps its PPO inside DEADLINE seconds of it
 # The repository's packages as the .venv's editable installs name them (roboscape_core, the policy and env plugins).
 R=$(pwd)
 export PYTHONPATH=$G/stub:$W/site:$R:$R/packages/roboscape_core:$R/policies/lerobot_policy_roboscape_mlp:$R/plugins/lerobot_env_roboscape:$R/policies/lerobot_policy_openvla${PYTHONPATH:+:$PYTHONPATH}
@@ -255,8 +256,15 @@ print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else
     fi
     wait
     text_model=$(cat $W/text.path); [ -n "$text_model" ] || exit 1
-    for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee $OUT/members.log
-    echo "models and members in $(( $(date +%s) - start )) s" | tee $OUT/claim.log
+    for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee -a $OUT/claim.log
+    echo "models and members in $(( $(date +%s) - start )) s" | tee -a $OUT/claim.log
+    # The models' logs and curves, back even if PPO is cut (at most 8 files come back: 4 here, the runs in <= 4).
+    for control in action text; do records $control $W/early/$control; done; tar czf $OUT/world_models.tgz -C $W/early .
+    # PPO's clock fits what is left of the call (DEADLINE s, default 570 of a 600 s call), ~100 s kept for the done
+    # report, the goals, the processes' start, the replay's rollouts and the tarball.
+    left=$(( ${DEADLINE:-570} - ($(date +%s) - T0) - 100 ))
+    if [ $left -lt $PPO_S ]; then echo "PPO's clock cut from $PPO_S s to $left s to end inside the call" | tee -a $OUT/claim.log; PPO_S=$left; fi
+    [ $PPO_S -ge 10 ] || { echo "no time left for PPO" | tee -a $OUT/claim.log; exit 1; }
     rm -rf $W/runs
     list=$(IFS=,; echo "${members[*]}")
     $PY -m lerobot_roboscape.cli.run_world_model_pack --pack=$C --action=$action_model --text=$text_model \
