@@ -87,11 +87,9 @@ def export_starts(cfg, path: str | Path, device: str = "cpu") -> Path:
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_ref).to(device).eval()
     n_cameras = len(camera_names(open_dataset(repo_id, cfg.dataset_root)))
 
-    @torch.no_grad()
-    def encode(frames: dict[str, np.ndarray]) -> torch.Tensor:
-        return tokenizer.encode_views([torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in frames.values()])
-
-    starts, cameras, (low, high) = dataset_starts(cfg, repo_id, n_cameras, encode)
+    starts, cameras, (low, high) = dataset_starts(
+        cfg, repo_id, n_cameras, lambda frames: tokenizer.encode_frames(list(frames.values()))
+    )
     tensors = {
         "first_tokens": torch.stack([s.first_tokens for s in starts]).cpu(),
         "last_tokens": torch.stack([s.last_tokens for s in starts]).cpu(),

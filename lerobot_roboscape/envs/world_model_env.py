@@ -201,9 +201,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
     def encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
-        return self.tokenizer.encode_views(
-            [torch.from_numpy(f).permute(0, 3, 1, 2).to(self.device) for f in frames.values()]
-        )
+        return self.tokenizer.encode_frames(list(frames.values()))
 
     def decode(self, tokens_BS: torch.Tensor) -> torch.Tensor:
         """(B, S) tokens to (B, n_cameras, 3, H, W) images in [0, 1]."""

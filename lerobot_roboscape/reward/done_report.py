@@ -148,10 +148,7 @@ def token_episodes(dataset, tokenizer: VisualTokenizer, frame_skip: int, device)
     for index in episode_indices(dataset):
         episode = read_episode(dataset, index)
         frames = model_frames(len(episode.action), frame_skip)
-        with torch.no_grad():
-            tokens = tokenizer.encode_views(
-                [torch.from_numpy(episode.images[c][frames]).permute(0, 3, 1, 2).to(device) for c in cameras]
-            )
+        tokens = tokenizer.encode_frames([episode.images[c][frames] for c in cameras])
         actions = torch.from_numpy(episode.action[: (len(frames) - 1) * frame_skip]).to(device)
         success = bool(episode.done_label.max() > 0.5)
         episodes.append(TokenEpisode(index, episode.task, tokens, actions, episode.done_label[frames], success))

@@ -6,6 +6,7 @@ Images enter as float (B, 3, H, W) in [0, 1]; codes leave as integer grids (B, h
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from einops import rearrange
 from torch import nn
@@ -168,6 +169,13 @@ class VisualTokenizer(nn.Module, CheckedHubMixin, library_name="lerobot-roboscap
         """The camera views of the same T frames, each (T, 3, H, W), -> (T, S) tokens with the views' grids side
         by side (the world model's frame layout)."""
         return torch.stack([self.encode(v) for v in views], 1).flatten(1)
+
+    @torch.no_grad()
+    def encode_frames(self, views: list[np.ndarray]) -> torch.Tensor:
+        """The camera views of the same T frames as recorded, each (T, H, W, 3) uint8, -> (T, S) tokens on the
+        tokenizer's device (`encode_views`)."""
+        device = next(self.parameters()).device
+        return self.encode_views([torch.from_numpy(v).permute(0, 3, 1, 2).to(device) for v in views])
 
     @torch.no_grad()
     def decode_views(self, tokens_TS: torch.Tensor, n_cameras: int) -> torch.Tensor:

@@ -120,9 +120,7 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
             np.stack(list(read_masks(dataset.root, i, cameras, len(e.action)).values()), 1)
             for i, e in zip(indices, episodes, strict=True)
         ]
-        first = tokenizer.encode_views(
-            [torch.from_numpy(episodes[0].images[c][:1]).permute(0, 3, 1, 2).to(device) for c in cameras]
-        )
+        first = tokenizer.encode_frames([episodes[0].images[c][:1] for c in cameras])
         starts.append(
             ControlStart(
                 start,

@@ -151,9 +151,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         episode = read_episode(dataset, index)
         frames = model_frames(len(episode.action), k)
         images = {camera: f[frames] for camera, f in episode.images.items()}
-        tokens = tokenizer.encode_views(
-            [torch.from_numpy(f).permute(0, 3, 1, 2).to(device) for f in images.values()]
-        )  # (T, S), T model frames
+        tokens = tokenizer.encode_frames(list(images.values()))  # (T, S), T model frames
         actions = torch.from_numpy(episode.action).to(device)
         horizon = min(horizon_frames, len(tokens) - prompt)
         if horizon < 1:
