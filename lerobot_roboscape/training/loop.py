@@ -65,9 +65,9 @@ class TrainingConfig:
         (PEAK_BF16_TFLOPS), none on a CPU (then only TFLOP/s are reported).
     time_budget_s: end the run after about this many seconds (evaluations and resumes included) instead of after
         `steps` (then its upper bound): at every logging step the run's last step is set from the pace so far, and
-        the cosine decays over the steps it will take; at the deadline it ends, whatever the plan, as a run of that
-        many steps does (final evaluation, checkpoint and model). For a lease of fixed length, whatever the
-        device's speed. Null: `steps`.
+        the cosine decays over the steps it will take; at the deadline (with several processes, at the first logging
+        step past it) it ends, whatever the plan, as a run of that many steps does (final evaluation, checkpoint and
+        model). For a lease of fixed length, whatever the device's speed. Null: `steps`.
     resume: continue from the last checkpoint in output_dir.
     """
 
@@ -277,6 +277,7 @@ def fit(
         _truncate_curve(output_dir / HELDOUT_CURVE, start)
         _truncate_curve(output_dir / TRAIN_LOG, start)
     began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating
+    elapsed = lambda: before + time.time() - began  # noqa: E731 (the run's seconds, over resumes)
     paced = None  # (step, seconds) after the first step: the time budget's pace is read from there
     batch_size = config.batch_size * accelerator.num_processes
     throughput = Throughput(batch_size, flops_per_sample, peak_flops(config, accelerator.device), accelerator.device)
@@ -302,7 +303,8 @@ def fit(
         optimizer.step()
         scheduler.step()
         optimizer.zero_grad(set_to_none=True)
-        if (step + 1) % config.log_freq == 0 or step == start:
+        logging = (step + 1) % config.log_freq == 0 or step == start
+        if logging:
             logs = {name: float(value) for name, value in logs.items()}  # waits for the device
             if not math.isfinite(logs["loss"] if "loss" in logs else loss.item()):
                 raise FloatingPointError(
@@ -310,19 +312,24 @@ def fit(
                 )
             if step == start:
                 throughput.mark(step + 1)  # the first step (compilation, warm-up) is not throughput
-                paced = (step + 1, before + time.time() - began)
+                paced = (step + 1, elapsed())
             else:
                 logs |= throughput.read(step + 1)
             if config.time_budget_s is not None and step > start:
-                planned = planned_last_step(config, step + 1, before + time.time() - began, paced)
+                planned = planned_last_step(config, step + 1, elapsed(), paced)
                 schedule.steps = progress.total = from_main_process(accelerator, planned)
             logs["lr"] = scheduler.get_last_lr()[0]
             accelerator.log(logs, step=step + 1)
             _log_line(output_dir, accelerator, step + 1, logs)
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in PROGRESS_KEYS})
-        # The deadline, between logging steps too (the main process's clock decides for all).
-        overdue = config.time_budget_s is not None and before + time.time() - began >= config.time_budget_s
-        if config.time_budget_s is not None and step + 1 < schedule.steps and from_main_process(accelerator, overdue):
+        # The deadline: between logging steps too on one process (the host's clock, no wait on the device); with
+        # several, at logging steps only, where they wait anyway (agreeing on it every step would cost a collective).
+        if (
+            config.time_budget_s is not None
+            and step + 1 < schedule.steps
+            and (accelerator.num_processes == 1 or logging)
+            and from_main_process(accelerator, elapsed() >= config.time_budget_s)
+        ):
             schedule.steps = progress.total = step + 1
         last = step + 1 == schedule.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
@@ -331,9 +338,7 @@ def fit(
             _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, seconds)
             evaluating += time.time() - tic
         if (step + 1) % config.save_freq == 0 or last:
-            _save_checkpoint(
-                accelerator, model, step + 1, output_dir, config.keep_checkpoints, before + time.time() - began
-            )
+            _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints, elapsed())
         if last:
             break
     accelerator.end_training()
