@@ -256,7 +256,8 @@ def difference(d: dict) -> str:
 FILTERS = {"cell": cell, "difference": difference}  # beside the run report's
 
 
-def protocol(cfg) -> str:
+def protocol(cfg, elsewhere: dict | None = None) -> str:
+    """The protocol's paragraph; `elsewhere`: where the runs in the world model ran (world_model_runs_record)."""
     p = cfg.pipeline
     if cfg.sft_checkpoint:
         sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`"
@@ -270,7 +271,6 @@ def protocol(cfg) -> str:
         if cfg.protocol == PAPER_PROTOCOL
         else "The all-scene protocol (`--protocol=all_scenes`): the policy learned every training scene. "
     )
-    elsewhere = world_model_runs_record(cfg)
     budget = (
         f"{'' if elsewhere else 'the same '}{p.ppo.time_budget_s / 60:g} min of PPO's clock (rollouts and updates)"
         if p.ppo.time_budget_s
@@ -292,7 +292,7 @@ def protocol(cfg) -> str:
         f"{p.ppo.num_envs} parallel episodes of {steps} per iteration, for {budget}"
         + (
             f" on the same machine, one run at a time: {envs}."
-            if not cfg.world_model_runs
+            if not elsewhere
             else f": {envs}. The runs in `roboscape_wm` ran where its models were trained "
             f"({elsewhere['gpu'] or 'no GPU'}, `--world_model_runs`), side by side, one process each, for "
             + (
@@ -389,7 +389,7 @@ def markdown(cfg, summary: dict) -> str:
         targets=summary["targets"],
         command=command(cfg),
         upstream={name: _relative(path, cfg.report_dir) for name, path in UPSTREAM_REPORTS.items()},
-        protocol=protocol(cfg),
+        protocol=protocol(cfg, summary.get("world_model_runs")),
         answer=answer(summary),
         table=format_table(table, p.data.families, f"{p.scale} scale", with_paper=True),
         other=summary.get("other_protocol")
