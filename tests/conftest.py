@@ -1,9 +1,15 @@
+import os
+from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from filelock import FileLock
 
+from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.demos.collect import CollectConfig, collect
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 
@@ -12,9 +18,26 @@ IMAGE_SIZE = 32
 SLOW_FIXTURES = {"demo_dataset", "exploration_dataset", "recorded", "mlp_checkpoint", "act_checkpoint", "control_set"}
 
 
+# Modules whose module-scoped fixtures run for minutes (the demo killed at every boundary, the synthetic worlds
+# trained to solve them): under pytest-xdist they start first, on different workers, so both workers end together.
+LONGEST_MODULES = ("tests/pipeline/test_demo.py", "tests/world_model/test_synthetic.py")
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Two workers share the 2 cores: one thread each (and in the commands they start), not two competing for one.
+    import torch
+
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
+
+
 def pytest_collection_modifyitems(config, items):
     import torch
 
+    def rank(item):
+        path = item.nodeid.split("::")[0]
+        return LONGEST_MODULES.index(path) if path in LONGEST_MODULES else len(LONGEST_MODULES)
+
+    items.sort(key=rank)  # stable: every other module keeps its order
     for item in items:
         if SLOW_FIXTURES & set(item.fixturenames):
             item.add_marker(pytest.mark.slow)
@@ -22,15 +45,29 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.skip(reason="needs a CUDA GPU"))
 
 
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
+    """Folder `name`, filled by `build(folder)` once per test session: under pytest-xdist the first worker that asks
+    builds it and the others wait for it and read it, so no two workers pay for the same simulator run or training."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # shared by the workers of this session
+    folder, built = root / name, root / f"{name}.built"
+    with FileLock(root / f"{name}.lock"):
+        if not built.exists():
+            folder.mkdir(parents=True, exist_ok=True)
+            build(folder)
+            built.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def demo_dataset(tmp_path_factory):
     """A small real collection: two families on one scene, one optimal, one suboptimal and one deliberately failed
     episode each (episodes 0-2 pick and place, 3-5 push; the failed ones are 2 and 3), with the object's and the
     container's masks."""
-    root = tmp_path_factory.mktemp("collect") / "demos"
     cfg = CollectConfig(
         repo_id="test/demos",
-        root=str(root),
+        root="",
         families=["pick_place", "push"],
         max_scenes=1,
         episodes_per_scene=3,
@@ -41,17 +78,17 @@ def demo_dataset(tmp_path_factory):
         seed=3,
         segmentation=True,
     )
-    return collect(cfg), root
+    root = built_once(tmp_path_factory, "collect", lambda out: collect(replace(cfg, root=str(out / "demos")))) / "demos"
+    return open_dataset(cfg.repo_id, root), root
 
 
 @pytest.fixture(scope="session")
 def exploration_dataset(tmp_path_factory):
     """Exploratory episodes in a dataset of their own, in the scene of `demo_dataset`: each kind (noisy,
     excursion, random) once per family."""
-    root = tmp_path_factory.mktemp("explore") / "explore"
     cfg = CollectConfig(
         repo_id="test/explore",
-        root=str(root),
+        root="",
         families=["pick_place", "push"],
         max_scenes=1,
         episodes_per_scene=3,
@@ -60,7 +97,8 @@ def exploration_dataset(tmp_path_factory):
         workers=2,
         seed=11,
     )
-    return collect(cfg), root
+    root = built_once(tmp_path_factory, "explore", lambda out: collect(replace(cfg, root=str(out / "explore"))))
+    return open_dataset(cfg.repo_id, root / "explore"), root / "explore"
 
 
 def record_maniskill_file(out_dir, obs_mode="rgb", episodes=2, steps=6, env_id="PickCube-v1") -> Path:
@@ -110,18 +148,15 @@ def trained_tokenizer(demo_dataset, tmp_path_factory):
     from lerobot_roboscape.training.loop import TrainingConfig
 
     _, root = demo_dataset
-    out = tmp_path_factory.mktemp("tokenizer")
     cfg = TrainTokenizerConfig(
         dataset=DatasetConfig(repo_id="test/demos", root=str(root)),
         tokenizer=TinyTokenizerConfig(**TEST_TOKENIZER),
         train=TrainingConfig(steps=8, batch_size=8, save_freq=8, log_freq=4, eval_freq=4),
-        output_dir=out,
         heldout=DatasetConfig(repo_id="test/demos", root=str(root), episodes=[1, 3]),
         num_workers=0,
         allow_random_lpips=True,
     )
-    train_tokenizer(cfg)
-    return out / FINAL
+    return built_once(tmp_path_factory, "tokenizer", lambda out: train_tokenizer(replace(cfg, output_dir=out))) / FINAL
 
 
 @pytest.fixture(scope="session")
@@ -131,12 +166,9 @@ def token_cache(demo_dataset, trained_tokenizer, tmp_path_factory):
     from lerobot_roboscape.world_model.train import prepare_token_cache
 
     _, root = demo_dataset
-    cache, _ = prepare_token_cache(
-        DatasetConfig(repo_id="test/demos", root=str(root)),
-        str(trained_tokenizer),
-        tmp_path_factory.mktemp("token_cache"),
-    )
-    return cache
+    dataset = DatasetConfig(repo_id="test/demos", root=str(root))
+    folder = built_once(tmp_path_factory, "token_cache", partial(prepare_token_cache, dataset, str(trained_tokenizer)))
+    return prepare_token_cache(dataset, str(trained_tokenizer), folder)[0]  # built: read
 
 
 # A world model small enough to train in seconds on the tests' token cache.
@@ -164,20 +196,21 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     _, root = demo_dataset
     dirs = {}
     for control in ("action", "text"):
-        out = tmp_path_factory.mktemp(f"wm_{control}")
         args = [
             "--dataset.repo_id=test/demos",
             f"--dataset.root={root}",
             f"--tokenizer={trained_tokenizer}",
             f"--token_cache={token_cache.root}",
-            f"--output_dir={out}",
             f"--wm.control={control}",
             "--train.steps=20",
             "--train.save_freq=20",
             *TEST_WM_ARGS,
         ]
-        train_world_model(draccus.parse(TrainWorldModelConfig, args=args))
-        dirs[control] = out / FINAL
+
+        def train(out, args=args):
+            train_world_model(draccus.parse(TrainWorldModelConfig, args=[*args, f"--output_dir={out}"]))
+
+        dirs[control] = built_once(tmp_path_factory, f"wm_{control}", train) / FINAL
     return dirs
 
 
@@ -206,6 +239,12 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
     return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
 
 
+def run_once_per_session(tmp_path_factory, name: str, root, steps: int, *policy_args) -> Path:
+    """`lerobot_train` into folder `name`, once per test session (`built_once`)."""
+    folder = built_once(tmp_path_factory, name, lambda out: lerobot_train(root, out / "train", steps, *policy_args))
+    return folder / "train" / "checkpoints" / f"{steps:06d}" / "pretrained_model"
+
+
 def roboscape_wm_args(root, tokenizer, world_models) -> list[str]:
     """`--env.*` arguments of LeRobot's commands for `roboscape_wm` on the test models (k = 4) and data."""
     return [
@@ -226,9 +265,10 @@ def roboscape_wm_args(root, tokenizer, world_models) -> list[str]:
 def act_checkpoint(demo_dataset, tmp_path_factory):
     """LeRobot's ACT policy after two lerobot-train steps on `demo_dataset`."""
     _, root = demo_dataset
-    return lerobot_train(
+    return run_once_per_session(
+        tmp_path_factory,
+        "act",
         root,
-        tmp_path_factory.mktemp("act") / "train",
         2,
         "--policy.type=act",
         "--policy.pretrained_backbone_weights=null",
@@ -245,9 +285,10 @@ def mlp_checkpoint(demo_dataset, tmp_path_factory):
     """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`, evaluated in
     roboscape_maniskill at the end of training (lerobot-train's periodic evaluation)."""
     _, root = demo_dataset
-    return lerobot_train(
+    return run_once_per_session(
+        tmp_path_factory,
+        "mlp",
         root,
-        tmp_path_factory.mktemp("mlp") / "train",
         4,
         "--policy.type=roboscape_mlp",
         "--policy.hidden_dim=32",

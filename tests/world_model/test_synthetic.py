@@ -26,7 +26,6 @@ def tiny_model(world: SyntheticWorld, seed: int = 0) -> STWorldModel:
 def trained():
     """kind -> (world, model trained on it, the same model trained as long on controls unlinked from the frames:
     shuffled actions for motion, one instruction for both for text)."""
-    torch.set_num_threads(2)
     out = {}
     for kind, max_steps in MAX_STEPS.items():
         world = SyntheticWorld(kind, grid=GRID)
