@@ -1,4 +1,5 @@
 import os
+import shutil
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
@@ -54,7 +55,8 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> 
     folder, built = root / name, root / f"{name}.built"
     with FileLock(root / f"{name}.lock"):
         if not built.exists():
-            folder.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(folder, ignore_errors=True)  # what a worker's failed build left
+            folder.mkdir(parents=True)
             build(folder)
             built.touch()
     return folder
