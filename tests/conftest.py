@@ -20,11 +20,11 @@ SLOW_FIXTURES = {"demo_dataset", "exploration_dataset", "recorded", "mlp_checkpo
 
 
 # Modules whose module-scoped fixtures run for minutes (the demo killed at every boundary, the synthetic worlds
-# trained to solve them): under pytest-xdist they start first, on different workers, so both workers end together.
+# trained to solve them): under pytest-xdist they start first, on different workers, so the workers end together.
 LONGEST_MODULES = ("tests/pipeline/test_demo.py", "tests/world_model/test_synthetic.py")
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
-    # Two workers share the 2 cores: one thread each (and in the commands they start), not two competing for one.
+    # A worker per core: one thread each (and in the commands they start), so workers do not compete for cores.
     import torch
 
     os.environ["OMP_NUM_THREADS"] = "1"
@@ -238,13 +238,18 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
     ]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
+    return last_checkpoint(out, steps)
+
+
+def last_checkpoint(out: Path, steps: int) -> Path:
+    """The pretrained_model of a lerobot-train run into `out` that ended after `steps` steps."""
     return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
 
 
-def run_once_per_session(tmp_path_factory, name: str, root, steps: int, *policy_args) -> Path:
+def lerobot_train_once(tmp_path_factory, name: str, root, steps: int, *policy_args) -> Path:
     """`lerobot_train` into folder `name`, once per test session (`built_once`)."""
     folder = built_once(tmp_path_factory, name, lambda out: lerobot_train(root, out / "train", steps, *policy_args))
-    return folder / "train" / "checkpoints" / f"{steps:06d}" / "pretrained_model"
+    return last_checkpoint(folder / "train", steps)
 
 
 def roboscape_wm_args(root, tokenizer, world_models) -> list[str]:
@@ -267,7 +272,7 @@ def roboscape_wm_args(root, tokenizer, world_models) -> list[str]:
 def act_checkpoint(demo_dataset, tmp_path_factory):
     """LeRobot's ACT policy after two lerobot-train steps on `demo_dataset`."""
     _, root = demo_dataset
-    return run_once_per_session(
+    return lerobot_train_once(
         tmp_path_factory,
         "act",
         root,
@@ -287,7 +292,7 @@ def mlp_checkpoint(demo_dataset, tmp_path_factory):
     """The roboscape_mlp policy after a few lerobot-train steps on `demo_dataset`, evaluated in
     roboscape_maniskill at the end of training (lerobot-train's periodic evaluation)."""
     _, root = demo_dataset
-    return run_once_per_session(
+    return lerobot_train_once(
         tmp_path_factory,
         "mlp",
         root,
