@@ -122,6 +122,10 @@ def write_dataset(
                     use_videos=True,
                     features=features,
                     streaming_encoding=True,
+                    # LeRobot drops a frame when the encoder's queue stays full for 0.1 s (a live robot must not
+                    # wait); a recorded episode can, and a dropped frame shifts every later one in the video. An
+                    # unbounded queue holds one episode at most: finishing an episode waits for its encoder.
+                    encoder_queue_maxsize=0,
                 )
             check_features(episode, features, where)
             if segmented is None:
