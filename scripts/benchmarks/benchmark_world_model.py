@@ -32,6 +32,7 @@ import os
 import sys
 import time
 import types
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -202,12 +203,22 @@ def run(
         if batch > REFERENCE_MAX_BATCH:  # the references recompute the window: minutes a batch up there
             print(line, flush=True)
             continue
-        recompute = frames_per_second(model, batch, frames, False, device, dtype)
-        line += f" {recompute:>19.2f} {best / recompute:>8.1f}x"
+        line += reference_columns(partial(frames_per_second, model, batch, frames, False, device, dtype), best, 19)
         if paper:
-            reference = paper_frames_per_second(paper, cfg, batch, frames, device, dtype)
-            line += f" {reference:>20.2f} {best / reference:>8.1f}x"
+            paper_code = partial(paper_frames_per_second, paper, cfg, batch, frames, device, dtype)
+            line += reference_columns(paper_code, best, 20)
         print(line, flush=True)
+
+
+def reference_columns(measure, best: float, width: int) -> str:
+    """A reference's frames/s and our speed-up over it; "OOM" where the reference does not fit the GPU at this batch
+    (it recomputes the whole window: more memory than ours), so the rows after it are still measured."""
+    try:
+        reference = measure()
+    except torch.OutOfMemoryError:
+        torch.cuda.empty_cache()
+        return f" {'OOM':>{width}} {'':>9}"
+    return f" {reference:>{width}.2f} {best / reference:>8.1f}x"
 
 
 def main():

@@ -13,9 +13,11 @@
 #        same roboscape-experiment command again takes them and goes on here
 # There (each mode prepares the machine first, once; its files land in $OUT):
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
+#        (random token caches: `pack -` will do)
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
 #   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
+#        (PARTS="tests memory race views env" by default; RACE_BATCHES, VIEW_BATCHES, ENV_BATCHES)
 #   bash scripts/experiments/device_world_models.sh claim A_S T_S PPO_S [BATCH] [LR]
 #        # issue 49 in one call: the action model for A_S seconds of training (then its done tuning), then the text
 #        # model for T_S beside the ensemble's members (their share of A_S), then the packed runs in them (each PPO_S
@@ -36,7 +38,7 @@ set -uo pipefail
 mode=$1; shift
 G=$(pwd)/.gpu
 W=/tmp/wmgpu
-SITE=(lerobot datasets dill draccus einx farama_notifications frozendict gymnasium loguru mergedeep multiprocess
+SITE=(lerobot datasets dill draccus einx farama_notifications frozendict gymnasium loguru lpips mergedeep multiprocess
       _multiprocess torch_einops_utils vector_quantize_pytorch)
 
 if [ "$mode" = pack ]; then
@@ -140,25 +142,43 @@ if [ ! -f $W/unpacked ]; then
   if [ -f $G/1xgpt.tgz ]; then tar xzf $G/1xgpt.tgz -C $W/1xgpt && tar xzf $G/before.tgz -C $W/before || exit 3; fi
   touch $W/unpacked
 fi
-if [ "$mode" = generation ]; then
+keep() { tr '\r' '\n' | awk '!/it\/s|s\/it/ || /\| *[0-9]*00\//'; }  # the progress bar every 100 steps
+if [ "$mode" = bench ]; then  # random token caches: no run's data (pack -)
+  STEPS=$1; shift; mid=${@:$(( ($# + 1) / 2 )):1}  # the bench preset over the batches, the GPU preset at the middle one
+  $PY scripts/benchmarks/benchmark_wm_training.py --presets bench --batch-sizes "$@" --steps $STEPS \
+    --episodes 2560 --json $OUT/benchmark.json 2>&1 | keep | tee $OUT/benchmark.md
+  $PY scripts/benchmarks/benchmark_wm_training.py --presets gpu --batch-sizes $mid --steps $STEPS --episodes 2560 \
+    --json $OUT/benchmark_gpu.json 2>&1 | keep | tee -a $OUT/benchmark.md
+  exit 0
+fi
+if [ "$mode" = generation ]; then  # PARTS: a subset of "tests memory race views env", in that order (default all)
+  PARTS=" ${PARTS:-tests memory race views env} "
   [ -d $W/1xgpt/genie ] || { echo "packed without 1xgpt's code: fetch github:1x-technologies/1xgpt, pack again" >&2; exit 2; }
-  $PY -m pytest -p no:cacheprovider --noconftest -q -m gpu tests/world_model/test_world_model.py 2>&1 | tail -25 \
-    | tee $OUT/gpu_tests.txt
-  for code in $W/before ""; do  # what a generation holds after its prompt: before, then now
-    PYTHONPATH=$code${code:+:}$PYTHONPATH $PY scripts/benchmarks/benchmark_cache_memory.py --batch 64 2>&1 | tail -4
-  done | tee $OUT/cache_memory.txt
-  $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --paper-code $W/1xgpt --batch-sizes 1 16 64 max \
-    --memory-snapshot $W/snapshot.pickle 2>&1 | tee $OUT/race.txt
-  # The env's frame (two views): memory and frames/s of ours alone, batch 1 to the largest that fits.
-  $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --views 2 --batch-sizes 1 16 64 128 max 2>&1 \
-    | tee $OUT/two_views.txt
-  if [ -f $G/av.tgz ]; then  # roboscape_wm itself (generation, decoding, reward), on a 128 px dataset's starts
+  if [[ $PARTS == *" tests "* ]]; then
+    $PY -m pytest -p no:cacheprovider --noconftest -n 0 -q -m gpu tests/world_model/test_world_model.py 2>&1 \
+      | tail -25 | tee $OUT/gpu_tests.txt
+  fi
+  if [[ $PARTS == *" memory "* ]]; then
+    for code in $W/before ""; do  # what a generation holds after its prompt: before, then now
+      PYTHONPATH=$code${code:+:}$PYTHONPATH $PY scripts/benchmarks/benchmark_cache_memory.py --batch 64 2>&1 | tail -4
+    done | tee $OUT/cache_memory.txt
+  fi
+  if [[ $PARTS == *" race "* ]]; then
+    $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --paper-code $W/1xgpt --batch-sizes ${RACE_BATCHES:-1 16 64 max} \
+      --memory-snapshot $W/snapshot.pickle 2>&1 | tee $OUT/race.txt
+    gzip -c $W/snapshot.pickle > $OUT/snapshot.pickle.gz
+  fi
+  if [[ $PARTS == *" views "* ]]; then  # the env's frame (two views): ours alone, batch 1 to the largest that fits
+    $PY scripts/benchmarks/benchmark_world_model.py --gpu-only --views 2 --batch-sizes ${VIEW_BATCHES:-1 16 64 128 max} \
+      2>&1 | tee $OUT/two_views.txt
+  fi
+  if [[ $PARTS == *" env "* ]] && [ -f $G/av.tgz ]; then  # roboscape_wm (generation, decoding, reward), 128 px starts
     mkdir -p $W/av && tar xzf $G/av.tgz -C $W/av
     PYTHONPATH=$W/av:$PYTHONPATH $PY scripts/benchmarks/benchmark_envs.py --random-preset paper --no-simulator \
-      --demo-dir $G/envdemo --batch-sizes 1 16 64 128 256 512 --precisions bfloat16 --steps 40 2>&1 \
+      --demo-dir $G/envdemo --batch-sizes ${ENV_BATCHES:-1 16 64 128 256 512} --precisions bfloat16 --steps 40 2>&1 \
       | grep -v "^Loading weights" | tee $OUT/env.txt
   fi
-  gzip -c $W/snapshot.pickle > $OUT/snapshot.pickle.gz; ls -la $OUT; exit 0
+  ls -la $OUT; exit 0
 fi
 if [ ! -f $W/ready ]; then
   for s in ind ood; do xz -dc $G/data/$s.safetensors.xz > $W/sets/$s.safetensors; done
@@ -178,7 +198,6 @@ common=(--tokenizer=$D/tokenizer --wm.type=${WM:-gpu} --dataset.repo_id=local/ro
 action=(--wm.control=action --exploration.repo_id=local/roboscape_explore --exploration_share=0.25
         --exploration_token_cache=$(cat $W/caches/explore.path) --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors]
         --done_tuning_episodes=32)
-keep() { tr '\r' '\n' | awk '!/it\/s|s\/it/ || /\| *[0-9]*00\//'; }  # the progress bar every 100 steps
 # fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/CONTROL (log: $OUT/CONTROL.log), for
 # BUDGET_S seconds if given (--train.time_budget_s: its steps fit the time, whatever the GPU's pace); prints the
 # model, the final one or the last checkpoint of a run the limit stopped.
@@ -199,12 +218,6 @@ fit() {
 records() { mkdir -p $2; for f in train_log.jsonl heldout_curve.jsonl train_config.json done_tuning.json; do cp $W/$1/$f $2/ 2>/dev/null; done; true; }
 
 case $mode in
-  bench)  # the bench preset over the batches, the GPU preset at the middle one
-    STEPS=$1; shift; mid=${@:$(( ($# + 1) / 2 )):1}
-    $PY scripts/benchmarks/benchmark_wm_training.py --presets bench --batch-sizes "$@" --steps $STEPS \
-      --episodes 2560 --json $OUT/benchmark.json 2>&1 | keep | tee $OUT/benchmark.md
-    $PY scripts/benchmarks/benchmark_wm_training.py --presets gpu --batch-sizes $mid --steps $STEPS --episodes 2560 \
-      --json $OUT/benchmark_gpu.json 2>&1 | keep | tee -a $OUT/benchmark.md ;;
   sweep)
     STEPS=$1; BS=$2; shift 2
     for LR in "$@"; do
