@@ -8,6 +8,7 @@ import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+import av
 import datasets
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -144,6 +145,8 @@ def write_dataset(
         if dataset is None:
             raise InvalidInputError(f"No episode to write to {root} (none produced, or none kept)")
         dataset.finalize()
+        if missing := missing_video_frames(LeRobotDataset(repo_id, root=staging)):
+            raise InvalidInputError(f"writing {root}: videos short of their episodes' frames: {'; '.join(missing)}")
         with open(staging / EPISODES_SIDECAR, "w") as f:
             for record in records:
                 f.write(json.dumps(record) + "\n")
@@ -153,6 +156,25 @@ def write_dataset(
     finally:
         shutil.rmtree(staging_parent, ignore_errors=True)
     return LeRobotDataset(repo_id, root=root)
+
+
+def missing_video_frames(dataset: LeRobotDataset) -> list[str]:
+    """Each video file holding fewer frames than its episodes' lengths add up to ("FILE: N frames, M expected
+    (episodes A-B)"); empty when every frame is there. A frame missing from a file shifts every later episode in it."""
+    expected: dict[tuple[str, Path], list[int]] = {}  # (camera, file) -> [frames, first episode, last episode]
+    for index in range(dataset.meta.total_episodes):
+        length = dataset.meta.episodes[index]["length"]
+        for key in dataset.meta.video_keys:
+            entry = expected.setdefault((key, dataset.meta.get_video_file_path(index, key)), [0, index, index])
+            entry[0] += length
+            entry[2] = index
+    missing = []
+    for (_, path), (frames, first, last) in expected.items():
+        with av.open(str(dataset.root / path)) as container:
+            found = sum(1 for packet in container.demux(video=0) if packet.size)
+        if found != frames:
+            missing.append(f"{path}: {found} frames, {frames} expected (episodes {first}-{last})")
+    return missing
 
 
 def _add_episode(dataset: LeRobotDataset, episode: Episode) -> None:
