@@ -7,6 +7,7 @@ from lerobot_roboscape.dataset.reader import CameraFrames, FrameBank, read_episo
 from lerobot_roboscape.dataset.segmentation import CONTAINER, OBJECT, has_masks, mask_path, read_masks
 from lerobot_roboscape.dataset.writer import write_dataset
 from roboscape_core.errors import InvalidInputError
+from tests.dataset import still_episode
 
 CAMERAS = ["third_view", "wrist"]
 
@@ -54,16 +55,8 @@ def test_a_missing_or_wrong_mask_file_is_named(demo_dataset, tmp_path):
 
 
 def _episode(masks: bool, n: int = 3) -> Episode:
-    images = {"wrist": np.zeros((n, 32, 32, 3), np.uint8)}
-    return Episode(
-        images=images,
-        state=np.zeros((n, 2), np.float32),
-        action=np.zeros((n, 7), np.float32),
-        reward=np.zeros(n, np.float32),
-        success=np.zeros(n, bool),
-        done=np.eye(n, dtype=bool)[-1],
-        task="push the red cube forward",
-        masks={"wrist": np.ones((n, 32, 32), np.uint8)} if masks else None,
+    return still_episode(
+        {"wrist": np.zeros((n, 32, 32, 3), np.uint8)}, {"wrist": np.ones((n, 32, 32), np.uint8)} if masks else None
     )
 
 

@@ -9,6 +9,7 @@ from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.reader import open_dataset, read_frames
 from lerobot_roboscape.dataset.writer import write_dataset
 from roboscape_core.errors import InvalidInputError
+from tests.dataset import still_episode
 
 
 def stall_encoder_once(monkeypatch):
@@ -28,15 +29,7 @@ def stall_encoder_once(monkeypatch):
 def graded_episode(n: int = 60) -> Episode:
     frames = np.zeros((n, 32, 32, 3), np.uint8)
     frames[:, :, :, 0] = np.linspace(0, 250, n).astype(np.uint8)[:, None, None]  # each frame its own red level
-    return Episode(
-        images={"wrist": frames},
-        state=np.zeros((n, 2), np.float32),
-        action=np.zeros((n, 7), np.float32),
-        reward=np.zeros(n, np.float32),
-        success=np.zeros(n, bool),
-        done=np.eye(n, dtype=bool)[-1],
-        task="push the red cube forward",
-    )
+    return still_episode({"wrist": frames})
 
 
 def test_no_frame_is_dropped_when_the_video_encoder_falls_behind(tmp_path, monkeypatch):
