@@ -6,8 +6,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
+from lerobot_roboscape.dataset.writer import missing_video_frames
 from lerobot_roboscape.demos.collect import CollectConfig, collect, episodes_dir
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability
 from lerobot_roboscape.demos.exploration import EXPLORATORY_KINDS
@@ -26,6 +28,7 @@ from lerobot_roboscape.pipeline.layout import (
 )
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, run_once, start
 from lerobot_roboscape.tasks import select_scenes
+from roboscape_core.errors import InvalidInputError
 
 HELDOUT_SEED = 50_000  # held-out episodes get initial states that the training collection (seeds from 0) lacks
 VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is chosen on
@@ -64,7 +67,19 @@ def _collect(cfg: CollectConfig, fresh: bool) -> DatasetConfig:
         shutil.rmtree(episodes_dir(folder), ignore_errors=True)
     # a killed collection continues from the episodes it saved (its planned jobs must match, or collect says so)
     run_once(folder, cfg, fresh, lambda: collect(replace(cfg, overwrite=True, resume=True)))
-    return DatasetConfig(repo_id=cfg.repo_id, root=str(folder))
+    return whole_dataset(DatasetConfig(repo_id=cfg.repo_id, root=str(folder)))
+
+
+def whole_dataset(dataset: DatasetConfig) -> DatasetConfig:
+    """`dataset`, once its videos hold every frame: a dataset found complete may come from a writer that dropped
+    frames (LeRobot's streaming encoder did, before dataset/writer.py stopped it), which shifts later frames
+    against their actions."""
+    if missing := missing_video_frames(LeRobotDataset(dataset.repo_id, root=dataset.root)):
+        raise InvalidInputError(
+            f"{dataset.root}: videos short of their episodes' frames ({'; '.join(missing)}); delete it and run again "
+            "to collect it again"
+        )
+    return dataset
 
 
 def _unseen_episodes(
@@ -108,7 +123,7 @@ def _controllability(
         overwrite=True,
     )
     run_once(root, control, fresh, lambda: collect_controllability(control))
-    return DatasetConfig(repo_id=control.repo_id, root=control.root)
+    return whole_dataset(DatasetConfig(repo_id=control.repo_id, root=control.root))
 
 
 def demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> Datasets:
