@@ -14,7 +14,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_roboscape.dataset import EPISODES_SIDECAR
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
+from lerobot_roboscape.demos import controllability
 from lerobot_roboscape.demos.collect import JOBS, CollectConfig, collect, episodes_dir
+from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability, run_start
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, evaluate_success
 from lerobot_roboscape.pipeline import data_stages
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
@@ -64,6 +66,33 @@ def test_collect(tmp_path):
     with pytest.raises(OutputExistsError, match="--resume=true"):  # a plain rerun neither starts over nor resumes
         collect(draccus.parse(CollectConfig, args=[*args, f"--root={root}"]))
     rerun("collect", *args, f"--root={root}", "--resume=true")
+    assert not work.exists()
+    assert_same_dataset(tmp_path / "reference", root)
+
+
+def test_collect_control(tmp_path, monkeypatch):
+    args = [
+        "--repo_id=test/control",
+        "--families=[push]",
+        "--split=ind",
+        "--max_scenes=1",
+        "--starts_per_scene=2",
+        "--sequences=2",
+        "--steps=4",
+        f"--image_size={IMAGE_SIZE}",
+        "--workers=0",
+    ]
+    collect_controllability(draccus.parse(ControllabilityConfig, args=[*args, f"--root={tmp_path / 'reference'}"]))
+    root, work = tmp_path / "control", tmp_path / ".control.episodes"
+    # killed once the first start's sequences are saved: the rerun runs the second start only
+    kill_when(command("collect_control", *args, f"--root={root}"), lambda: len(list(work.glob("*.npz"))) >= 2)
+    assert not root.exists() and sorted(f.name for f in work.glob("*.npz"))[:2] == ["000000-0.npz", "000000-1.npz"]
+    with pytest.raises(OutputExistsError, match="--resume=true"):
+        collect_controllability(draccus.parse(ControllabilityConfig, args=[*args, f"--root={root}"]))
+    run = []
+    monkeypatch.setattr(controllability, "run_start", lambda task: run.append(task.start) or run_start(task))
+    rerun("collect_control", *args, f"--root={root}", "--resume=true")
+    assert run == [1]
     assert not work.exists()
     assert_same_dataset(tmp_path / "reference", root)
 

@@ -30,6 +30,30 @@ def episodes_dir(root: Path) -> Path:
     return root.parent / f".{root.name}.episodes"
 
 
+def saved_jobs(root: Path, plan: list[dict], resume: bool) -> Path:
+    """The folder where a collection into `root` saves each finished job's episodes until the dataset is written
+    (`episodes_dir`): made for `plan`, or the one an interrupted collection left, taken if `resume` and its plan is
+    `plan`."""
+    work = episodes_dir(root)
+    if work.exists():
+        if not resume:
+            raise OutputExistsError(
+                f"{work} holds an interrupted collection for {root}: pass --resume=true to "
+                "continue it, or delete it to start over"
+            )
+        if json.loads((work / JOBS).read_text()) != plan:
+            raise InvalidInputError(
+                f"--resume=true: {work} was collected with other settings (families, scenes, "
+                "episodes, fractions, seed or image size); use them, or delete it to start over"
+            )
+    else:
+        root.parent.mkdir(parents=True, exist_ok=True)
+        staging = make_tmp_dir(root.parent, f"{root.name}.episodes")
+        (staging / JOBS).write_text(json.dumps(plan))
+        os.replace(staging, work)
+    return work
+
+
 @dataclass
 class CollectConfig:
     """Args:
@@ -148,24 +172,7 @@ def collect(cfg: CollectConfig) -> LeRobotDataset:
     jobs = make_jobs(cfg)
     root = Path(cfg.root).resolve()
     check_target(root, cfg.overwrite)  # before hours of collection, not after
-    work = episodes_dir(root)
-    plan = [asdict(job) for job in jobs]
-    if work.exists():
-        if not cfg.resume:
-            raise OutputExistsError(
-                f"{work} holds an interrupted collection for {root}: pass --resume=true to "
-                "continue it, or delete it to start over"
-            )
-        if json.loads((work / JOBS).read_text()) != plan:
-            raise InvalidInputError(
-                f"--resume=true: {work} was collected with other settings (families, scenes, "
-                "episodes, fractions, seed or image size); use them, or delete it to start over"
-            )
-    else:
-        root.parent.mkdir(parents=True, exist_ok=True)
-        staging = make_tmp_dir(root.parent, f"{root.name}.episodes")
-        (staging / JOBS).write_text(json.dumps(plan))
-        os.replace(staging, work)
+    work = saved_jobs(root, [asdict(job) for job in jobs], cfg.resume)
     files = [work / f"{k:06d}.npz" for k in range(len(jobs))]
     todo = [k for k, file in enumerate(files) if not file.exists()]
     logging.info(

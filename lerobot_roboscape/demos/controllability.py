@@ -9,7 +9,8 @@ A world model that follows its actions must tell the K futures apart from the sa
 """
 
 import logging
-from dataclasses import dataclass, field
+import shutil
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.writer import check_target
-from lerobot_roboscape.demos.collect import write_task_dataset
+from lerobot_roboscape.demos.collect import saved_jobs, write_task_dataset
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, run_jobs, run_planned_episode, worker_env
 from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from roboscape_core.errors import InvalidInputError
@@ -41,6 +42,7 @@ class ControllabilityConfig:
     image_size: camera resolution.
     workers: parallel ManiSkill processes (0: in this process).
     overwrite: replace an existing dataset at `root`.
+    resume: continue an interrupted collection into `root` from the starts it saved.
     """
 
     repo_id: str = "local/roboscape_controllability"
@@ -56,6 +58,7 @@ class ControllabilityConfig:
     image_size: int = 64
     workers: int = 2
     overwrite: bool = False
+    resume: bool = False
 
     def __post_init__(self):
         if self.sequences < 2:
@@ -122,12 +125,31 @@ def make_start_jobs(cfg: ControllabilityConfig) -> list[StartJob]:
 
 
 def collect_controllability(cfg: ControllabilityConfig):
-    """Run every start's sequences and write them as one dataset at `cfg.root` (atomically, once all are run)."""
+    """Run every start's sequences and write them as one dataset at `cfg.root` (atomically, once all are run). Each
+    finished start's episodes are saved beside the target at once, so a killed run continues with --resume=true."""
     root = Path(cfg.root).resolve()
     check_target(root, cfg.overwrite)
     jobs = make_start_jobs(cfg)
-    logging.info("controllability set: %d starts x %d sequences of %d steps", len(jobs), cfg.sequences, cfg.steps)
-    episodes = []
-    for start_episodes in tqdm(run_jobs(jobs, cfg.workers, run_start), total=len(jobs), desc="starts"):
-        episodes += start_episodes
-    return write_task_dataset(episodes, cfg.repo_id, root, overwrite=cfg.overwrite, total=len(episodes))
+    work = saved_jobs(root, [asdict(job) for job in jobs], cfg.resume)
+    files = [[work / f"{k:06d}-{sequence}.npz" for sequence in range(cfg.sequences)] for k in range(len(jobs))]
+    todo = [k for k in range(len(jobs)) if not all(file.exists() for file in files[k])]
+    logging.info(
+        "controllability set: %d of %d starts x %d sequences of %d steps",
+        len(todo),
+        len(jobs),
+        cfg.sequences,
+        cfg.steps,
+    )
+    started = run_jobs([jobs[k] for k in todo], cfg.workers, run_start)
+    for k, start_episodes in tqdm(zip(todo, started, strict=True), total=len(todo), desc="starts"):
+        for file, episode in zip(files[k], start_episodes, strict=True):
+            episode.save(file)
+    dataset = write_task_dataset(
+        (Episode.load(file) for start in files for file in start),
+        cfg.repo_id,
+        root,
+        overwrite=cfg.overwrite,
+        total=len(jobs) * cfg.sequences,
+    )
+    shutil.rmtree(work)
+    return dataset

@@ -121,7 +121,10 @@ def _controllability(
         image_size=data.image_size,
         workers=data.workers,
         overwrite=True,
+        resume=True,  # a killed collection continues from the starts it saved
     )
+    if fresh:
+        shutil.rmtree(episodes_dir(root), ignore_errors=True)
     run_once(root, control, fresh, lambda: collect_controllability(control))
     return whole_dataset(DatasetConfig(repo_id=control.repo_id, root=control.root))
 
