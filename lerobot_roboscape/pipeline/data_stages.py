@@ -121,11 +121,11 @@ def _controllability(
         image_size=data.image_size,
         workers=data.workers,
         overwrite=True,
-        resume=True,  # a killed collection continues from the starts it saved
     )
     if fresh:
         shutil.rmtree(episodes_dir(root), ignore_errors=True)
-    run_once(root, control, fresh, lambda: collect_controllability(control))
+    # a killed collection continues from the starts it saved
+    run_once(root, control, fresh, lambda: collect_controllability(replace(control, resume=True)))
     return whole_dataset(DatasetConfig(repo_id=control.repo_id, root=control.root))
 
 
