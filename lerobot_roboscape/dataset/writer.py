@@ -11,7 +11,7 @@ from pathlib import Path
 import av
 import datasets
 import numpy as np
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.utils.constants import ACTION, DONE, OBS_IMAGES, OBS_STATE, REWARD, SUCCESS
 from tqdm import tqdm
 
@@ -145,7 +145,7 @@ def write_dataset(
         if dataset is None:
             raise InvalidInputError(f"No episode to write to {root} (none produced, or none kept)")
         dataset.finalize()
-        if missing := missing_video_frames(LeRobotDataset(repo_id, root=staging)):
+        if missing := missing_video_frames(LeRobotDatasetMetadata(repo_id, root=staging)):
             raise InvalidInputError(f"writing {root}: videos short of their episodes' frames: {'; '.join(missing)}")
         with open(staging / EPISODES_SIDECAR, "w") as f:
             for record in records:
@@ -158,19 +158,20 @@ def write_dataset(
     return LeRobotDataset(repo_id, root=root)
 
 
-def missing_video_frames(dataset: LeRobotDataset) -> list[str]:
+def missing_video_frames(meta: LeRobotDatasetMetadata) -> list[str]:
     """Each video file holding fewer frames than its episodes' lengths add up to ("FILE: N frames, M expected
-    (episodes A-B)"); empty when every frame is there. A frame missing from a file shifts every later episode in it."""
+    (episodes A-B)"); empty when every frame is there. A frame missing from a file shifts every later episode in it.
+    Reads the metadata and demuxes the videos, without loading the frames' table."""
     expected: dict[tuple[str, Path], list[int]] = {}  # (camera, file) -> [frames, first episode, last episode]
-    for index in range(dataset.meta.total_episodes):
-        length = dataset.meta.episodes[index]["length"]
-        for key in dataset.meta.video_keys:
-            entry = expected.setdefault((key, dataset.meta.get_video_file_path(index, key)), [0, index, index])
+    for index in range(meta.total_episodes):
+        length = meta.episodes[index]["length"]
+        for key in meta.video_keys:
+            entry = expected.setdefault((key, meta.get_video_file_path(index, key)), [0, index, index])
             entry[0] += length
             entry[2] = index
     missing = []
     for (_, path), (frames, first, last) in expected.items():
-        with av.open(str(dataset.root / path)) as container:
+        with av.open(str(meta.root / path)) as container:
             found = sum(1 for packet in container.demux(video=0) if packet.size)
         if found != frames:
             missing.append(f"{path}: {found} frames, {frames} expected (episodes {first}-{last})")

@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.writer import missing_video_frames
@@ -74,7 +74,7 @@ def whole_dataset(dataset: DatasetConfig) -> DatasetConfig:
     """`dataset`, once its videos hold every frame: a dataset found complete may come from a writer that dropped
     frames (LeRobot's streaming encoder did, before dataset/writer.py stopped it), which shifts later frames
     against their actions."""
-    if missing := missing_video_frames(LeRobotDataset(dataset.repo_id, root=dataset.root)):
+    if missing := missing_video_frames(LeRobotDatasetMetadata(dataset.repo_id, root=dataset.root)):
         raise InvalidInputError(
             f"{dataset.root}: videos short of their episodes' frames ({'; '.join(missing)}); delete it and run again "
             "to collect it again"
