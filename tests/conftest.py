@@ -96,7 +96,7 @@ def exploration_dataset(tmp_path_factory):
         episodes_per_scene=3,
         kinds=["noisy", "excursion", "random"],
         image_size=IMAGE_SIZE,
-        workers=2,
+        workers=1,  # in this process (demo_dataset covers the workers' pool)
         seed=11,
     )
     root = built_once(tmp_path_factory, "explore", lambda out: collect(replace(cfg, root=str(out / "explore"))))

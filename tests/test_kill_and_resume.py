@@ -11,9 +11,9 @@ import pytest
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.dataset import EPISODES_SIDECAR
 from lerobot_roboscape.dataset.convert import ConvertConfig, convert
 from lerobot_roboscape.dataset.reader import episode_indices, read_episode
+from lerobot_roboscape.dataset.writer import EPISODES_SIDECAR
 from lerobot_roboscape.demos import controllability
 from lerobot_roboscape.demos.collect import JOBS, CollectConfig, collect, episodes_dir
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability, run_start

@@ -1,3 +1,2 @@
-from lerobot_roboscape.dataset.writer import DATASET_FOLDERS, EPISODES_SIDECAR, read_episode_info, write_dataset
-
-__all__ = ["DATASET_FOLDERS", "EPISODES_SIDECAR", "read_episode_info", "write_dataset"]
+"""Episodes as the simulator gives them, and the LeRobot datasets written from them (writer.py). The package
+imports nothing: a simulator worker reads `episode` and `segmentation` without loading LeRobot's dataset stack."""

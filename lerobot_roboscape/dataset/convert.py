@@ -3,8 +3,8 @@
 import logging
 from dataclasses import dataclass
 
-from lerobot_roboscape.dataset import write_dataset
 from lerobot_roboscape.dataset.maniskill_files import open_trajectory_file, read_episodes
+from lerobot_roboscape.dataset.writer import write_dataset
 from lerobot_roboscape.robot import CAMERA_NAMES, CONTROL_FREQ
 from lerobot_roboscape.tasks import ENV_IDS, get_scene
 from roboscape_core.errors import InvalidInputError

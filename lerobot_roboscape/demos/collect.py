@@ -72,7 +72,7 @@ class CollectConfig:
         demonstrations that SFT imitates.
     seed: base seed; episode k of the run uses seed + k.
     image_size: square camera resolution for both cameras.
-    workers: parallel ManiSkill processes (0: run in this process).
+    workers: parallel ManiSkill processes (1 or fewer: run in this process).
     light_wrist_camera: render the wrist camera's body with a light mesh (3.5x faster without a GPU; the frames
         differ only on its outline); false renders ManiSkill's own mesh.
     segmentation: also record each frame's masks of the task object and the container, stored beside the dataset

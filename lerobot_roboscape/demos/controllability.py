@@ -40,7 +40,7 @@ class ControllabilityConfig:
     offset: length of each replay's translation offset, in normalised action units (actions are in [-1, 1]).
     seed: base seed; start k uses seed + k.
     image_size: camera resolution.
-    workers: parallel ManiSkill processes (0: in this process).
+    workers: parallel ManiSkill processes (1 or fewer: in this process).
     overwrite: replace an existing dataset at `root`.
     resume: continue an interrupted collection into `root` from the starts it saved.
     """

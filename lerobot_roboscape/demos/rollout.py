@@ -158,9 +158,10 @@ def _worker_run(job: EpisodeJob) -> Episode:
 
 
 def run_jobs(jobs: list, workers: int = 2, run: Callable = _worker_run) -> Iterator:
-    """`run(job)` of each job, in order, computed by `workers` processes (0 = in this process); `run` must be a
-    module-level function (it is sent to the workers by name)."""
-    if workers <= 0:
+    """`run(job)` of each job, in order, computed by `workers` processes (1 or fewer: in this process, as the
+    simulator's slots do; a pool of one would only add a process's start-up); `run` must be a module-level function
+    (it is sent to the workers by name)."""
+    if workers <= 1:
         for job in jobs:
             yield run(job)
         return

@@ -15,7 +15,7 @@ from pathlib import Path
 from huggingface_hub import HfApi
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.dataset import DATASET_FOLDERS
+from lerobot_roboscape.dataset.writer import DATASET_FOLDERS
 from lerobot_roboscape.hub.cards import (
     DATASET_TAGS,
     LICENSE,

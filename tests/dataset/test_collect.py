@@ -1,3 +1,4 @@
+import os
 import shutil
 from collections import Counter
 
@@ -6,9 +7,10 @@ import pytest
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_roboscape.dataset import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, successful_episodes
+from lerobot_roboscape.dataset.writer import EPISODES_SIDECAR, read_episode_info
 from lerobot_roboscape.demos.collect import CollectConfig, collect, make_jobs
+from lerobot_roboscape.demos.rollout import run_jobs
 from lerobot_roboscape.pipeline.lerobot_cli import sft_episodes
 from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
@@ -73,6 +75,16 @@ def test_job_mix_follows_flags():
     assert [j.kind for j in few].count("failed") == 1
 
 
+def process_of(job):
+    return job, os.getpid()
+
+
+def test_one_worker_runs_the_jobs_in_this_process():
+    # As the simulator's slots do: a pool of one would only pay a process's start-up (about 12 s of imports).
+    for workers in (0, 1):
+        assert list(run_jobs([3, 1, 2], workers, process_of)) == [(3, os.getpid()), (1, os.getpid()), (2, os.getpid())]
+
+
 def test_exploratory_kinds_are_dealt_evenly_and_never_mixed_with_demonstrations():
     jobs = make_jobs(CollectConfig(families=["push"], max_scenes=2, episodes_per_scene=3, kinds=["noisy", "random"]))
     assert Counter(j.kind for j in jobs) == {"noisy": 3, "random": 3}
@@ -127,7 +139,7 @@ def failed_collection(tmp_path_factory):
         episodes_per_scene=1,
         failed_fraction=1.0,
         image_size=IMAGE_SIZE,
-        workers=2,
+        workers=1,
         seed=1,
     )
     return collect(cfg), root
