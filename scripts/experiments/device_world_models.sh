@@ -24,6 +24,10 @@
 #        # s of PPO's clock, side by side); back: runs.tgz.part-* (the runs, the done report, the models' curves),
 #        # logs. The call lasts about A_S + max(T_S, members) + PPO_S + 250 s (start-up, compilation, done tuning,
 #        # goals, saves): `claim 150 75 75` should fit a 600 s call, unmeasured until a lease runs it.
+#        # PHASE=models stops once the models and members are trained (they stay in /tmp/wmgpu), and PHASE=runs, the
+#        # next call on the still-warm machine (it goes back after 30 s idle), runs PPO in them: two calls give the
+#        # models and PPO more of a 900 s lease than one call (`PHASE=models ... claim 230 115 0`, then `PHASE=runs ... claim
+#        # 0 0 180`: scripts/experiments/README.md).
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
@@ -249,37 +253,44 @@ PY
     C=$G/claim
     [ -f $C/plan.json ] || { echo "no $C/plan.json: pack with CLAIM=<roboscape-experiment's --world_model_runs>/pack" >&2; exit 2; }
     start=$(date +%s)
-    action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 )) 500 $A_S) || exit 1
-    # Then the text model and the ensemble's members (the action model with its top redrawn, trained alone) side by
-    # side: their budgets are wall-clock, and one 30M model leaves the GPU room.
-    fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S > $W/text.path &
-    read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
-print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
-    members=()
-    if [ "$N" -gt 0 ]; then
-      budget=$($PY -c "print(max(round($A_S * $SHARE), 1))")
-      top=(); [ "$R" != None ] && top=(--init_from=$action_model --retrain_blocks=$R)
-      for seed in $(seq 1 $N); do
-        timeout $(( budget + 120 )) $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" \
-          --train.seed=$seed --train.steps=1000000 --train.time_budget_s=$budget --train.batch_size=$BS \
-          --train.lr=$LR --train.save_freq=1000000 --done_tuning_steps=0 --output_dir=$W/member$seed 2>&1 \
-          | keep > $W/member$seed.log &
-        members+=("$W/member$seed/pretrained_model")
-      done
+    if [ "${PHASE:-all}" = runs ]; then  # the models a PHASE=models call left on this machine (still warm)
+      [ -f $W/claim_models ] || { echo "PHASE=runs: no $W/claim_models; call PHASE=models first, on a warm machine" >&2; exit 2; }
+      { read -r action_model; read -r text_model; read -r list; } < $W/claim_models
+    else
+      action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 )) 500 $A_S) || exit 1
+      # Then the text model and the ensemble's members (the action model with its top redrawn, trained alone) side by
+      # side: their budgets are wall-clock, and one 30M model leaves the GPU room.
+      fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S > $W/text.path &
+      read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
+  print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
+      members=()
+      if [ "$N" -gt 0 ]; then
+        budget=$($PY -c "print(max(round($A_S * $SHARE), 1))")
+        top=(); [ "$R" != None ] && top=(--init_from=$action_model --retrain_blocks=$R)
+        for seed in $(seq 1 $N); do
+          timeout $(( budget + 120 )) $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" \
+            --train.seed=$seed --train.steps=1000000 --train.time_budget_s=$budget --train.batch_size=$BS \
+            --train.lr=$LR --train.save_freq=1000000 --done_tuning_steps=0 --output_dir=$W/member$seed 2>&1 \
+            | keep > $W/member$seed.log &
+          members+=("$W/member$seed/pretrained_model")
+        done
+      fi
+      wait
+      text_model=$(cat $W/text.path); [ -n "$text_model" ] || exit 1
+      for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee -a $OUT/claim.log
+      echo "models and members in $(( $(date +%s) - start )) s" | tee -a $OUT/claim.log
+      # The models' logs and curves, back even if PPO is cut (at most 8 files come back: 4 here, the runs in <= 4).
+      for control in action text; do records $control $W/early/$control; done; tar czf $OUT/world_models.tgz -C $W/early .
+      list=$(IFS=,; echo "${members[*]}")
+      printf '%s\n' "$action_model" "$text_model" "$list" > $W/claim_models
+      [ "${PHASE:-all}" = models ] && { ls -la $OUT; exit 0; }
     fi
-    wait
-    text_model=$(cat $W/text.path); [ -n "$text_model" ] || exit 1
-    for seed in $(seq 1 $N); do tail -3 $W/member$seed.log; done | tee -a $OUT/claim.log
-    echo "models and members in $(( $(date +%s) - start )) s" | tee -a $OUT/claim.log
-    # The models' logs and curves, back even if PPO is cut (at most 8 files come back: 4 here, the runs in <= 4).
-    for control in action text; do records $control $W/early/$control; done; tar czf $OUT/world_models.tgz -C $W/early .
     # PPO's clock fits what is left of the call (DEADLINE s, default 570 of a 600 s call), ~100 s kept for the done
     # report, the goals, the processes' start, the replay's rollouts and the tarball.
     left=$(( ${DEADLINE:-570} - ($(date +%s) - T0) - 100 ))
     if [ $left -lt $PPO_S ]; then echo "PPO's clock cut from $PPO_S s to $left s to end inside the call" | tee -a $OUT/claim.log; PPO_S=$left; fi
     [ $PPO_S -ge 10 ] || { echo "no time left for PPO" | tee -a $OUT/claim.log; exit 1; }
     rm -rf $W/runs
-    list=$(IFS=,; echo "${members[*]}")
     $PY -m lerobot_roboscape.cli.run_world_model_pack --pack=$C --action=$action_model --text=$text_model \
       "--members=[$list]" --output_dir=$W/runs --time_budget_s=$PPO_S 2>&1 | keep | tee -a $OUT/claim.log
     [ -f $W/runs/results.json ] || exit 1
