@@ -31,6 +31,10 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
+def module_of(item) -> str:
+    return item.nodeid.split("::")[0]
+
+
 def pytest_collection_modifyitems(config, items):
     import torch
 
@@ -39,11 +43,10 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.slow)
         if item.get_closest_marker("gpu") and not torch.cuda.is_available():
             item.add_marker(pytest.mark.skip(reason="needs a CUDA GPU"))
-    module = lambda item: item.nodeid.split("::")[0]  # noqa: E731
-    slow_modules = {module(item) for item in items if item.get_closest_marker("slow")}
+    slow_modules = {module_of(item) for item in items if item.get_closest_marker("slow")}
 
     def rank(item):
-        path = module(item)
+        path = module_of(item)
         if path in LONGEST_MODULES:
             return LONGEST_MODULES.index(path)
         return len(LONGEST_MODULES) + (path not in slow_modules)
