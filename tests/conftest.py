@@ -31,29 +31,19 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
-def module_of(item) -> str:
-    return item.nodeid.split("::")[0]
-
-
 def pytest_collection_modifyitems(config, items):
     import torch
 
+    def rank(item):
+        path = item.nodeid.split("::")[0]
+        return LONGEST_MODULES.index(path) if path in LONGEST_MODULES else len(LONGEST_MODULES)
+
+    items.sort(key=rank)  # stable: every other module keeps its order
     for item in items:
         if SLOW_FIXTURES & set(item.fixturenames):
             item.add_marker(pytest.mark.slow)
         if item.get_closest_marker("gpu") and not torch.cuda.is_available():
             item.add_marker(pytest.mark.skip(reason="needs a CUDA GPU"))
-    slow_modules = {module_of(item) for item in items if item.get_closest_marker("slow")}
-
-    def rank(item):
-        path = module_of(item)
-        if path in LONGEST_MODULES:
-            return LONGEST_MODULES.index(path)
-        return len(LONGEST_MODULES) + (path not in slow_modules)
-
-    # Longest first, the fast modules last: under pytest-xdist their seconds-long pieces fill the end, so the workers
-    # finish together. Stable: modules keep their order within a rank.
-    items.sort(key=rank)
 
 
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
