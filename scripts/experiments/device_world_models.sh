@@ -26,8 +26,8 @@
 #        # goals, saves): `claim 150 75 75` should fit a 600 s call, unmeasured until a lease runs it.
 #        # PHASE=models stops once the models and members are trained (they stay in /tmp/wmgpu), and PHASE=runs, the
 #        # next call on the still-warm machine (it goes back after 30 s idle), runs PPO in them: two calls give the
-#        # models and PPO more of a 900 s lease than one call (`PHASE=models ... claim 230 115 0`, then `PHASE=runs ... claim
-#        # 0 0 180`: scripts/experiments/README.md).
+#        # models and PPO more of a 900 s lease than one call (`PHASE=models ... claim 230 115 0`, then
+#        # `PHASE=runs ... claim 0 0 180`: scripts/experiments/README.md).
 # A dry run of a mode here, on the CPU, imports only what the device will have (-S: no .venv editable installs):
 #   OUT=/tmp/out PY="$PWD/.venv/bin/python -S" PYTHONPATH=$PWD/.venv/lib/python3.12/site-packages \
 #     bash scripts/experiments/device_world_models.sh train action 4 4 1e-3 300 2
@@ -262,7 +262,7 @@ PY
       # side: their budgets are wall-clock, and one 30M model leaves the GPU room.
       fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S > $W/text.path &
       read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
-  print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
+print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
       members=()
       if [ "$N" -gt 0 ]; then
         budget=$($PY -c "print(max(round($A_S * $SHARE), 1))")
