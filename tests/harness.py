@@ -1,18 +1,22 @@
 """The kill-and-resume harness: a command runs as a user runs it (`python -m lerobot_roboscape.cli.<name>`), is
 SIGKILLed at a point inside its work (`kill_when`, `kill_at_line`), and is rerun, in the test's process (`rerun`)
 or in another (`run`): what the killed run left crosses the process boundary. What it ends with is compared with
-an uninterrupted run (`output_differences`, `assert_same_weights`)."""
+an uninterrupted run (`output_differences`, `assert_same_weights`).
+
+The killed runs are forked from a server that has imported the command (a forkserver), not started in a fresh
+interpreter: importing a command takes about 14 s on 2 cores, longer than most smoke-scale stages, and a chain of
+kills at every stage boundary starts one run per stage."""
 
 import contextlib
 import importlib
 import json
+import multiprocessing
 import os
-import queue
 import re
 import signal
 import subprocess
 import sys
-import threading
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -37,57 +41,87 @@ def rerun(name: str, *args: str) -> None:
     importlib.import_module(f"lerobot_roboscape.cli.{name}").main(list(args))
 
 
-def _start(cmd: list[str], **streams) -> subprocess.Popen:
-    # Its own process group, so a kill reaches what it started too (lerobot-train, simulator workers).
-    return subprocess.Popen(cmd, text=True, start_new_session=True, **streams)
+# The server that the killed runs are forked from: it imports the first command it forks and nothing more, so a
+# fork copies no thread at work and no simulator renderer (SAPIEN's does not survive a fork; each run makes its own).
+_FORKS = multiprocessing.get_context("forkserver")
 
 
-def _kill(process: subprocess.Popen) -> None:
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(process.pid, signal.SIGKILL)
-    process.wait()
+def _forked_main(module: str, args: list[str], output: str, env: dict[str, str]) -> None:
+    os.setsid()  # its own process group, so that a kill reaches what it starts too (lerobot-train, simulator workers)
+    os.environ.clear()
+    os.environ.update(env)  # the test's environment now, not the server's when it started
+    fd = os.open(output, os.O_WRONLY | os.O_APPEND)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    importlib.import_module(module).main(args)
+
+
+class _Forked:
+    """`python -m <module> *args` (a lerobot_roboscape.cli command) forked from the server, its stdout and stderr
+    to a temporary file."""
+
+    def __init__(self, cmd: list[str]):
+        module, args = cmd[2], cmd[3:]
+        _FORKS.set_forkserver_preload([module])  # read once, as the server starts
+        fd, output = tempfile.mkstemp(prefix=f"{module}.", suffix=".log")
+        os.close(fd)
+        self.output, self._read, self._pending = Path(output), 0, ""
+        self._process = _FORKS.Process(target=_forked_main, args=(module, args, output, dict(os.environ)))
+        self._process.start()
+
+    def poll(self) -> int | None:
+        return self._process.exitcode
+
+    def lines(self) -> list[str]:
+        """The whole lines it has written since the last call."""
+        with self.output.open("rb") as file:
+            file.seek(self._read)
+            written = file.read()
+        self._read += len(written)
+        *complete, self._pending = (self._pending + written.decode(errors="replace")).split("\n")
+        return complete
+
+    def tail(self) -> str:
+        return self.output.read_text(errors="replace")[-2000:]
+
+    def kill(self) -> None:
+        """SIGKILL its process group (a no-op once it has ended), and remove its output."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self._process.pid, signal.SIGKILL)
+        self._process.join()
+        self.output.unlink()
 
 
 def kill_when(cmd: list[str], ready: Callable[[], bool], timeout: float = 600) -> None:
-    """Start `cmd` and SIGKILL it as soon as `ready()` holds (polled every 10 ms). Fails if it ends first."""
-    process = _start(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + timeout
+    """Fork `cmd` and SIGKILL it as soon as `ready()` holds (polled every 10 ms). Fails if it ends first."""
+    process, deadline = _Forked(cmd), time.time() + timeout
     try:
         while not ready():
             if process.poll() is not None:
-                raise AssertionError(
-                    f"{cmd[2]} ended (exit {process.returncode}) before the kill point: {process.stderr.read()[-2000:]}"
-                )
+                raise AssertionError(f"{cmd[2]} ended (exit {process.poll()}) before the kill point: {process.tail()}")
             if time.time() > deadline:
                 raise AssertionError(f"{cmd[2]} did not reach the kill point in {timeout} s")
             time.sleep(0.01)
     finally:
-        _kill(process)
-        process.stderr.close()
+        process.kill()
 
 
 def kill_at_line(cmd: list[str], prefix: str, timeout: float = 600) -> None:
-    """Start `cmd` and SIGKILL it as soon as it prints a line that begins with `prefix` (a stage header: the stage
+    """Fork `cmd` and SIGKILL it as soon as it prints a line that begins with `prefix` (a stage header: the stage
     before it is complete, its own has begun). Fails if it ends first or stays silent past the timeout."""
-    process = _start(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(
-        target=lambda: [lines.put(line) for line in process.stdout] + [lines.put(None)], daemon=True
-    ).start()
-    deadline, seen = time.time() + timeout, []
+    process, deadline = _Forked(cmd), time.time() + timeout
     try:
         while True:
-            try:
-                line = lines.get(timeout=max(deadline - time.time(), 0))
-            except queue.Empty:
-                raise AssertionError(f"{cmd[2]} did not print {prefix!r} in {timeout} s") from None
-            if line is None:
-                raise AssertionError(f"{cmd[2]} ended before printing {prefix!r}: {''.join(seen)[-2000:]}")
-            seen.append(line)
-            if line.startswith(prefix):
+            ended = process.poll() is not None  # before reading: what it wrote before it ended is read
+            if any(line.startswith(prefix) for line in process.lines()):
                 return
+            if ended:
+                raise AssertionError(f"{cmd[2]} ended before printing {prefix!r}: {process.tail()}")
+            if time.time() > deadline:
+                raise AssertionError(f"{cmd[2]} did not print {prefix!r} in {timeout} s")
+            time.sleep(0.01)
     finally:
-        _kill(process)
+        process.kill()
 
 
 # What two uninterrupted runs of the same settings do not share either: the clock, and what is drawn against it.
