@@ -24,6 +24,10 @@ EPISODES_SIDECAR = "meta/roboscape_episodes.jsonl"
 # A dataset's own folders: LeRobot's, and the masks beside them. Anything else under its root (a pipeline's record
 # of the run that wrote it) is not the dataset: not hashed into caches' keys, not pushed.
 DATASET_FOLDERS = ("meta", "data", "videos", SEGMENTATION_DIR)
+# LeRobot appends each episode's video to its camera's file by re-muxing the whole file, so writing N episodes into
+# one file costs O(N^2): at its 200 MB default the bench's 2,048 episodes (about 60 MB per camera) share one file.
+# A few MB bound each append (about 130 of our 64 px episodes per file); benchmark_dataset_writing.py measures it.
+VIDEO_FILE_MB = 4
 
 
 def _quiet_encoders() -> None:
@@ -91,10 +95,12 @@ def write_dataset(
     overwrite: bool = False,
     total: int | None = None,
     keep: Callable[[Episode], bool] = lambda episode: True,
+    video_file_mb: float = VIDEO_FILE_MB,
 ) -> LeRobotDataset:
     """Write `episodes` (any iterable, consumed once) to `root` and return the dataset opened for reading.
 
-    Episodes for which `keep(episode)` is False are dropped. Raises ValueError if none is kept.
+    Episodes for which `keep(episode)` is False are dropped. Raises ValueError if none is kept. A camera's video
+    file holds episodes up to `video_file_mb` MB, then the next file begins.
     """
     root = Path(root).resolve()
     check_target(root, overwrite)
@@ -127,6 +133,7 @@ def write_dataset(
                     # wait); a recorded episode can, and a dropped frame shifts every later one in the video. An
                     # unbounded queue holds one episode at most: finishing an episode waits for its encoder.
                     encoder_queue_maxsize=0,
+                    video_files_size_in_mb=video_file_mb,
                 )
             check_features(episode, features, where)
             if segmented is None:

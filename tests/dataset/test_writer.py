@@ -55,3 +55,22 @@ def test_a_video_short_of_its_frames_is_named_and_nothing_lands(tmp_path, monkey
     ):
         write_dataset([graded_episode()], "local/writer", root, fps=20, state_names=["a", "b"])
     assert not root.exists()
+
+
+def test_episodes_spread_over_video_files_read_back_at_their_frames(tmp_path):
+    """Past `video_file_mb` a camera's next episode starts a new file (here: a file per episode); every episode
+    still reads back its own first and last frames, and the frame check counts each file."""
+    root = tmp_path / "ds"
+    dataset = write_dataset(
+        [graded_episode(), graded_episode(40), graded_episode()],
+        "local/writer",
+        root,
+        fps=20,
+        state_names=["a", "b"],
+        video_file_mb=1e-6,
+    )
+    assert len(list((root / "videos").rglob("*.mp4"))) == 3
+    for episode in range(3):
+        first, last = read_frames(dataset, episode, [0, -1])["wrist"]
+        assert int(first[..., 0].mean()) <= 6
+        assert abs(int(last[..., 0].mean()) - 250) <= 6
