@@ -37,8 +37,11 @@ VARIANTS = {
     "object_w20_wide": {"object_weight": 20.0, "base_channels": 32},
     "object_w100_entropy_0.02": {"object_weight": 100.0, "entropy_weight": 0.02},
     "object_w50_entropy_0.02_hue": {"object_weight": 50.0, "entropy_weight": 0.02, "hue_shift": 0.5},
+    # the bench preset trained under bf16 autocast (1.7x faster a step on a CPU with AVX512-BF16)
+    "object_w50_entropy_0.02_bf16": {"object_weight": 50.0, "entropy_weight": 0.02, "mixed_precision": "bf16"},
 }
 TRAINING_OPTIONS = ("hue_shift",)  # of TrainTokenizerConfig, not of the tokenizer
+OPTIMISATION_OPTIONS = ("mixed_precision",)  # of its TokenizerTrainingConfig
 
 
 def run_variant(name: str, args) -> dict:
@@ -51,6 +54,7 @@ def run_variant(name: str, args) -> dict:
 
     changes = BASELINE | VARIANTS[name]
     training = {k: changes.pop(k) for k in TRAINING_OPTIONS if k in changes}
+    optimisation = {k: changes.pop(k) for k in OPTIMISATION_OPTIONS if k in changes}
     folder = Path(args.out) / name
     if (folder / "report" / REPORT_JSON).exists():
         return read_tokenizer_report(folder / "report")
@@ -65,6 +69,7 @@ def run_variant(name: str, args) -> dict:
             save_freq=args.steps,
             eval_freq=args.eval_freq,
             resume=(folder / "train" / "checkpoints").exists(),
+            **optimisation,
         ),
         output_dir=folder / "train",
         heldout_stride=args.heldout_stride,
