@@ -22,7 +22,7 @@ from lerobot_roboscape.demos.collect import CollectConfig, make_jobs, write_task
 from lerobot_roboscape.demos.rollout import run_jobs
 
 
-def timed_write(episodes: list, n: int, root: Path, video_file_mb: int) -> dict:
+def timed_write(episodes: list, n: int, root: Path, video_file_mb: float) -> dict:
     stamps = []
 
     def stream():
