@@ -49,10 +49,16 @@ if [ "$mode" = pack ]; then
   RUN=$1; SP=.venv/lib/python3.12/site-packages
   rm -rf .gpu && mkdir -p .gpu/stub/av .gpu/stub/av-15.1.0.dist-info
   start=$(date +%s)
-  if [ "$RUN" != - ]; then .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data || exit 1; fi
+  # PACK_ARGS: pack_world_models.py's own flags (e.g. "--ind-starts 16 --ood-starts 16", the claim's at 64 scenes)
+  if [ "$RUN" != - ]; then
+    .venv/bin/python scripts/experiments/pack_world_models.py --run "$RUN" --out .gpu/data ${PACK_ARGS:-} || exit 1
+  fi
   if [ -n "${CLAIM:-}" ]; then
     [ -f "$CLAIM/plan.json" ] || { echo "CLAIM=$CLAIM has no plan.json (roboscape-experiment --world_model_runs=DIR writes DIR/pack)" >&2; exit 1; }
-    cp -r "$CLAIM" .gpu/claim || exit 1
+    # xz, since the pack must fit the 64 MiB that travel beside the repository: the starts and done sets are token
+    # arrays it shrinks 4-30x (at 64 scenes 11.7 MB -> 0.9 MB), and the tokenizer, when the data's, goes once.
+    same=(); diff -rq "$CLAIM/tokenizer" .gpu/data/tokenizer > /dev/null 2>&1 && same=(--exclude=./tokenizer)
+    tar cJf .gpu/claim.tar.xz "${same[@]}" -C "$CLAIM" . || exit 1
   fi
   # The generation race's references (mode generation only): 1xgpt's model code (the `fetch` tool's mirror) and our
   # package before the cache was filled block by block (benchmark_cache_memory.py's reference). Training needs
@@ -102,8 +108,17 @@ def __getattr__(name):
     return _Absent(f"av.{name}")
 PY
   printf 'Metadata-Version: 2.1\nName: av\nVersion: 15.1.0\n' > .gpu/stub/av-15.1.0.dist-info/METADATA
-  echo "packed in $(( $(date +%s) - start )) s, $(du -b --apparent-size -s .gpu | cut -f1) bytes in all:"
+  packed=$(du -b --apparent-size -s .gpu | cut -f1)
+  echo "packed in $(( $(date +%s) - start )) s, $packed bytes in all:"
   find .gpu -maxdepth 2 -type f -printf '%10s %p\n' | sort -n
+  # A lease carries the repository's files and the pack together, 64 MiB at most: refuse here, not there.
+  tree=$(git ls-files -co --exclude-standard -z | xargs -0 du -cb --apparent-size 2>/dev/null | tail -1 | cut -f1)
+  if [ $(( packed + tree )) -gt $(( 64 * 1024 * 1024 )) ]; then
+    echo "the pack ($packed bytes) and the repository's files ($tree) exceed the 64 MiB a lease carries: pack" \
+      "less (PACK_ARGS, e.g. fewer controllability starts)" >&2
+    exit 1
+  fi
+  echo "with the repository's files: $(( packed + tree )) of $(( 64 * 1024 * 1024 )) bytes a lease carries"
   exit 0
 fi
 
@@ -143,6 +158,10 @@ PY=${PY:-python3}  # a dry run here: PY="$PWD/.venv/bin/python -S" with the .ven
 if [ ! -f $W/unpacked ]; then
   mkdir -p $W/site $W/sets $W/caches $W/1xgpt $W/before
   tar xzf $G/site.tgz -C $W/site || exit 3
+  if [ -f $G/claim.tar.xz ]; then  # the claim's pack (Python's tarfile: the image may lack xz)
+    $PY -c "import tarfile; tarfile.open('$G/claim.tar.xz').extractall('$W/claim', filter='data')" || exit 3
+    [ -d $W/claim/tokenizer ] || cp -r $G/data/tokenizer $W/claim/tokenizer || exit 3
+  fi
   if [ -f $G/1xgpt.tgz ]; then tar xzf $G/1xgpt.tgz -C $W/1xgpt && tar xzf $G/before.tgz -C $W/before || exit 3; fi
   touch $W/unpacked
 fi
@@ -250,7 +269,7 @@ PY
     ls -la $OUT ;;
   claim)
     A_S=$1; T_S=$2; PPO_S=$3; BS=${4:-64}; LR=${5:-1e-3}
-    C=$G/claim
+    C=$W/claim
     [ -f $C/plan.json ] || { echo "no $C/plan.json: pack with CLAIM=<roboscape-experiment's --world_model_runs>/pack" >&2; exit 2; }
     start=$(date +%s)
     if [ "${PHASE:-all}" = runs ]; then  # the models a PHASE=models call left on this machine (still warm)
