@@ -177,10 +177,16 @@ def run_pack(cfg: RunPackConfig) -> dict:
     )
     chosen = evaluate_done(report)["chosen"]
     done = DoneChoice.read(report.output_dir)
-    if any(run["ensemble"] for run in plan["runs"].values()) and not members:
-        raise InvalidInputError(f"{pack_dir / PLAN} has a run with the ensemble's disagreement but no members given")
+    # Without members (none was given, or none saved in its budget) the ensemble's runs fail alone, as a failed run.
+    runs = {
+        tag: {"method": run["method"], "folder": f"rl/{tag}", "error": "no ensemble member was given"}
+        for tag, run in plan["runs"].items()
+        if run["ensemble"] and not members
+    }
     jobs = {}
     for tag, run in plan["runs"].items():
+        if tag in runs:
+            continue
         env = RoboscapeWorldModelEnvConfig(
             **run["env"],
             tokenizer=str(pack_dir / "tokenizer"),
@@ -199,7 +205,7 @@ def run_pack(cfg: RunPackConfig) -> dict:
     for config in {c.env.starts_file: c.env for c in jobs.values()}.values():  # every goal, once, before the clocks
         RoboscapeWorldModelEnv(config, num_envs=1).close()
     # A run that fails is recorded as failed; the others still come back.
-    runs, finals = {}, {}
+    finals = {}
     with ProcessPoolExecutor(max_workers=max(len(jobs), 1), mp_context=get_context("spawn")) as pool:
         futures = {tag: pool.submit(ppo, config) for tag, config in jobs.items()}
         for tag, future in futures.items():

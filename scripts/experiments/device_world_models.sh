@@ -300,7 +300,11 @@ print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else
       echo "models and members in $(( $(date +%s) - start )) s" | tee -a $OUT/claim.log
       # The models' logs and curves, back even if PPO is cut (at most 8 files come back: 4 here, the runs in <= 4).
       for control in action text; do records $control $W/early/$control; done; tar czf $OUT/world_models.tgz -C $W/early .
-      list=$(IFS=,; echo "${members[*]}")
+      # A member that did not save in its budget is left out: the ensemble's runs then use the others, or fail alone.
+      saved=(); for m in "${members[@]}"; do
+        if [ -f $m/model.safetensors ]; then saved+=("$m"); else echo "member $m not saved" | tee -a $OUT/claim.log; fi
+      done
+      list=$(IFS=,; echo "${saved[*]}")
       printf '%s\n' "$action_model" "$text_model" "$list" > $W/claim_models
       [ "${PHASE:-all}" = models ] && { ls -la $OUT; exit 0; }
     fi

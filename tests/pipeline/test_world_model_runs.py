@@ -172,3 +172,39 @@ def test_the_experiment_names_what_it_needs_without_world_models(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="--stop_after=tokenizer"):
         trained_stages(PipelineConfig(output_dir=str(tmp_path)), Path(tmp_path), world_models=False)
+
+
+def test_without_members_the_ensemble_run_fails_alone_and_the_others_run(
+    trained_tokenizer, world_models, mlp_checkpoint, env_config, done_sets, tmp_path
+):
+    """A lease whose ensemble members did not save in their budget still brings back the other runs."""
+    env = env_config(episode_length=3, max_goal_steps=3, similarity="tokenizer", split="", device="cpu")
+    ppo = PPOConfig(
+        policy_path=str(mlp_checkpoint),
+        env=env,
+        num_envs=2,
+        iterations=1,
+        save_freq=1,
+        critic_warmup_iterations=1,
+        minibatch_size=4,
+        device="cpu",
+        mixed_precision="no",
+    )
+    ensemble = replace(env, ensemble=[world_model_runs.ON_DEVICE], disagreement_penalty=1.0)
+    jobs = {
+        "plain": world_model_runs.Job("RL w. World Model", ppo),
+        "ensemble": world_model_runs.Job("RL w. World Model, ensemble disagreement", replace(ppo, env=ensemble), True),
+    }
+    pack = world_model_runs.pack(
+        tmp_path / "pack", jobs, mlp_checkpoint, trained_tokenizer, done_sets, FRAME_SKIP, curve_checkpoints=1
+    )
+    out = tmp_path / "runs"
+    results = world_model_runs.run_pack(
+        world_model_runs.RunPackConfig(
+            pack=str(pack), **{k: str(v) for k, v in world_models.items()}, output_dir=str(out), device="cpu"
+        )
+    )
+    assert results["runs"]["ensemble"]["error"] == "no ensemble member was given"
+    assert not (out / "rl" / "ensemble").exists()
+    assert "error" not in results["runs"]["plain"] and (out / results["runs"]["plain"]["final"]).is_dir()
+    assert json.loads((out / world_model_runs.RESULTS).read_text())["runs"] == results["runs"]
