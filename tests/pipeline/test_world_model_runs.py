@@ -37,6 +37,23 @@ def done_sets(demo_dataset, trained_tokenizer):
     return {"validation": episodes, "heldout": episodes}
 
 
+def tiny_runs(env_config, mlp_checkpoint, iterations: int) -> tuple:
+    """The world-model env of a few steps, a PPO run of `iterations` in it, and the env with the ensemble's lever."""
+    env = env_config(episode_length=3, max_goal_steps=3, similarity="tokenizer", split="", device="cpu")
+    ppo = PPOConfig(
+        policy_path=str(mlp_checkpoint),
+        env=env,
+        num_envs=2,
+        iterations=iterations,
+        save_freq=1,
+        critic_warmup_iterations=1,
+        minibatch_size=4,
+        device="cpu",
+        mixed_precision="no",
+    )
+    return env, ppo, replace(env, ensemble=[world_model_runs.ON_DEVICE], disagreement_penalty=1.0)
+
+
 def test_the_done_report_reads_token_episodes_as_it_reads_the_dataset(
     demo_dataset, trained_tokenizer, world_models, done_sets, tmp_path
 ):
@@ -68,19 +85,7 @@ def test_the_done_report_reads_token_episodes_as_it_reads_the_dataset(
 def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experiments_own(
     trained_tokenizer, world_models, mlp_checkpoint, env_config, done_sets, tmp_path
 ):
-    env = env_config(episode_length=3, max_goal_steps=3, similarity="tokenizer", split="", device="cpu")
-    ppo = PPOConfig(
-        policy_path=str(mlp_checkpoint),
-        env=env,
-        num_envs=2,
-        iterations=3,
-        save_freq=1,
-        critic_warmup_iterations=1,
-        minibatch_size=4,
-        device="cpu",
-        mixed_precision="no",
-    )
-    ensemble = replace(env, ensemble=[world_model_runs.ON_DEVICE], disagreement_penalty=1.0)
+    env, ppo, ensemble = tiny_runs(env_config, mlp_checkpoint, iterations=3)
     jobs = {
         "plain": world_model_runs.Job("RL w. World Model", ppo),
         "kl": world_model_runs.Job("RL w. World Model, KL to SFT", replace(ppo, kl_coef=0.1)),
@@ -178,19 +183,7 @@ def test_without_members_the_ensemble_run_fails_alone_and_the_others_run(
     trained_tokenizer, world_models, mlp_checkpoint, env_config, done_sets, tmp_path
 ):
     """A lease whose ensemble members did not save in their budget still brings back the other runs."""
-    env = env_config(episode_length=3, max_goal_steps=3, similarity="tokenizer", split="", device="cpu")
-    ppo = PPOConfig(
-        policy_path=str(mlp_checkpoint),
-        env=env,
-        num_envs=2,
-        iterations=1,
-        save_freq=1,
-        critic_warmup_iterations=1,
-        minibatch_size=4,
-        device="cpu",
-        mixed_precision="no",
-    )
-    ensemble = replace(env, ensemble=[world_model_runs.ON_DEVICE], disagreement_penalty=1.0)
+    _, ppo, ensemble = tiny_runs(env_config, mlp_checkpoint, iterations=1)
     jobs = {
         "plain": world_model_runs.Job("RL w. World Model", ppo),
         "ensemble": world_model_runs.Job("RL w. World Model, ensemble disagreement", replace(ppo, env=ensemble), True),
