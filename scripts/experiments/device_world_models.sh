@@ -113,12 +113,13 @@ PY
   find .gpu -maxdepth 2 -type f -printf '%10s %p\n' | sort -n
   # A lease carries the repository's files and the pack together, 64 MiB at most: refuse here, not there.
   tree=$(git ls-files -co --exclude-standard -z | xargs -0 du -cb --apparent-size 2>/dev/null | tail -1 | cut -f1)
-  if [ $(( packed + tree )) -gt $(( 64 * 1024 * 1024 )) ]; then
+  carried=$(( 64 * 1024 * 1024 ))
+  if [ $(( packed + tree )) -gt $carried ]; then
     echo "the pack ($packed bytes) and the repository's files ($tree) exceed the 64 MiB a lease carries: pack" \
       "less (PACK_ARGS, e.g. fewer controllability starts)" >&2
     exit 1
   fi
-  echo "with the repository's files: $(( packed + tree )) of $(( 64 * 1024 * 1024 )) bytes a lease carries"
+  echo "with the repository's files: $(( packed + tree )) of $carried bytes a lease carries"
   exit 0
 fi
 
