@@ -53,6 +53,9 @@ class DataConfig:
         chosen. 0: one recorded and converted IND episode instead, and the done threshold chosen on the
         demonstrations.
     report_episodes: held-out episodes (spread over the held-out dataset) behind the fidelity and reward reports.
+    initial_scene_episodes: planner attempts per family in the initial scene, half of them suboptimal, whose
+        successful ones the paper protocol's SFT imitates (the paper collected 500 optimal and 500 suboptimal per
+        task and scene); 0: that scene's share of the demonstrations instead.
     image_size: camera resolution (the tokenizer's image_size must match).
     workers: ManiSkill worker processes (collection, and evaluations run side by side).
     """
@@ -63,6 +66,7 @@ class DataConfig:
     explore_episodes_per_scene: int = 1
     heldout_scenes: int = 0
     report_episodes: int = 8
+    initial_scene_episodes: int = 0
     image_size: int = 64
     workers: int = 2
 
@@ -215,6 +219,10 @@ class PipelineConfig:
             raise InvalidInputError(
                 f"--tokenizer.image_size={self.tokenizer.image_size} differs from the cameras' "
                 f"--data.image_size={self.data.image_size}: set both"
+            )
+        if self.data.initial_scene_episodes < 0:
+            raise InvalidInputError(
+                f"--data.initial_scene_episodes must be >= 0, got {self.data.initial_scene_episodes}"
             )
 
 

@@ -23,9 +23,12 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_REPO_ID,
     EXPLORE_DIR,
     HELDOUT_DIR,
+    INITIAL_SCENE_DIR,
+    INITIAL_SCENE_REPO_ID,
     TRAJECTORIES_DIR,
     VALIDATION_DIR,
 )
+from lerobot_roboscape.pipeline.methods import initial_scene
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, run_once, start
 from lerobot_roboscape.tasks import select_scenes
 from roboscape_core.errors import InvalidInputError
@@ -35,6 +38,7 @@ VALIDATION_SEED = 60_000  # so do the validation episodes the done threshold is 
 CONTROL_SEED = 70_000  # and the starts of the controllability set
 CONTROL_IND_SEED = 75_000  # and those of its twin in the training scenes
 EXPLORE_SEED = 80_000  # and the exploratory episodes
+INITIAL_SCENE_SEED = 300_000  # and the initial scene's own demonstrations, beyond the evaluations' (100,000, 200,000)
 
 
 # ---- data --------------------------------------------------------------------------------------------------------
@@ -127,6 +131,28 @@ def _controllability(
     # a killed collection continues from the starts it saved
     run_once(root, control, fresh, lambda: collect_controllability(replace(control, resume=True)))
     return whole_dataset(DatasetConfig(repo_id=control.repo_id, root=control.root))
+
+
+def initial_scene_demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> DatasetConfig:
+    """What the paper protocol's SFT imitates: `data.initial_scene_episodes` planner attempts per family in the
+    initial scene, half of them suboptimal, the successful ones kept. The demonstrations hold about 16 per family
+    and scene, too few to learn one scene from (docs/results/claim_paper)."""
+    return _collect(
+        CollectConfig(
+            repo_id=INITIAL_SCENE_REPO_ID,
+            root=str(out / INITIAL_SCENE_DIR),
+            families=data.families,
+            scenes=[initial_scene()],
+            episodes_per_scene=data.initial_scene_episodes,
+            failed_fraction=0.0,
+            suboptimal_fraction=0.5,
+            seed=INITIAL_SCENE_SEED,
+            image_size=data.image_size,
+            workers=data.workers,
+            keep_failed=False,
+        ),
+        fresh,
+    )
 
 
 def demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> Datasets:

@@ -57,7 +57,8 @@ class ExperimentConfig:
     sft_checkpoint: the SFT'd policy PPO starts from (a pretrained_model directory); null: SFT with lerobot-train
         on `sft_dataset_root` (or the run's demonstrations), of the protocol's scenes.
     sft_dataset_repo_id: demonstrations SFT imitates, when it runs.
-    sft_dataset_root: their local root (null: the run's demonstrations).
+    sft_dataset_root: their local root (null: the run's demonstrations, or under the paper's protocol those
+        collected in the initial scene when `pipeline.data.initial_scene_episodes`).
     levers: guards against a policy that games the world model, each its own PPO run in the world model beside the
         plain one, judged by the simulator success of its checkpoints (OOD): "kl" (a KL penalty to the SFT
         policy), "ensemble" (the disagreement of `ensemble_members` more action models trained here, by default the
@@ -173,12 +174,15 @@ def trained_stages(cfg: PipelineConfig, out: Path, world_models: bool = True) ->
 
 def sft_policy(cfg: ExperimentConfig, out: Path, demonstrations: DatasetConfig) -> dict[str, Path]:
     """{policy: SFT checkpoint}: the one given, or lerobot-train's on the SFT demonstrations of the protocol's
-    scenes (the initial scene under the paper's)."""
+    scenes (under the paper's, the initial scene's: collected there for it when `data.initial_scene_episodes`)."""
     if cfg.sft_checkpoint:
         return {"roboscape_mlp": Path(cfg.sft_checkpoint).resolve()}
     dataset = demonstrations
     if cfg.sft_dataset_root:
         dataset = DatasetConfig(repo_id=cfg.sft_dataset_repo_id, root=str(Path(cfg.sft_dataset_root).resolve()))
+    elif cfg.protocol == methods.PAPER_PROTOCOL and cfg.pipeline.data.initial_scene_episodes:
+        p = cfg.pipeline
+        dataset = data_stages.initial_scene_demonstrations(p.data, Path(p.output_dir).resolve(), p.fresh)
     scenes = [methods.initial_scene()] if cfg.protocol == methods.PAPER_PROTOCOL else None
     return policy_stages.sft(cfg.pipeline, out, dataset, scenes)
 

@@ -263,6 +263,10 @@ def protocol(cfg, elsewhere: dict | None = None) -> str:
         sft = f"the SFT checkpoint `{cfg.sft_checkpoint}`"
     elif cfg.protocol == PAPER_PROTOCOL:
         sft = f"SFT with lerobot-train on the demonstrations of the initial scene only (`{initial_scene()}`)"
+        if cfg.sft_dataset_root:
+            sft += f" in `{cfg.sft_dataset_root}`"
+        elif p.data.initial_scene_episodes:
+            sft += f": the successful ones of {p.data.initial_scene_episodes} planner attempts per family there"
     else:
         sft = "SFT with lerobot-train on the demonstrations of every training scene"
     name = (

@@ -7,6 +7,8 @@ from lerobot_roboscape.pipeline.methods import ALL_SCENES_PROTOCOL, PROTOCOLS, m
 
 DEMOS_DIR = "datasets/roboscape_demos"
 DEMOS_REPO_ID = "local/roboscape_demos"
+INITIAL_SCENE_DIR = "datasets/roboscape_sft_initial"  # the paper protocol's SFT demonstrations
+INITIAL_SCENE_REPO_ID = "local/roboscape_sft_initial"
 HELDOUT_DIR = "datasets/roboscape_heldout"
 VALIDATION_DIR = "datasets/roboscape_validation"
 CONTROL_DIR = "datasets/roboscape_controllability"

@@ -4,7 +4,7 @@ interval that straddles 0, a method not run); the differences' intervals; the re
 import pytest
 
 from lerobot_roboscape.evaluation.success_rate import summarise
-from lerobot_roboscape.pipeline.config import parse_config, scale_config
+from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
@@ -126,6 +126,8 @@ def test_regenerate_command_gives_back_the_same_settings():
         ExperimentConfig(levers=["gravity"])
     with pytest.raises(InvalidInputError, match="--curve_points must be >= 2"):
         ExperimentConfig(curve_points=1)
+    with pytest.raises(InvalidInputError, match="--data.initial_scene_episodes must be >= 0, got -1"):
+        PipelineConfig(data=DataConfig(initial_scene_episodes=-1))
 
 
 def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_curve():

@@ -19,7 +19,8 @@ def names(config_class) -> set[str]:
 
 def test_every_setting_carries_its_stage_s_own_name():
     """A field the pipeline hands to a stage is named as that stage names it (no `wm_steps` for `train.steps`)."""
-    pipeline_own = {"explore_episodes_per_scene", "heldout_scenes", "report_episodes"}  # no stage has these
+    # no stage has these
+    pipeline_own = {"explore_episodes_per_scene", "initial_scene_episodes", "heldout_scenes", "report_episodes"}
     assert names(config.DataConfig) - pipeline_own <= names(CollectConfig)
     assert names(config.PPOSettings) <= names(PPOConfig)
     assert names(config.EnvSettings) <= names(RoboscapeWorldModelEnvConfig)

@@ -176,8 +176,11 @@ def test_demo_smoke_scale_end_to_end(demo, experiment, capsys):
 
 def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo, experiment, tmp_path):
     """--world_model_runs: the first run packs the runs in the world model and does the simulator's part; the runs,
-    made elsewhere (here on the CPU, with the demo's models), are taken back by the same command, which goes on."""
-    from lerobot_roboscape.pipeline.layout import rl_dir
+    made elsewhere (here on the CPU, with the demo's models), are taken back by the same command, which goes on.
+    SFT imitates demonstrations collected in the initial scene for it (--pipeline.data.initial_scene_episodes)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, rl_dir, sft_dir
     from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, RL_WORLD_MODEL_KL
     from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
 
@@ -186,6 +189,7 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
         "--protocol=paper",
         "--pipeline.scale=smoke",
         f"--pipeline.output_dir={run}",
+        "--pipeline.data.initial_scene_episodes=1",
         "--levers=[kl]",
         "--curve_episodes=1",
         "--replay_episodes=1",
@@ -198,6 +202,10 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     assert pack == tmp_path / "pack" and not (tmp_path / "claim").exists()
     protocol = run / "protocol_paper"
     assert (protocol / rl_dir("roboscape_mlp", RL_MANISKILL) / STAGE_FILE).is_file()  # done here meanwhile
+    initial = LeRobotDatasetMetadata(INITIAL_SCENE_REPO_ID, root=run / INITIAL_SCENE_DIR)
+    assert initial.total_episodes == 1  # the one push attempt there, a success
+    sft_settings = json.loads((protocol / sft_dir("roboscape_mlp") / STAGE_FILE).read_text())["settings"]
+    assert f"--dataset.root={run / INITIAL_SCENE_DIR}" in sft_settings and "--dataset.episodes=[0]" in sft_settings
     assert not (protocol / rl_dir("roboscape_mlp", RL_WORLD_MODEL)).exists()
 
     models = {c: str(run / f"world_model_{c}" / "pretrained_model") for c in ("action", "text")}
