@@ -15,7 +15,7 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
-from lerobot_roboscape.tasks import TASK_FAMILIES
+from lerobot_roboscape.tasks import TASK_FAMILIES, select_scenes
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
 from roboscape_core.errors import InvalidInputError, OutputExistsError
@@ -38,6 +38,8 @@ class EvalConfig:
     policy_path: the policy (a pretrained_model directory or a Hub repo id).
     families: task families (empty: all four).
     splits: "ind" and/or "ood".
+    scenes: scene ids each split is narrowed to (empty: all its scenes). The paper's IND is the scene the policy
+        learned with new initial states: `--splits=[ind] --scenes=[red_cube-plate-wooden]`.
     episodes: episodes per (split, family).
     batch_size: parallel episodes (families are dealt to them in turn).
     episode_length: steps before an episode counts as failed; null: per task family, its registered time limit
@@ -57,6 +59,7 @@ class EvalConfig:
     policy_path: str = ""
     families: list[str] = field(default_factory=list)
     splits: list[str] = field(default_factory=lambda: ["ind", "ood"])
+    scenes: list[str] = field(default_factory=list)
     episodes: int = 20
     batch_size: int = 8
     episode_length: int | None = None
@@ -78,6 +81,10 @@ class EvalConfig:
             raise InvalidInputError(f"unknown task families {sorted(unknown)}; known: {list(TASK_FAMILIES)}")
         if not set(self.splits) <= {"ind", "ood"} or not self.splits:
             raise InvalidInputError(f"splits must be among 'ind', 'ood', got {self.splits}")
+        if self.scenes and (
+            unknown := set(self.scenes) - {s.id for split in self.splits for s in select_scenes(split)}
+        ):
+            raise InvalidInputError(f"scenes {sorted(unknown)} are not scenes of the splits {self.splits}")
         self.output_dir = Path(self.output_dir)
 
 
@@ -204,6 +211,7 @@ def eval_env_config(cfg: EvalConfig, split: str, image_size: int) -> RoboscapeMa
     return RoboscapeManiSkillEnvConfig(
         families=list(cfg.families) or list(TASK_FAMILIES),
         split=split,
+        scenes=list(cfg.scenes),
         image_size=image_size,
         episode_length=cfg.episode_length,
         terminate_on_success=True,

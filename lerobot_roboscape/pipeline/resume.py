@@ -50,11 +50,16 @@ _began: dict[Path, float] = {}  # when each stage folder's current run started
 
 
 def is_done(folder: Path, settings, fresh: bool) -> bool:
-    """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped)."""
+    """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped). A
+    setting added to the stage's config after it ran counts as unchanged while empty (None, [], 0 or false): new
+    options leave the old behaviour at those defaults, and a finished evaluation or training stays finished."""
     marker = Path(folder) / STAGE_FILE
     if fresh or not marker.is_file():
         return False
-    return json.loads(marker.read_text())["settings"] == _jsonable(settings)
+    recorded, now = json.loads(marker.read_text())["settings"], _jsonable(settings)
+    if isinstance(recorded, dict) and isinstance(now, dict):
+        now = {k: v for k, v in now.items() if k in recorded or v not in (None, [], 0)}  # 0 == False
+    return recorded == now
 
 
 def start(folder: Path) -> Path:

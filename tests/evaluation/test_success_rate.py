@@ -8,12 +8,14 @@ from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 from lerobot_roboscape.evaluation.success_rate import (
     EvalConfig,
     difference_interval,
+    eval_env_config,
     paired_difference_interval,
     run_episodes,
     summarise,
     wilson_interval,
 )
 from lerobot_roboscape.rl.policy_loading import PolicyIO
+from lerobot_roboscape.tasks import select_scenes
 from roboscape_core.errors import InvalidInputError
 from tests.rl.reach_env import TARGET, ReachEnv
 
@@ -102,6 +104,15 @@ def test_run_episodes_counts_what_the_env_reports(constant_action, expected):
     success, frames = run_episodes(ReachEnv(32, 3, num_envs=5), policy, io, seed=0, record=True)
     assert success.tolist() == [expected] * 5
     assert len(frames) == 4  # the first frame and one per step
+
+
+def test_an_evaluation_narrowed_to_a_scene_plays_it_alone():
+    initial = select_scenes("ind")[0].id
+    env = eval_env_config(EvalConfig(policy_path="x", splits=["ind"], scenes=[initial]), "ind", 64)
+    assert [s.id for s in select_scenes(env.split, env.scenes)] == [initial]  # as the env selects its scenes
+    held_out = select_scenes("ood")[0].id
+    with pytest.raises(InvalidInputError, match=rf"scenes \['{held_out}'\] are not scenes of the splits \['ind'\]"):
+        EvalConfig(policy_path="x", splits=["ind"], scenes=[held_out])
 
 
 def test_unknown_family_is_refused():

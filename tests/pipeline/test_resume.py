@@ -2,11 +2,12 @@
 interrupted training stage resumes only into a run of the same settings."""
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import pytest
 
 from lerobot_roboscape.pipeline import resume
+from lerobot_roboscape.tasks import select_scenes
 
 
 @dataclass
@@ -27,6 +28,18 @@ def test_a_stage_is_done_only_with_the_same_settings(tmp_path, monkeypatch):
     assert resume.stage_seconds(folder) == pytest.approx(7.5)
     assert not resume.is_done(folder, Settings(11), fresh=False)  # changed settings: the stage runs again
     assert not resume.is_done(folder, Settings(10), fresh=True)
+
+
+def test_a_setting_added_since_a_stage_ran_leaves_it_done_while_empty(tmp_path):
+    from lerobot_roboscape.evaluation.success_rate import EvalConfig
+
+    folder, cfg = tmp_path / "eval", EvalConfig(policy_path="p", splits=["ind"], output_dir=tmp_path / "eval")
+    before = {k: v for k, v in resume._jsonable(cfg).items() if k != "scenes"}
+    resume.start(folder).mkdir()
+    resume.mark_done(folder, before)  # recorded before EvalConfig had `scenes`
+    assert resume.is_done(folder, cfg, fresh=False)
+    assert not resume.is_done(folder, replace(cfg, scenes=[select_scenes("ind")[0].id]), fresh=False)
+    assert not resume.is_done(folder, replace(cfg, episodes=21), fresh=False)
 
 
 def test_an_interrupted_stage_resumes_only_into_the_same_settings(tmp_path):
