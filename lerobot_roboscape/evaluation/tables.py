@@ -1,5 +1,5 @@
 """The paper's tables: success rates of each policy after SFT, after PPO in ManiSkill and after PPO in the world
-model, IND and OOD, per task family (Table 1), as markdown with 95% Wilson intervals and as a bar chart. The
+model, per split and task family (Table 1), as markdown with 95% Wilson intervals and as a bar chart. The
 pipeline (`roboscape-demo`, `roboscape-experiment`) fills them."""
 
 import json
@@ -14,6 +14,26 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 TABLES_JSON = "tables.json"
+# A table's splits, in the order of its columns. "scene": the one scene the policy learned, with new initial states
+# (the paper's IND under its protocol, section 8.1); "ind": the training scenes with new initial states; "ood": the
+# held-out scenes.
+SCENE = "scene"
+SPLITS = (SCENE, "ind", "ood")
+SPLIT_NAMES = {SCENE: "Scene", "ind": "IND", "ood": "OOD"}
+
+
+def table_splits(results: dict) -> list[str]:
+    """The splits every method of `results` ({policy: {method: {split: cells}}}) was evaluated in, in column order."""
+    held = [set(splits) for methods in results.values() for splits in methods.values()]
+    return [split for split in SPLITS if all(split in h for h in held)]
+
+
+def paper_split(split: str, splits: list[str]) -> str | None:
+    """The paper's column a split of ours sits beside: its IND is the scene the policy learned (section 8.1), so
+    beside our scene column when the table has one, else beside our IND."""
+    if split == "ind" and SCENE in splits:
+        return None
+    return "ind" if split == SCENE else split
 
 
 def read_table(folder: Path) -> dict:
@@ -67,14 +87,18 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
 
 
 def format_table(results: dict, families: list[str], title: str, with_paper: bool = False) -> str:
-    """The paper's layout: rows policy x method, columns IND families then OOD families: success % [95% CI];
-    `with_paper`: under each of our rows, the paper's number for the same policy kind and method (Table 1)."""
+    """The paper's layout: rows policy x method, columns each split's families (scene, IND, OOD, those evaluated):
+    success % [95% CI]; `with_paper`: under each of our rows, the paper's number for the same policy kind and
+    method (Table 1), "-" under a split the paper has none of."""
+    splits = table_splits(results)
     return render_report(
         "table1.md",
         results=results,
         families=families,
         names=[SHORT.get(f, f) for f in families],
-        splits=("ind", "ood"),
+        splits=splits,
+        split_names=SPLIT_NAMES,
+        paper_splits={split: paper_split(split, splits) for split in splits},
         title=title,
         episodes=_episodes(results),
         with_paper=with_paper,
@@ -96,9 +120,10 @@ def _episodes(results: dict) -> str:
 
 
 def bar_chart(results: dict, families: list[str], path: Path, title: str) -> None:
-    """Success over all the families' episodes (each split's "all" cell), IND and OOD, one pair of bars per
-    (policy, method), with the 95% Wilson intervals as error bars."""
-    labels, bars = [], {"ind": [], "ood": []}
+    """Success over all the families' episodes (each split's "all" cell), one bar per split and (policy, method),
+    with the 95% Wilson intervals as error bars."""
+    splits = table_splits(results)
+    labels, bars = [], {split: [] for split in splits}
     for policy, methods in results.items():
         for method, splits in methods.items():
             labels.append(f"{policy}\n{method}")
@@ -107,10 +132,12 @@ def bar_chart(results: dict, families: list[str], path: Path, title: str) -> Non
                 bars[split].append((100 * cell["success_rate"], 100 * np.array(cell["ci95"])))
     x = np.arange(len(labels))
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(labels)), 3.5))
-    for offset, split in ((-0.2, "ind"), (0.2, "ood")):
+    width = 0.8 / len(splits)
+    for k, split in enumerate(splits):
         rates = np.array([r for r, _ in bars[split]])
         spans = np.array([[r - ci[0], ci[1] - r] for r, ci in bars[split]]).T
-        ax.bar(x + offset, rates, 0.4, yerr=spans, capsize=3, label=split.upper())
+        offset = (k - (len(splits) - 1) / 2) * width
+        ax.bar(x + offset, rates, width, yerr=spans, capsize=3, label=SPLIT_NAMES[split])
     ax.set_xticks(x, labels, fontsize=7)
     ax.set_ylabel("success rate (%)")
     ax.set_ylim(0, 100)

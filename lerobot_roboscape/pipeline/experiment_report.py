@@ -15,7 +15,14 @@ import numpy as np
 
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
 from lerobot_roboscape.evaluation.success_rate import difference_interval
-from lerobot_roboscape.evaluation.tables import SHORT, TABLES_JSON, format_table, write_table
+from lerobot_roboscape.evaluation.tables import (
+    SHORT,
+    SPLIT_NAMES,
+    TABLES_JSON,
+    format_table,
+    table_splits,
+    write_table,
+)
 from lerobot_roboscape.pipeline.config import as_flag, settings_flags
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
@@ -60,7 +67,7 @@ def differences(table: dict, families: list[str]) -> list[dict]:
         for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
             if other not in methods:
                 continue
-            for split in ("ind", "ood"):
+            for split in table_splits(table):
                 for family in [*families, "all"]:
                     ours, theirs = wm[split][family], methods[other][split][family]
                     d, low, high = difference_interval(ours, theirs)
@@ -312,7 +319,15 @@ def protocol(cfg, elsewhere: dict | None = None) -> str:
         + f". Success is measured in the simulator, {p.eval.episodes} episodes per (split, family) on the same "
         "initial states for every method; episodes end at success or after "
         + (f"{length} steps" if length else "the family's horizon")
-        + ". IND: the training scenes with new initial states; OOD: the held-out scenes (unseen objects and "
+        + ". "
+        + (
+            f"Scene: the initial scene `{initial_scene()}` with new initial states (the paper's IND, section 8.1: "
+            '"train the policy in one environment and evaluate it in the same environment but with different initial '
+            'states"); '
+            if cfg.protocol == PAPER_PROTOCOL
+            else ""
+        )
+        + "IND: the training scenes with new initial states; OOD: the held-out scenes (unseen objects and "
         "object-container pairs). Differences are our success minus theirs, with Newcombe's 95% interval for "
         "independent proportions and, since every method ran from the same initial states, his interval for "
         "paired proportions beside it (pairs of episodes from one initial state), which decides the targets."
@@ -359,10 +374,10 @@ def markdown(cfg, summary: dict) -> str:
     p, table = cfg.pipeline, summary["table"]
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
     difference_rows = [
-        (other, split.upper(), [by[policy, other, split, f] for f in [*p.data.families, "all"]])
+        (other, SPLIT_NAMES[split], [by[policy, other, split, f] for f in [*p.data.families, "all"]])
         for policy in table
         for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL)
-        for split in ("ind", "ood")
+        for split in table_splits(table)
         if (policy, other, split, "all") in by
     ]
     ablation_rows = []

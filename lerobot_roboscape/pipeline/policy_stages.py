@@ -20,6 +20,7 @@ from lerobot_roboscape.evaluation.success_rate import (
     markdown,
     read_cells,
 )
+from lerobot_roboscape.evaluation.tables import SCENE
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
@@ -202,12 +203,15 @@ def eval_job(
     episodes: int | None = None,
     seed: int | None = None,
     videos: int = 2,
+    scenes: list[str] | None = None,
 ) -> EvalConfig:
-    """The simulator evaluation of one checkpoint: `episodes` (default: Table 1's) per (split, family)."""
+    """The simulator evaluation of one checkpoint: `episodes` (default: Table 1's) per (split, family), in
+    `scenes` of the splits only when given."""
     return EvalConfig(
         policy_path=str(checkpoint),
         families=cfg.data.families,
         splits=list(splits),
+        scenes=list(scenes or []),
         episodes=episodes or cfg.eval.episodes,
         batch_size=EVAL_BATCH_SIZE,
         episode_length=cfg.eval.episode_length or cfg.env.episode_length,
@@ -239,22 +243,32 @@ def run_evaluations(cfg: PipelineConfig, jobs: list[EvalConfig]) -> None:
 
 
 def simulator_eval(
-    cfg: PipelineConfig, out: Path, demonstrations: DatasetConfig, checkpoints: dict[str, dict[str, Path]]
+    cfg: PipelineConfig,
+    out: Path,
+    demonstrations: DatasetConfig,
+    checkpoints: dict[str, dict[str, Path]],
+    scene: str | None = None,
 ) -> dict:
-    """Success of every checkpoint in the simulator, IND and OOD (the reward ablation's and the levers' OOD only;
-    95% Wilson intervals), one evaluation per (checkpoint, split). Returns
-    {policy: {method: {split: {family: cell}}}}."""
+    """Success of every checkpoint in the simulator, IND and OOD, and in `scene` (a training scene, new initial
+    states: split "scene") when given (the reward ablation's and the levers' OOD only; 95% Wilson intervals), one
+    evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
     jobs = {}
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            for split in ("ood",) if method in OOD_ONLY else ("ind", "ood"):
+            splits = ("ood",) if method in OOD_ONLY else (SCENE, "ind", "ood") if scene else ("ind", "ood")
+            for split in splits:
                 jobs[name, method, split] = eval_job(
-                    cfg, demonstrations, checkpoint, (split,), out / eval_dir(name, method) / split
+                    cfg,
+                    demonstrations,
+                    checkpoint,
+                    ("ind",) if split == SCENE else (split,),
+                    out / eval_dir(name, method) / split,
+                    scenes=[scene] if split == SCENE else None,
                 )
     run_evaluations(cfg, list(jobs.values()))
     results = {}
     for (name, method, split), job in jobs.items():
-        cells = read_cells(job.output_dir, split)
+        cells = read_cells(job.output_dir, job.splits[0])
         results.setdefault(name, {}).setdefault(method, {})[split] = cells
     for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
         for method, splits in methods.items():

@@ -4,6 +4,7 @@ interval that straddles 0, a method not run); the differences' intervals; the re
 import pytest
 
 from lerobot_roboscape.evaluation.success_rate import summarise
+from lerobot_roboscape.evaluation.tables import format_table, table_splits
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown
@@ -182,3 +183,28 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     assert "The all-scene protocol" in text and "Guards against gaming" not in text
     assert "### The other protocol on the same world models (`--protocol=paper`)" in text
     assert "| mlp | RL w. World Model | 60 [46, 72] (26) | 10 [4, 21] (17) |" in text.split("### The other")[1]
+
+
+def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_own_rows():
+    # Under the paper's protocol the table has the scene SFT learned (new initial states) beside IND and OOD.
+    results = table(40, 10, 30, 25, 30)
+    for method, first in ((RL_WORLD_MODEL, 0), (SFT, 25), (RL_MANISKILL_ONE_SCENE, 10)):
+        scene = cell({RL_WORLD_MODEL: 45, SFT: 30, RL_MANISKILL_ONE_SCENE: 35}[method], first=first)
+        results["mlp"][method]["scene"] = {"push": scene, "all": scene}
+    assert table_splits(results) == ["scene", "ind", "ood"]
+    text = format_table({"roboscape_mlp": results["mlp"]}, ["push"], "t", with_paper=True)
+    header, _, ours, paper = text.splitlines()[2:6]
+    assert header == "| Policy | Training method | Scene Push | IND Push | OOD Push |"
+    assert ours.startswith(f"| roboscape_mlp | {RL_WORLD_MODEL} | 90 [")
+    # The paper's IND is its initial scene's (section 8.1): beside our scene column; it has no all-scene IND.
+    assert paper == f"| *paper: MLP* | *{RL_WORLD_MODEL}* | *98.7* | - | *87.3* |"
+    targets = claim_targets(results, ["push"])
+    assert targets["mlp, Scene Push: PPO in WM, within SFT's interval or above"]["met"]
+    assert targets["mlp, IND Push: PPO in WM, within SFT's interval or above"]["met"]
+    rows = differences(results, ["push"])
+    row = next(r for r in rows if (r["against"], r["split"], r["family"]) == (SFT, "scene", "all"))
+    assert row["difference"] == pytest.approx(0.3)
+    # A method evaluated without the scene (a table of the all-scene protocol) leaves the column out.
+    del results["mlp"][SFT]["scene"]
+    assert table_splits(results) == ["ind", "ood"]
+    assert "Scene" not in format_table(results, ["push"], "t")

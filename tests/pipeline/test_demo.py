@@ -180,8 +180,8 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     SFT imitates demonstrations collected in the initial scene for it (--pipeline.data.initial_scene_episodes)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, rl_dir, sft_dir
-    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, RL_WORLD_MODEL_KL
+    from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, eval_dir, rl_dir, sft_dir
+    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT, initial_scene
     from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
 
     run = demo[0] / "demo"
@@ -215,3 +215,8 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     assert claim["world_model_runs"]["folder"] == str(tmp_path / "runs") and "--world_model_runs" in report.read_text()
     assert {RL_WORLD_MODEL, RL_WORLD_MODEL_KL, RL_MANISKILL} <= {r["method"] for r in claim["ppo_runs"]}
     assert claim["replays"] and claim["lever_curves"][RL_WORLD_MODEL_KL]
+    # The paper's IND, the scene SFT learned with new initial states, is a column of its own for every method.
+    assert all(list(splits) == ["scene", "ind", "ood"] for splits in claim["table"]["roboscape_mlp"].values())
+    scene_eval = json.loads((protocol / eval_dir("roboscape_mlp", SFT) / "scene" / STAGE_FILE).read_text())
+    assert scene_eval["settings"]["scenes"] == [initial_scene()] and scene_eval["settings"]["splits"] == ["ind"]
+    assert "| Policy | Training method | Scene " in report.read_text()
