@@ -86,10 +86,13 @@ def write_table(results: dict, families: list[str], output_dir: Path, title: str
     bar_chart(results, families, output_dir / "tables.png", title)
 
 
-def format_table(results: dict, families: list[str], title: str, with_paper: bool = False) -> str:
+def format_table(
+    results: dict, families: list[str], title: str, with_paper: bool = False, paper_methods: dict | None = None
+) -> str:
     """The paper's layout: rows policy x method, columns each split's families (scene, IND, OOD, those evaluated):
     success % [95% CI]; `with_paper`: under each of our rows, the paper's number for the same policy kind and
-    method (Table 1), "-" under a split the paper has none of."""
+    method (Table 1), "-" under a split the paper has none of. `paper_methods`: {our method: the paper's row
+    beside it, or None for none}, where the two name them differently."""
     splits = table_splits(results)
     return render_report(
         "table1.md",
@@ -104,6 +107,7 @@ def format_table(results: dict, families: list[str], title: str, with_paper: boo
         with_paper=with_paper,
         paper_table=PAPER_TABLE_1,
         paper_policy=PAPER_POLICY,
+        paper_methods=paper_methods or {},
     )
 
 
@@ -125,10 +129,10 @@ def bar_chart(results: dict, families: list[str], path: Path, title: str) -> Non
     splits = table_splits(results)
     labels, bars = [], {split: [] for split in splits}
     for policy, methods in results.items():
-        for method, splits in methods.items():
+        for method, cells in methods.items():
             labels.append(f"{policy}\n{method}")
             for split in bars:
-                cell = splits[split]["all"]
+                cell = cells[split]["all"]
                 bars[split].append((100 * cell["success_rate"], 100 * np.array(cell["ci95"])))
     x = np.arange(len(labels))
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(labels)), 3.5))

@@ -7,8 +7,14 @@ from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.evaluation.tables import format_table, table_splits
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown
-from lerobot_roboscape.pipeline.methods import RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT
+from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown, paper_methods
+from lerobot_roboscape.pipeline.methods import (
+    RL_MANISKILL,
+    RL_MANISKILL_ONE_SCENE,
+    RL_WORLD_MODEL,
+    RL_WORLD_MODEL_KL,
+    SFT,
+)
 from lerobot_roboscape.pipeline.methods import RL_WORLD_MODEL_ENSEMBLE as ENSEMBLE
 from lerobot_roboscape.pipeline.targets import claim_targets
 from roboscape_core.errors import InvalidInputError
@@ -198,6 +204,12 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
     assert ours.startswith(f"| roboscape_mlp | {RL_WORLD_MODEL} | 90 [")
     # The paper's IND is its initial scene's (section 8.1): beside our scene column; it has no all-scene IND.
     assert paper == f"| *paper: MLP* | *{RL_WORLD_MODEL}* | *98.7* | - | *87.3* |"
+    # Its RL w. ManiSkill ran in one scene: beside our run there, none beside our run over every training scene.
+    rows = {"roboscape_mlp": results["mlp"] | {RL_MANISKILL: results["mlp"][RL_MANISKILL_ONE_SCENE]}}
+    lines = format_table(rows, ["push"], "t", True, paper_methods(rows)).splitlines()
+    one_scene = lines.index(next(line for line in lines if f"| {RL_MANISKILL_ONE_SCENE} |" in line))
+    assert lines[one_scene + 1] == f"| *paper: MLP* | *{RL_MANISKILL}* | *98.5* | - | *15.6* |"
+    assert lines[-1].startswith(f"| roboscape_mlp | {RL_MANISKILL} |")
     targets = claim_targets(results, ["push"])
     assert targets["mlp, Scene Push: PPO in WM, within SFT's interval or above"]["met"]
     assert targets["mlp, IND Push: PPO in WM, within SFT's interval or above"]["met"]
