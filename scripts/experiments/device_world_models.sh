@@ -38,6 +38,9 @@
 # 8 files of 16 MiB: a model's weights in bf16, cut in pieces, and a tarball of its logs and curves; or (claim) the
 # PPO runs made in the models, which stay there.
 # WM=bench runs a dry run's models at the bench preset (the gpu preset trains at ~1 step/min on 2 CPU cores).
+# SLACK=S adds S seconds to each model's time limit beyond its training budget: on the CPU a dry run's held-out
+# evaluation and done tuning after training take minutes (measured 2026-11-28: 150 s were too few for the action
+# model; SLACK=400 is the dry run's).
 set -uo pipefail
 mode=$1; shift
 G=$(pwd)/.gpu
@@ -219,9 +222,11 @@ fi
 D=$G/data
 common=(--tokenizer=$D/tokenizer --wm.type=${WM:-gpu} --dataset.repo_id=local/roboscape_demos
         --token_cache=$(cat $W/caches/demos.path) --train.mixed_precision=bf16 --train.log_freq=50)
-action=(--wm.control=action --exploration.repo_id=local/roboscape_explore --exploration_share=0.25
-        --exploration_token_cache=$(cat $W/caches/explore.path) --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors]
-        --done_tuning_episodes=32)
+member=(--wm.control=action --exploration.repo_id=local/roboscape_explore --exploration_share=0.25
+        --exploration_token_cache=$(cat $W/caches/explore.path))
+# The action model is read on held-out starts as it trains; the ensemble's members (the same data) are not: their
+# curve serves nothing, and on the CPU its generation outlasted their time limit (dry run, 2026-11-28).
+action=("${member[@]}" --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors] --done_tuning_episodes=32)
 # fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/CONTROL (log: $OUT/CONTROL.log), for
 # BUDGET_S seconds if given (--train.time_budget_s: its steps fit the time, whatever the GPU's pace); prints the
 # model, the final one or the last checkpoint of a run the limit stopped.
@@ -277,10 +282,10 @@ PY
       [ -f $W/claim_models ] || { echo "PHASE=runs: no $W/claim_models; call PHASE=models first, on a warm machine" >&2; exit 2; }
       { read -r action_model; read -r text_model; read -r list; } < $W/claim_models
     else
-      action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 )) 500 $A_S) || exit 1
+      action_model=$(fit action 1000000 $BS $LR $(( A_S + 150 + ${SLACK:-0} )) 500 $A_S) || exit 1
       # Then the text model and the ensemble's members (the action model with its top redrawn, trained alone) side by
       # side: their budgets are wall-clock, and one 30M model leaves the GPU room.
-      fit text 1000000 $BS $LR $(( T_S + 90 )) 500 $T_S > $W/text.path &
+      fit text 1000000 $BS $LR $(( T_S + 90 + ${SLACK:-0} )) 500 $T_S > $W/text.path &
       read -r N R SHARE <<< "$($PY -c "import json; p=json.load(open('$C/plan.json')); e=p.get('ensemble') or {}; \
 print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else 0, e.get('retrain_blocks'), e.get('steps_share', 1))")"
       members=()
@@ -288,7 +293,7 @@ print(e.get('members', 0) if any(r['ensemble'] for r in p['runs'].values()) else
         budget=$($PY -c "print(max(round($A_S * $SHARE), 1))")
         top=(); [ "$R" != None ] && top=(--init_from=$action_model --retrain_blocks=$R)
         for seed in $(seq 1 $N); do
-          timeout $(( budget + 120 )) $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${action[@]}" "${top[@]}" \
+          timeout $(( budget + 120 + ${SLACK:-0} )) $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${member[@]}" "${top[@]}" \
             --train.seed=$seed --train.steps=1000000 --train.time_budget_s=$budget --train.batch_size=$BS \
             --train.lr=$LR --train.save_freq=1000000 --done_tuning_steps=0 --output_dir=$W/member$seed 2>&1 \
             | keep > $W/member$seed.log &
