@@ -252,11 +252,10 @@ def simulator_eval(
     """Success of every checkpoint in the simulator, IND and OOD, and in `scene` (a training scene, new initial
     states: split "scene") when given (the reward ablation's and the levers' OOD only; 95% Wilson intervals), one
     evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
-    jobs = {}
+    jobs, table_splits = {}, (SCENE, "ind", "ood") if scene else ("ind", "ood")
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            splits = ("ood",) if method in OOD_ONLY else (SCENE, "ind", "ood") if scene else ("ind", "ood")
-            for split in splits:
+            for split in ("ood",) if method in OOD_ONLY else table_splits:
                 jobs[name, method, split] = eval_job(
                     cfg,
                     demonstrations,
