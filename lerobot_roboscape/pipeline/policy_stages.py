@@ -20,7 +20,7 @@ from lerobot_roboscape.evaluation.success_rate import (
     markdown,
     read_cells,
 )
-from lerobot_roboscape.evaluation.tables import SCENE
+from lerobot_roboscape.evaluation.tables import SCENE, SPLITS
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
@@ -252,10 +252,10 @@ def simulator_eval(
     """Success of every checkpoint in the simulator, IND and OOD, and in `scene` (a training scene, new initial
     states: split "scene") when given (the reward ablation's and the levers' OOD only; 95% Wilson intervals), one
     evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
-    jobs, table_splits = {}, (SCENE, "ind", "ood") if scene else ("ind", "ood")
+    jobs, splits = {}, [split for split in SPLITS if scene or split != SCENE]
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            for split in ("ood",) if method in OOD_ONLY else table_splits:
+            for split in ("ood",) if method in OOD_ONLY else splits:
                 jobs[name, method, split] = eval_job(
                     cfg,
                     demonstrations,
