@@ -11,6 +11,7 @@ STATE_NAMES = (
     + ["tcp_x", "tcp_y", "tcp_z", "tcp_qw", "tcp_qx", "tcp_qy", "tcp_qz"]
 )
 STATE_DIM = len(STATE_NAMES)
+TCP_POSITION = slice(STATE_NAMES.index("tcp_x"), STATE_NAMES.index("tcp_z") + 1)  # metres, in `observation.state`
 # `action` of the pd_ee_delta_pose controller, each in [-1, 1]: position and rotation deltas, gripper.
 ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 CONTROL_FREQ = 20  # Hz, ManiSkill's tabletop default: the fps of datasets, envs and videos

@@ -79,6 +79,7 @@ class EpisodeData:
     task: str
     images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
     action: np.ndarray  # (T, action_dim) float32
+    state: np.ndarray  # (T, state_dim) float32: `observation.state` of frame t
     done_label: np.ndarray  # (T,) float32: 1 where the task is accomplished in frame t
     reward_label: np.ndarray  # (T,) float32: the rule-based reward of frame t (0 when the dataset has none)
     info: dict  # the roboscape per-episode facts (family, scene, split, optimal, ...) when recorded
@@ -109,6 +110,7 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
         task=meta["tasks"][0],
         images=images,
         action=np.asarray(rows[ACTION], dtype=np.float32),
+        state=np.asarray(rows[OBS_STATE], dtype=np.float32),
         done_label=done_label,
         reward_label=reward_label,
         info=info,
@@ -119,6 +121,17 @@ def read_frames(dataset: LeRobotDataset, episode_index: int, frames: list[int]) 
     """Selected frames of one episode (negative indices count from its end): camera -> (k, H, W, 3) uint8."""
     length = dataset.meta.episodes[episode_index]["length"]
     return _decode_cameras(dataset, episode_index, [(f % length) / dataset.fps for f in frames])
+
+
+def read_states(dataset: LeRobotDataset, episode_index: int, frames: list[int]) -> np.ndarray:
+    """`observation.state` (k, state_dim) of selected frames of one episode (negative indices count from its end),
+    without decoding its videos."""
+    meta = dataset.meta.episodes[episode_index]
+    rows = dataset.hf_dataset.select(
+        range(*_local_range(dataset, meta["dataset_from_index"], meta["dataset_to_index"]))
+    )
+    states = np.asarray(rows.select_columns([OBS_STATE])[OBS_STATE], dtype=np.float32)
+    return states[[f % len(states) for f in frames]]
 
 
 def _decode_cameras(dataset: LeRobotDataset, episode_index: int, timestamps: list[float]) -> dict[str, np.ndarray]:

@@ -1,7 +1,7 @@
-"""Per-frame masks of the task object and the container, stored beside a LeRobot dataset.
+"""Per-frame masks of the task object, the container and the robot, stored beside a LeRobot dataset.
 
 The simulator renders every camera's per-actor segmentation; collection (`--segmentation=true`) keeps only what the
-reports need, the task object and the container, as one label image per frame and camera:
+reports need, the task object, the container and the robot's links, as one label image per frame and camera:
 
     <dataset root>/segmentation/<camera>/episode_<index:06d>.npy    (T, H, W) uint8, frame-aligned with the videos
     <dataset root>/meta/roboscape_segmentation.json                  {"labels": {"0": "background", ...}, ...}
@@ -17,16 +17,19 @@ import numpy as np
 
 from roboscape_core.errors import InvalidInputError
 
-BACKGROUND, OBJECT, CONTAINER = 0, 1, 2
-LABELS = {BACKGROUND: "background", OBJECT: "object", CONTAINER: "container"}
+BACKGROUND, OBJECT, CONTAINER, ROBOT = 0, 1, 2, 3
+LABELS = {BACKGROUND: "background", OBJECT: "object", CONTAINER: "container", ROBOT: "robot"}
 SEGMENTATION_DIR = "segmentation"
 SEGMENTATION_META = "meta/roboscape_segmentation.json"
 LAYOUT = f"{SEGMENTATION_DIR}/<camera>/episode_<index:06d>.npy: (T, H, W) uint8 labels, frame-aligned with the videos"
 
 
-def label_image(actor_ids: np.ndarray, object_id: int, container_id: int) -> np.ndarray:
+def label_image(
+    actor_ids: np.ndarray, object_id: int, container_id: int, robot_ids: tuple[int, ...] = ()
+) -> np.ndarray:
     """The simulator's per-actor ids (H, W) -> (H, W) uint8 labels."""
     labels = np.full(actor_ids.shape, BACKGROUND, np.uint8)
+    labels[np.isin(actor_ids, robot_ids)] = ROBOT
     labels[actor_ids == container_id] = CONTAINER
     labels[actor_ids == object_id] = OBJECT
     return labels

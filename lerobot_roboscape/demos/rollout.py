@@ -27,7 +27,9 @@ class EpisodeJob:
     kind: str  # of the plan: one of planner.KINDS (demonstrations) or exploration.EXPLORATORY_KINDS
     image_size: int
     light_wrist_camera: bool = True  # render the wrist camera's body with the light mesh (tasks/wrist_camera_mesh.py)
-    segmentation: bool = False  # also record the object's and the container's masks (dataset/segmentation.py)
+    segmentation: bool = (
+        False  # also record the object's, the container's and the robot's masks (dataset/segmentation.py)
+    )
 
 
 def observation_state(obs: dict) -> np.ndarray:
@@ -42,10 +44,13 @@ def observation_images(obs: dict) -> dict[str, np.ndarray]:
 
 
 def observation_masks(obs: dict, task_env: RoboscapeTabletopEnv) -> dict[str, np.ndarray]:
-    """camera -> (H, W) labels of the object and the container, from an observation with segmentation."""
+    """camera -> (H, W) labels of the object, the container and the robot, from an observation with segmentation."""
     object_id, container_id = int(task_env.obj.per_scene_id[0]), int(task_env.container.per_scene_id[0])
+    robot_ids = tuple(int(link.per_scene_id[0]) for link in task_env.agent.robot.links)
     return {
-        CAMERA_NAMES[uid]: label_image(data["segmentation"][0, ..., 0].cpu().numpy(), object_id, container_id)
+        CAMERA_NAMES[uid]: label_image(
+            data["segmentation"][0, ..., 0].cpu().numpy(), object_id, container_id, robot_ids
+        )
         for uid, data in obs["sensor_data"].items()
     }
 

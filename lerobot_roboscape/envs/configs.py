@@ -105,6 +105,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             (docs/results/world_model/control_levers.md).
         cuda_graphs: on a CUDA device, replay each frame's generation as a CUDA graph (one launch a frame instead
             of hundreds: world_model/rollout.py); off, or on a CPU, every kernel is launched as it comes.
+        include_state: also return the robot's state the action model carries (`agent_pos` -> observation.state,
+            as roboscape_maniskill's): real at a start, the model's prediction after. The MLP and OpenVLA read
+            images only by default (the paper's).
         seed: seed of the start sampling when reset() gets none.
     """
 
@@ -148,6 +151,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     device: str = "auto"
     precision: str = "auto"
     cuda_graphs: bool = True
+    include_state: bool = False
     seed: int = 0
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(default_factory=dict)
@@ -195,6 +199,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
             raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
         self.features, self.features_map = camera_features(self.image_size)
+        if self.include_state:
+            self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,))
+            self.features_map["agent_pos"] = OBS_STATE
 
     @property
     def resolved_device(self) -> str:

@@ -33,11 +33,13 @@ class Ensemble:
     def __init__(self, members: list):
         self.members, self.rollouts = members, []
 
-    def start(self, first_B1S: torch.Tensor) -> None:
-        """Every member reads the episodes' first frames."""
+    def start(self, first_B1S: torch.Tensor, states_B1D: torch.Tensor | None = None) -> None:
+        """Every member reads the episodes' first frames (and states, for members with a state channel)."""
         B, A = first_B1S.shape[0], self.members[0].config.action_dim
         no_actions = torch.zeros(B, 0, A, device=first_B1S.device)
-        self.rollouts = [Rollout.start(m, first_B1S, m.episode_control(no_actions)) for m in self.members]
+        self.rollouts = [
+            Rollout.start(m, first_B1S, m.episode_control(no_actions), states=states_B1D) for m in self.members
+        ]
 
     @torch.no_grad()
     def disagreement(self, rollout: Rollout, chunk_B1KA: torch.Tensor) -> torch.Tensor:
@@ -47,7 +49,7 @@ class Ensemble:
         return mutual_information(logits)
 
     @torch.no_grad()
-    def observe(self, tokens_BS: torch.Tensor, chunk_B1KA: torch.Tensor) -> None:
-        """Every member reads the frame the env's model generated, under the same actions."""
+    def observe(self, tokens_BS: torch.Tensor, chunk_B1KA: torch.Tensor, state_BD: torch.Tensor | None = None) -> None:
+        """Every member reads the frame the env's model generated, under the same actions, with its state."""
         for r in self.rollouts:
-            r.observe(tokens_BS[:, None], r.model.encode_control(chunk_B1KA))
+            r.observe(tokens_BS[:, None], r.model.encode_control(chunk_B1KA), state_BD)

@@ -38,6 +38,7 @@ class Goal(NamedTuple):
     tokens: torch.Tensor  # (S,)
     reached: bool  # the text model crossed theta (else its last generated frame is the goal)
     steps: int  # frames generated up to the goal (0: the dataset's own last frame)
+    state: torch.Tensor | None = None  # (D,) the robot's state at the goal, where the text model carries one
 
 
 @dataclass
@@ -50,12 +51,19 @@ class EpisodeStart:
     horizon: int  # steps of an episode from this start
     frame: int = 0  # where in its recorded episode the start is (a branched start: later than 0)
     episode_first_tokens: torch.Tensor | None = None  # (S,) its episode's first frame, for a branched start
+    first_state: torch.Tensor | None = None  # (D,) the robot's state in the first frame
+    last_state: torch.Tensor | None = None  # (D,)
+    episode_first_state: torch.Tensor | None = None  # (D,) in its episode's first frame, for a branched start
 
     @property
     def goal_prompt(self) -> torch.Tensor:
         """The frame the start's goal is generated from: its episode's first, so every start of an episode shares
         the episode's goal."""
         return self.first_tokens if self.episode_first_tokens is None else self.episode_first_tokens
+
+    @property
+    def goal_prompt_state(self) -> torch.Tensor | None:
+        return self.first_state if self.episode_first_state is None else self.episode_first_state
 
 
 class GoalBank:
@@ -85,7 +93,7 @@ class GoalBank:
         missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self.cache]
         if missing and self.config.goal_source == "dataset_last_frame":
             for s in missing:
-                self.cache[s.episode_index] = Goal(s.last_tokens, True, 0)
+                self.cache[s.episode_index] = Goal(s.last_tokens, True, 0, s.last_state)
         elif missing:
             self._fill(missing)
         goals = [self.cache[s.episode_index] for s in starts]
@@ -109,8 +117,11 @@ class GoalBank:
                 )
             indices, tokens = tensors["episode_index"].tolist(), tensors["tokens"]
             reached, steps = tensors["reached"].tolist(), tensors["steps"].tolist()
+            states = tensors.get("states")
             for i, index in enumerate(indices):
-                self.cache[index] = Goal(tokens[i], bool(reached[i]), int(steps[i]))
+                self.cache[index] = Goal(
+                    tokens[i], bool(reached[i]), int(steps[i]), None if states is None else states[i]
+                )
         missing = [s for s in {s.episode_index: s for s in starts}.values() if s.episode_index not in self.cache]
         if not missing:
             return
@@ -126,6 +137,8 @@ class GoalBank:
             "reached": torch.tensor([g.reached for _, g in goals]),
             "steps": torch.tensor([g.steps for _, g in goals]),
         }
+        if all(g.state is not None for _, g in goals):
+            tensors["states"] = torch.stack([g.state for _, g in goals]).cpu()
         save_tensors(path, tensors, {"settings": json.dumps(settings), "seconds": str(seconds)})
 
     def _fill(self, starts: list[EpisodeStart]) -> None:
@@ -147,8 +160,12 @@ class GoalBank:
         padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
         prompt = torch.stack([s.goal_prompt for s in padded])[:, None]
         control = model.encode_control(instructions=[s.task for s in padded])
-        rollout = Rollout.start(model, prompt, control)
+        states = None
+        if model.config.state:
+            states = torch.stack([s.goal_prompt_state for s in padded]).to(prompt.device)[:, None]
+        rollout = Rollout.start(model, prompt, control, states=states)
         goal = prompt[:, 0].clone()
+        goal_state = None if states is None else states[:, 0].clone()
         reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
         k, max_frames = self.frame_skip, -(-self.config.max_goal_steps // self.frame_skip)  # steps -> frames
         steps = torch.full((len(padded),), max_frames * k, device=prompt.device)
@@ -158,6 +175,8 @@ class GoalBank:
             newly = (done >= theta) & ~reached
             goal[newly] = frame[newly]
             goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
+            if goal_state is not None:
+                goal_state[~reached] = rollout.state[~reached]
             steps[newly] = frame_index * k
             reached |= newly
             if reached.all():
@@ -172,4 +191,7 @@ class GoalBank:
                     s.episode_index,
                     s.task,
                 )
-        return [Goal(goal[i], bool(reached[i]), int(steps[i])) for i in range(len(starts))]
+        return [
+            Goal(goal[i], bool(reached[i]), int(steps[i]), None if goal_state is None else goal_state[i])
+            for i in range(len(starts))
+        ]

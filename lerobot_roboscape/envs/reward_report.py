@@ -85,12 +85,14 @@ class RewardReportConfig:
 
 @torch.no_grad()
 def teacher_forced_done(
-    env: RoboscapeWorldModelEnv, tokens_TS: torch.Tensor, actions: torch.Tensor
+    env: RoboscapeWorldModelEnv, tokens_TS: torch.Tensor, actions: torch.Tensor, states_TD: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Done probability (T,) of known model frames of one episode, and the action model's features (T, C) of
-    them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step)."""
+    them, as the action model reads them one after the other (actions ((T - 1) * k, A), one per control step;
+    states (T, D) of the frames, for a model with a state channel)."""
+    states = None if states_TD is None else states_TD[None]
     with env.autocast():
-        done, features = env.action_model.teacher_forced(tokens_TS[None], actions[None])
+        done, features = env.action_model.teacher_forced(tokens_TS[None], actions[None], states=states)
     return env.done_of(tokens_TS, done[0]), features[0]
 
 
@@ -135,15 +137,20 @@ def episode_rewards(
     frames = {cam: episode.images[cam][indices] for cam in env.cameras}
     tokens = env.encode(frames)  # (T, S), T model frames
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * env.frame_skip]).to(env.device)
+    states = torch.from_numpy(episode.state[indices]).to(env.device) if env.action_model.config.state else None
     if open_loop and len(tokens) > 1:
         with env.autocast():
-            generated, _ = env.action_model.generate(tokens[None, :1], len(tokens) - 1, actions=actions[None])
-        tokens = torch.cat([tokens[:1], generated[0]])
+            first_state = None if states is None else states[None, :1]
+            generated = env.action_model.generate(
+                tokens[None, :1], len(tokens) - 1, actions=actions[None], states=first_state
+            )
+        tokens = torch.cat([tokens[:1], generated.tokens[0]])
+        states = None if states is None else torch.cat([states[:1], generated.state[0].to(states.dtype)])
     start = next(s for s in env.starts if s.episode_index == episode.index)
     goal_tokens, _ = env.goal_bank.goals_for([start])
     decoded = env.decode(tokens)  # (T, n, 3, H, W)
     goal = env.decode(goal_tokens).expand(len(tokens), -1, -1, -1, -1)
-    done, features = teacher_forced_done(env, tokens, actions)
+    done, features = teacher_forced_done(env, tokens, actions, states)
     world_model, _ = replay_rewards(env, episode.index, tokens, done)
     per_frame = {
         "world_model_dense": env.reward_fn(decoded, goal, done).dense,

@@ -18,6 +18,7 @@ from lerobot_roboscape.dataset.reader import (
     family_horizons,
     open_dataset,
     read_frames,
+    read_states,
 )
 from lerobot_roboscape.envs.goal_bank import EpisodeStart
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
@@ -56,10 +57,23 @@ def dataset_starts(
         length = dataset.meta.episodes[index]["length"]
         branches = sorted({round(j * (length - 1) / cfg.branches_per_episode) for j in range(cfg.branches_per_episode)})
         tokens = encode(read_frames(dataset, index, [*branches, -1]))  # (branches + 1, S)
+        states = torch.from_numpy(read_states(dataset, index, [*branches, -1]))
         task = dataset.meta.episodes[index]["tasks"][0]
         horizon = cfg.episode_length or horizons.get(facts.get("task_family"), horizons[None])
         starts += [
-            EpisodeStart(index, task, tokens[j], tokens[-1], facts, horizon, frame, tokens[0] if frame else None)
+            EpisodeStart(
+                index,
+                task,
+                tokens[j],
+                tokens[-1],
+                facts,
+                horizon,
+                frame,
+                tokens[0] if frame else None,
+                states[j],
+                states[-1],
+                states[0] if frame else None,
+            )
             for j, frame in enumerate(branches)
         ]
     if not starts:
@@ -71,7 +85,7 @@ def dataset_starts(
 
 # ---- a starts file: roboscape_wm without its dataset -------------------------------------------------------------
 
-STARTS_FORMAT = 1
+STARTS_FORMAT = 2  # 2: the robot's states beside the frames
 # The config's fields that select and shape the starts: a file made with others would be the wrong starts.
 SELECTION = ("families", "split", "scenes", "starts_per_scene", "branches_per_episode", "episode_length")
 
@@ -94,6 +108,9 @@ def export_starts(cfg, path: str | Path, device: str = "cpu") -> Path:
         "first_tokens": torch.stack([s.first_tokens for s in starts]).cpu(),
         "last_tokens": torch.stack([s.last_tokens for s in starts]).cpu(),
         "episode_first_tokens": torch.stack([s.goal_prompt for s in starts]).cpu(),
+        "first_states": torch.stack([s.first_state for s in starts]).cpu(),
+        "last_states": torch.stack([s.last_state for s in starts]).cpu(),
+        "episode_first_states": torch.stack([s.goal_prompt_state for s in starts]).cpu(),
     }
     rows = [
         {"episode_index": s.episode_index, "task": s.task, "facts": s.facts, "horizon": s.horizon, "frame": s.frame}
@@ -137,6 +154,9 @@ def file_starts(cfg, n_cameras: int) -> tuple[list[EpisodeStart], list[str], tup
             row["horizon"],
             row["frame"],
             tensors["episode_first_tokens"][i] if row["frame"] else None,
+            tensors["first_states"][i],
+            tensors["last_states"][i],
+            tensors["episode_first_states"][i] if row["frame"] else None,
         )
         for i, row in enumerate(metadata["starts"])
     ]

@@ -143,7 +143,16 @@ class RoboscapeWorldModelEnv(BatchedEnv):
 
         size, n = self.tokenizer.config.image_size, len(self.cameras)
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
-        self.single_observation_space = gym.spaces.Dict({"pixels": gym.spaces.Dict(pixels)})
+        observation = {"pixels": gym.spaces.Dict(pixels)}
+        if config.include_state:
+            if not self.action_model.config.state:
+                raise InvalidInputError(
+                    f"include_state: the action world model {config.action_world_model} carries no robot state "
+                    "(trained with --wm.state=false)"
+                )
+            state_dim = self.action_model.config.state_dim
+            observation["agent_pos"] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
+        self.single_observation_space = gym.spaces.Dict(observation)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         action_dim = self.action_model.config.action_dim
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
@@ -168,11 +177,12 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{free / 2**30:.2f} GiB are free on {self.device}: lower the number of envs"
             )
 
-    def _starts_from_frames(self, frames: dict, tasks, horizons) -> list[EpisodeStart]:
-        """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions and
-        horizons in control steps (default: the longest of this env's starts), e.g. the simulator's initial states
-        for a paired evaluation. Their goals are the text model's from these frames, or `goal_frames` when the
-        reset gives them (a real success of the same scene, say)."""
+    def _starts_from_frames(self, frames: dict, tasks, horizons, states=None) -> list[EpisodeStart]:
+        """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions,
+        horizons in control steps (default: the longest of this env's starts) and the robot's states (B, D), which
+        a world model with a state channel needs, e.g. the simulator's initial states for a paired evaluation.
+        Their goals are the text model's from these frames, or `goal_frames` when the reset gives them (a real
+        success of the same scene, say)."""
         if self.config.goal_source != "text_model":
             raise InvalidInputError(
                 f"a start from given frames has no recorded last frame: goal_source must be text_model, not "
@@ -182,8 +192,26 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             raise InvalidInputError(f"frames need an instruction per episode ({self.num_envs}), got {tasks!r}")
         tokens = self.encode(self._checked_frames(frames))  # (B, S)
         horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
+        if self.action_model.config.state:
+            D = self.action_model.config.state_dim
+            if states is None or np.shape(states) != (self.num_envs, D):
+                raise InvalidInputError(
+                    f"the action world model carries the robot's state: frames need options['states'] of shape "
+                    f"{(self.num_envs, D)} (observation.state of each start), got "
+                    f"{None if states is None else np.shape(states)}"
+                )
+            states = torch.as_tensor(np.asarray(states, np.float32))
         return [
-            EpisodeStart(FROM_FRAMES, str(task), tokens[i], tokens[i], {}, int(horizons[i]))
+            EpisodeStart(
+                FROM_FRAMES,
+                str(task),
+                tokens[i],
+                tokens[i],
+                {},
+                int(horizons[i]),
+                first_state=None if states is None else states[i],
+                last_state=None if states is None else states[i],
+            )
             for i, task in enumerate(tasks)
         ]
 
@@ -240,7 +268,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             self._rng = np.random.default_rng(seed)
             self._generator.manual_seed(seed)  # world-model sampling; in place: a CUDA graph holds this generator
         if "frames" in options:  # new starts: their goals are made now (or given), not cached
-            starts = self._starts_from_frames(options["frames"], options.get("task"), options.get("horizon"))
+            starts = self._starts_from_frames(
+                options["frames"], options.get("task"), options.get("horizon"), options.get("states")
+            )
             if options.get("goal_frames") is not None:
                 goal_tokens, reached = self.encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
             else:
@@ -257,6 +287,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
             goal_tokens, reached = self.goal_bank.goals_for(starts)
         first = torch.stack([s.first_tokens for s in starts])
+        first_states = None
+        if self.action_model.config.state:
+            first_states = torch.stack([s.first_state for s in starts]).to(self.device)[:, None]
         control = self.action_model.episode_control(
             torch.zeros(self.num_envs, 0, self.action_model.config.action_dim, device=self.device)
         )
@@ -268,9 +301,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 # The ensemble's eager passes read the rollout's cache between frames: no graph then.
                 capture=self.config.cuda_graphs and torch.device(self.device).type == "cuda" and not self.ensemble,
                 reuse=self._rollout,  # its cache's rings and CUDA graphs, when the shapes match
+                states=first_states,
             )
             if self.ensemble is not None:
-                self.ensemble.start(first[:, None])
+                self.ensemble.start(first[:, None], first_states)
         self._chunk = np.zeros((self.num_envs, self.frame_skip, self.action_model.config.action_dim), np.float32)
         self._substep = 0  # actions of the current chunk taken so far
         self._done = np.zeros(self.num_envs, np.float32)  # the latest frame's done probability, read every step
@@ -346,7 +380,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 disagreement = self.ensemble.disagreement(self._rollout, chunk).cpu().numpy() * live
             tokens, done = self._rollout.predict_next_frame(control, self.config.temperature, self._generator)
             if self.ensemble is not None:
-                self.ensemble.observe(tokens, chunk)
+                self.ensemble.observe(tokens, chunk, self._rollout.state)
         return tokens, done, disagreement
 
     def _succeeding(self) -> np.ndarray:
@@ -379,7 +413,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return {cam: uint8[:, i] for i, cam in enumerate(self.cameras)}
 
     def _observation(self) -> dict:
-        return {"pixels": self._pixels(self._frames)}
+        observation = {"pixels": self._pixels(self._frames)}
+        if self.config.include_state:
+            observation["agent_pos"] = self._rollout.state.float().cpu().numpy()
+        return observation
 
     def render(self) -> tuple[np.ndarray, ...]:
         """Per episode: its views stacked vertically, the current frame left and the goal right."""

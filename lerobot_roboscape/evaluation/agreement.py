@@ -116,7 +116,13 @@ def paired_batch(sim, wm, policy, io: PolicyIO, seed: int, record: bool = False,
         goal_frames = {cam: np.stack([goals[k][cam] for k in keys]) for cam in wm.cameras}
     wm_observation, wm_info = wm.reset(
         seed=seed,  # each batch reproducible on its own, so that a run can resume or grow batch by batch
-        options={"frames": observation["pixels"], "task": tasks, "horizon": sim.horizons, "goal_frames": goal_frames},
+        options={
+            "frames": observation["pixels"],
+            "states": observation["agent_pos"],
+            "task": tasks,
+            "horizon": sim.horizons,
+            "goal_frames": goal_frames,
+        },
     )
     sim_success, sim_return, sim_frames = play(sim, policy, io, observation, record)
     wm_success, wm_return, wm_frames = play(wm, policy, io, wm_observation, record)

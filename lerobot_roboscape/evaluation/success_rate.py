@@ -171,17 +171,20 @@ class RecordedEpisode:
 
     images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
     action: np.ndarray  # (T, A) float32
+    state: np.ndarray  # (T, D) float32 the robot's state (an env with include_state)
     done: np.ndarray  # (T,) float32
     task: str
 
 
 @torch.no_grad()
 def record_episodes(env, policy, io: PolicyIO, seed: int) -> list[RecordedEpisode]:
-    """One batch of episodes of the deterministic policy, each recorded until it ended."""
+    """One batch of episodes of the deterministic policy, each recorded until it ended (an env with include_state:
+    the world models read the robot's state too)."""
     observation, _ = env.reset(seed=seed)
     policy.reset()
     tasks = list(env.call("task"))
     frames, actions, done = [observation["pixels"]], [], [np.zeros(env.num_envs, dtype=np.float32)]
+    states = [observation["agent_pos"]]
     lengths = np.zeros(env.num_envs, dtype=int)  # actions taken while running
     ended = np.zeros(env.num_envs, dtype=bool)
     for _ in range(env.call("_max_episode_steps")[0]):
@@ -190,6 +193,7 @@ def record_episodes(env, policy, io: PolicyIO, seed: int) -> list[RecordedEpisod
         lengths += ~ended
         ended |= terminated | truncated
         frames.append(observation["pixels"])
+        states.append(observation["agent_pos"])
         actions.append(action)
         done.append(np.asarray(info["is_success"], dtype=np.float32))
         if ended.all():
@@ -199,6 +203,7 @@ def record_episodes(env, policy, io: PolicyIO, seed: int) -> list[RecordedEpisod
         RecordedEpisode(
             images={cam: np.stack([f[cam][i] for f in frames[: n + 1]]) for cam in frames[0]},
             action=np.stack([a[i] for a in actions[: n + 1]]).astype(np.float32),
+            state=np.stack([s[i] for s in states[: n + 1]]).astype(np.float32),
             done=np.array([d[i] for d in done[: n + 1]], dtype=np.float32),
             task=tasks[i],
         )
@@ -219,6 +224,7 @@ def eval_env_config(cfg: EvalConfig, split: str, image_size: int) -> RoboscapeMa
         dataset_root=cfg.dataset_root,
         workers=cfg.workers,
         seed=cfg.seed,
+        include_state=True,  # unread by the image-only policies; the world models start from it when paired
     )
 
 

@@ -145,7 +145,8 @@ def _simulator_rollouts(refresh: DoneRefresh, policy_path: Path, round_: int, de
     policy, preprocessor, postprocessor = load_policy(policy_path, device)
     policy.eval()
     io = PolicyIO(preprocessor, postprocessor)
-    env = RoboscapeManiSkillEnv(refresh.sim, num_envs=min(BATCH, refresh.episodes))
+    # with the robot's state, which the world models read beside the frames
+    env = RoboscapeManiSkillEnv(replace(refresh.sim, include_state=True), num_envs=min(BATCH, refresh.episodes))
     try:
         batches = math.ceil(refresh.episodes / env.num_envs)
         seed = REFRESH_SEED + 7919 * round_

@@ -99,29 +99,31 @@ class DoneSources:
         return torch.cat([self.classifier.success_probability(chunk) for chunk in images.split(64)])
 
     @torch.no_grad()
-    def teacher_forced(self, tokens_TS, actions_NA) -> dict[str, np.ndarray]:
-        """Scores of known model frames (T, S) read with the actions between them ((T - 1) * k, A)."""
-        done = self.model.teacher_forced(tokens_TS[None], actions_NA[None])[0][0]
+    def teacher_forced(self, tokens_TS, actions_NA, states_TD) -> dict[str, np.ndarray]:
+        """Scores of known model frames (T, S) read with the actions between them ((T - 1) * k, A) and their
+        states (T, D)."""
+        states = states_TD[None] if self.model.config.state else None
+        done = self.model.teacher_forced(tokens_TS[None], actions_NA[None], states=states)[0][0]
         scores = {"world_model": done}
         if self.classifier is not None:
             scores["classifier"] = self.classify(tokens_TS)
         return {k: v.float().cpu().numpy() for k, v in scores.items()}
 
     @torch.no_grad()
-    def open_loop(self, episodes: list[tuple[torch.Tensor, torch.Tensor]]) -> list[dict[str, np.ndarray]]:
-        """Episodes (model frames (T, S), the actions between them ((T - 1) * k, A)) generated from their prompt
-        frames and recorded actions to their end, scored by each source; the prompt frames keep their
-        teacher-forced scores."""
+    def open_loop(self, episodes: list["TokenEpisode"]) -> list[dict[str, np.ndarray]]:
+        """Episodes generated from their prompt frames (and states) and recorded actions to their end, scored by
+        each source; the prompt frames keep their teacher-forced scores."""
         P, k = self.model.config.prompt_frames, self.model.config.frame_skip
-        length = max(len(t) for t, _ in episodes)
+        length = max(len(e.tokens) for e in episodes)
         pad = lambda a: torch.cat([a, a[-1:].expand((length - 1) * k - len(a), -1)])  # noqa: E731  (hold the last)
-        actions = torch.stack([pad(a) for _, a in episodes])
-        prompt = torch.stack([t[:P] for t, _ in episodes])
-        frames, done = self.model.generate(prompt, length - P, actions=actions)
+        actions = torch.stack([pad(e.actions) for e in episodes])
+        prompt = torch.stack([e.tokens[:P] for e in episodes])
+        states = torch.stack([e.states[:P] for e in episodes]) if self.model.config.state else None
+        frames, done, _ = self.model.generate(prompt, length - P, actions=actions, states=states)
         out = []
-        for i, (tokens, actions_i) in enumerate(episodes):
-            T = len(tokens)
-            forced = self.teacher_forced(tokens[:P], actions_i[: (P - 1) * k])
+        for i, e in enumerate(episodes):
+            T = len(e.tokens)
+            forced = self.teacher_forced(e.tokens[:P], e.actions[: (P - 1) * k], e.states[:P])
             scores = {"world_model": np.concatenate([forced["world_model"], done[i, : T - P].float().cpu().numpy()])}
             if self.classifier is not None:
                 generated = self.classify(frames[i, : T - P]).float().cpu().numpy()
@@ -132,12 +134,14 @@ class DoneSources:
 
 @dataclass
 class TokenEpisode:
-    """An episode as the done sources read it: its model frames' tokens, the actions between them, its labels."""
+    """An episode as the done sources read it: its model frames' tokens and states, the actions between them, its
+    labels."""
 
     index: int
     task: str
     tokens: torch.Tensor  # (T, S): every k-th frame (the model's frame skip k)
     actions: torch.Tensor  # ((T - 1) * k, A): the recorded actions between them
+    states: torch.Tensor  # (T, D): the robot's state in those frames
     labels: np.ndarray  # (T,) recorded done at those frames
     success: bool
 
@@ -151,11 +155,12 @@ def token_episodes(dataset, tokenizer: VisualTokenizer, frame_skip: int, device)
         tokens = tokenizer.encode_frames([episode.images[c][frames] for c in cameras])
         actions = torch.from_numpy(episode.action[: (len(frames) - 1) * frame_skip]).to(device)
         success = bool(episode.done_label.max() > 0.5)
-        episodes.append(TokenEpisode(index, episode.task, tokens, actions, episode.done_label[frames], success))
+        states = torch.from_numpy(episode.state[frames]).to(device)
+        episodes.append(TokenEpisode(index, episode.task, tokens, actions, states, episode.done_label[frames], success))
     return episodes
 
 
-TOKEN_EPISODES_FORMAT = 1
+TOKEN_EPISODES_FORMAT = 2  # 2: the frames' states
 
 
 def save_token_episodes(episodes: list[TokenEpisode], frame_skip: int, path: Path, source: str) -> Path:
@@ -163,7 +168,7 @@ def save_token_episodes(episodes: list[TokenEpisode], frame_skip: int, path: Pat
     tensors, rows = {}, []
     for i, e in enumerate(episodes):
         # Codes below 2**15 (the token cache keeps them in 16 bits too): a quarter of int64's bytes to carry.
-        tensors |= {f"{i}.tokens": e.tokens.to(torch.int16), f"{i}.actions": e.actions}
+        tensors |= {f"{i}.tokens": e.tokens.to(torch.int16), f"{i}.actions": e.actions, f"{i}.states": e.states}
         tensors[f"{i}.labels"] = torch.from_numpy(np.ascontiguousarray(e.labels))
         rows.append({"index": e.index, "task": e.task, "success": e.success})
     metadata = {"format": TOKEN_EPISODES_FORMAT, "frame_skip": frame_skip, "source": source, "episodes": rows}
@@ -185,6 +190,7 @@ def load_token_episodes(path: Path, frame_skip: int, device) -> list[TokenEpisod
             row["task"],
             tensors[f"{i}.tokens"].to(device, torch.long),
             tensors[f"{i}.actions"].to(device),
+            tensors[f"{i}.states"].to(device),
             tensors[f"{i}.labels"].numpy(),
             row["success"],
         )
@@ -197,14 +203,15 @@ def score_episodes(
 ) -> list[EpisodeScores]:
     scored, pending = [], []
     for e in episodes:
-        scores = {(s, "teacher_forced"): v for s, v in sources.teacher_forced(e.tokens, e.actions).items()}
+        forced = sources.teacher_forced(e.tokens, e.actions, e.states)
+        scores = {(s, "teacher_forced"): v for s, v in forced.items()}
         scored.append(EpisodeScores(e.index, e.task, e.success, e.labels, scores))
         if open_loop and len(e.tokens) > sources.model.config.prompt_frames:
-            pending.append((scored[-1], e.tokens, e.actions))
-    pending.sort(key=lambda item: len(item[2]))  # batches of similar lengths pad less
+            pending.append((scored[-1], e))
+    pending.sort(key=lambda item: len(item[1].actions))  # batches of similar lengths pad less
     for start in range(0, len(pending), batch_size):
         chunk = pending[start : start + batch_size]
-        for (episode, _, _), scores in zip(chunk, sources.open_loop([(t, a) for _, t, a in chunk]), strict=True):
+        for (episode, _), scores in zip(chunk, sources.open_loop([e for _, e in chunk]), strict=True):
             episode.scores |= {(s, "open_loop"): v for s, v in scores.items()}
         logger.info("open loop: %d/%d episodes", min(start + batch_size, len(pending)), len(pending))
     return scored

@@ -5,6 +5,7 @@ A cache is a directory of memory-mapped arrays plus a manifest naming the datase
     manifest.json   fingerprints of dataset and tokenizer, grid and vocabulary sizes
     tokens.npy      (N, n_cameras, h, w) uint16 codes of every frame of every episode
     actions.npy     (N, action_dim) float32
+    states.npy      (N, state_dim) float32 `observation.state` (joint positions and the TCP pose)
     done.npy        (N,) float32 done labels (1 where the task is accomplished in that frame)
     rewards.npy     (N,) float32 rule-based reward of each frame (labels of the baseline reward models)
     episodes.json   per episode: start row, length, task and the roboscape facts (family, scene, split, optimal)
@@ -12,9 +13,9 @@ A cache is a directory of memory-mapped arrays plus a manifest naming the datase
 Its directory name is derived from both fingerprints, so a changed dataset or retrained tokenizer gets a new cache
 instead of a stale one; opening a cache with fingerprints that do not match raises `TokenCacheMismatchError`.
 
-`export_token_cache` writes a cache and its dataset's action statistics into one compressed file that travels (to a
-GPU machine without the datasets); `import_token_cache` makes a cache of it there, which trains without its dataset
-(ACTION_STATS_FILE holds what the trainer would read of it).
+`export_token_cache` writes a cache and its dataset's statistics of the actions and states into one compressed file
+that travels (to a GPU machine without the datasets); `import_token_cache` makes a cache of it there, which trains
+without its dataset (STATS_FILE holds what the trainer would read of it).
 """
 
 import hashlib
@@ -37,9 +38,10 @@ from lerobot_roboscape.dataset.writer import DATASET_FOLDERS
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from roboscape_core.errors import InvalidInputError, require_finite
 
-FORMAT_VERSION = 2
-ARRAYS = ("tokens", "actions", "done", "rewards")
-ACTION_STATS_FILE = "action_stats.json"  # an imported cache's dataset statistics of the actions
+FORMAT_VERSION = 3  # 3: the robot's state beside the actions
+ARRAYS = ("tokens", "actions", "states", "done", "rewards")
+STATS_FILE = "stats.json"  # an imported cache's dataset statistics: {"action": {...}, "observation.state": {...}}
+STATS_KEYS = ("action", "observation.state")
 
 
 class TokenCacheMismatchError(InvalidInputError):
@@ -75,6 +77,7 @@ class TokenCache:
     manifest: dict
     tokens: np.ndarray  # (N, n_cameras, h, w) uint16, memory-mapped
     actions: np.ndarray  # (N, action_dim) float32
+    states: np.ndarray  # (N, state_dim) float32
     done: np.ndarray  # (N,) float32
     rewards: np.ndarray  # (N,) float32
     episodes: list[dict]
@@ -94,6 +97,10 @@ class TokenCache:
     @property
     def action_dim(self) -> int:
         return self.actions.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        return self.states.shape[1]
 
 
 def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_fp: str | None = None) -> TokenCache:
@@ -124,7 +131,7 @@ def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_
         if len(array) != n:
             raise TokenCacheMismatchError(f"{path / f'{name}.npy'} has {len(array)} rows, manifest says {n}")
     _check_values(path, arrays, episodes, manifest["vocab_size"])
-    return TokenCache(path, manifest, arrays["tokens"], arrays["actions"], arrays["done"], arrays["rewards"], episodes)
+    return TokenCache(path, manifest, episodes=episodes, **arrays)
 
 
 def _check_values(path: Path, arrays: dict[str, np.ndarray], episodes: list[dict], vocab_size: int) -> None:
@@ -135,7 +142,7 @@ def _check_values(path: Path, arrays: dict[str, np.ndarray], episodes: list[dict
         episode = episodes[int(np.searchsorted(starts, row, side="right")) - 1]
         return f"(episode {episode['episode_index']} frame {row - episode['start']})"
 
-    for name in ("actions", "done", "rewards"):
+    for name in ("actions", "states", "done", "rewards"):
         require_finite(arrays[name], str(path / f"{name}.npy"), name, row_name)
     if len(arrays["tokens"]) and int(arrays["tokens"].max()) >= vocab_size:
         row = int(np.argmax(arrays["tokens"].reshape(len(arrays["tokens"]), -1).max(axis=1) >= vocab_size))
@@ -169,6 +176,8 @@ def build_token_cache(
         tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))
         action_dim = dataset.meta.features["action"]["shape"][0]
         actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, action_dim))
+        state_dim = dataset.meta.features["observation.state"]["shape"][0]
+        states = np.lib.format.open_memmap(tmp / "states.npy", "w+", np.float32, (n, state_dim))
         done = np.lib.format.open_memmap(tmp / "done.npy", "w+", np.float32, (n,))
         rewards = np.lib.format.open_memmap(tmp / "rewards.npy", "w+", np.float32, (n,))
         tokenizer = tokenizer.to(device).eval()
@@ -179,11 +188,12 @@ def build_token_cache(
             for c, camera in enumerate(cameras):
                 tokens[row : row + length, c] = encode_frames(tokenizer, episode.images[camera], batch_size)
             actions[row : row + length] = episode.action
+            states[row : row + length] = episode.state
             done[row : row + length] = episode.done_label
             rewards[row : row + length] = episode.reward_label
             rows.append({**episode.info, "episode_index": index, "start": row, "length": length, "task": episode.task})
             row += length
-        for array in (tokens, actions, done, rewards):
+        for array in (tokens, actions, states, done, rewards):
             array.flush()
         manifest = {
             "format_version": FORMAT_VERSION,
@@ -214,8 +224,8 @@ def encode_frames(tokenizer: VisualTokenizer, images: np.ndarray, batch_size: in
 
 
 def episodes_token_cache(tokenizer: VisualTokenizer, episodes: list, cameras: list[str]) -> TokenCache:
-    """An in-memory cache of episodes held in memory (each with `images` {camera: (T, H, W, 3)}, `action`, `done`
-    and `task`, like `evaluation.success_rate.RecordedEpisode`), its rows laid out as `build_token_cache` lays a
+    """An in-memory cache of episodes held in memory (each with `images` {camera: (T, H, W, 3)}, `action`, `state`,
+    `done` and `task`, like `evaluation.success_rate.RecordedEpisode`), its rows laid out as `build_token_cache` lays a
     dataset's."""
     tokens, rows, start = [], [], 0
     for episode in episodes:
@@ -228,6 +238,7 @@ def episodes_token_cache(tokenizer: VisualTokenizer, episodes: list, cameras: li
         manifest={"cameras": cameras},
         tokens=np.concatenate(tokens),
         actions=np.concatenate([e.action for e in episodes]).astype(np.float32),
+        states=np.concatenate([e.state for e in episodes]).astype(np.float32),
         done=done,
         rewards=np.zeros_like(done),
         episodes=rows,
@@ -245,8 +256,8 @@ def load_or_build_token_cache(
     return build_token_cache(dataset, tokenizer, path, device=device)
 
 
-def export_token_cache(cache: TokenCache, path: str | Path, action_stats: dict) -> int:
-    """The cache and its dataset's action statistics (dataset.meta.stats["action"]) in one xz file; returns its
+def export_token_cache(cache: TokenCache, path: str | Path, stats: dict) -> int:
+    """The cache and its dataset's statistics (dataset.meta.stats of STATS_KEYS) in one xz file; returns its
     bytes. A code is stored as 0 where it repeats the previous control step's at its place in the episode, else as
     code + 1: between two control steps most of a frame is unchanged, so the zeros compress away."""
     tokens = np.asarray(cache.tokens).reshape(len(cache.tokens), -1)
@@ -258,7 +269,7 @@ def export_token_cache(cache: TokenCache, path: str | Path, action_stats: dict) 
         "manifest": cache.manifest,
         "episodes": cache.episodes,
         "token_shape": list(cache.tokens.shape),
-        "action_stats": {k: np.asarray(v).tolist() for k, v in action_stats.items()},
+        "stats": {key: {k: np.asarray(v).tolist() for k, v in stats[key].items()} for key in STATS_KEYS},
     }
     buffer = io.BytesIO()
     np.savez(
@@ -266,6 +277,7 @@ def export_token_cache(cache: TokenCache, path: str | Path, action_stats: dict) 
         header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
         tokens=coded,
         actions=np.asarray(cache.actions),
+        states=np.asarray(cache.states),
         done=np.asarray(cache.done),
         rewards=np.asarray(cache.rewards),
     )
@@ -279,7 +291,7 @@ def export_token_cache(cache: TokenCache, path: str | Path, action_stats: dict) 
 
 def import_token_cache(path: str | Path, cache_dir: str | Path) -> Path:
     """A cache under `cache_dir`, named as load_or_build_token_cache names it, from an exported file; its dataset's
-    action statistics beside it (ACTION_STATS_FILE). Returns its directory."""
+    statistics beside it (STATS_FILE). Returns its directory."""
     path = Path(path)
     try:
         with lzma.open(path) as f:
@@ -287,6 +299,10 @@ def import_token_cache(path: str | Path, cache_dir: str | Path) -> Path:
         header = json.loads(arrays.pop("header").tobytes())
     except (lzma.LZMAError, OSError, ValueError, KeyError) as error:
         raise InvalidInputError(f"{path}: not a token cache exported by export_token_cache ({error})") from error
+    if "stats" not in header:
+        raise InvalidInputError(
+            f"{path}: exported before token caches held the robot's state; export it again from its dataset"
+        )
     manifest = header["manifest"]
     name = f"v{FORMAT_VERSION}-{manifest['dataset_fingerprint'][:16]}-{manifest['tokenizer_fingerprint'][:16]}"
     target = Path(cache_dir) / name
@@ -301,7 +317,7 @@ def import_token_cache(path: str | Path, cache_dir: str | Path) -> Path:
         np.save(tmp / f"{name_}.npy", array)
     (tmp / "episodes.json").write_text(json.dumps(header["episodes"]))
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
-    (tmp / ACTION_STATS_FILE).write_text(json.dumps(header["action_stats"]))
+    (tmp / STATS_FILE).write_text(json.dumps(header["stats"]))
     shutil.rmtree(target, ignore_errors=True)
     os.replace(tmp, target)
     return target

@@ -143,7 +143,7 @@ class ClipMixture:
 
 def gather(cache: TokenCache, index: ClipIndex) -> dict:
     """The batch at `index` from a cache's (memory-mapped) arrays: tokens (B, T, S) long, actions (B, T, k, A),
-    no_action (B, T), done (B, T), reward (B, T) and task (B strings)."""
+    no_action (B, T), state (B, T, D), done (B, T), reward (B, T) and task (B strings)."""
     B, T = index.rows.shape
     S = int(np.prod(cache.tokens.shape[1:]))  # the views side by side
     actions = np.where(index.valid[..., None], cache.actions[index.action_rows], 0.0)
@@ -151,6 +151,7 @@ def gather(cache: TokenCache, index: ClipIndex) -> dict:
         "tokens": torch.from_numpy(cache.tokens[index.rows].reshape(B, T, S).astype(np.int64)),
         "actions": torch.from_numpy(actions.astype(np.float32)),
         "no_action": torch.from_numpy(index.no_action),
+        "state": torch.from_numpy(np.asarray(cache.states[index.rows], dtype=np.float32)),
         "done": torch.from_numpy(np.asarray(cache.done[index.rows], dtype=np.float32)),
         "reward": torch.from_numpy(np.asarray(cache.rewards[index.rows], dtype=np.float32)),
         "task": index.tasks,
@@ -179,12 +180,14 @@ class ResidentClips:
         # int32 codes (uint16 has no gather on every device); a bench cache of 200k frames takes 0.4 GB.
         self.tokens = resident("tokens", torch.int32)
         self.actions = resident("actions", torch.float32)
+        self.states = resident("states", torch.float32)
         self.done = resident("done", torch.float32).squeeze(-1)
         self.rewards = resident("rewards", torch.float32).squeeze(-1)
 
     @property
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (self.tokens, self.actions, self.done, self.rewards))
+        arrays = (self.tokens, self.actions, self.states, self.done, self.rewards)
+        return sum(t.numel() * t.element_size() for t in arrays)
 
     def __call__(self, step: int, process_index: int = 0) -> dict:
         index = self.sampler.index(step, process_index)
@@ -198,6 +201,7 @@ class ResidentClips:
             "tokens": self.tokens[rows].view(B, T, -1).long(),
             "actions": actions,
             "no_action": no_action,
+            "state": self.states[rows],
             "done": self.done[rows],
             "reward": self.rewards[rows],
             "task": index.tasks,

@@ -30,9 +30,23 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             dataset.meta.stats["action"]), filled in by training: the action model reads (action - mean) / std,
             with std floored at ACTION_STD_FLOOR. Saved with the model; a saved action model without them is
             refused at load.
+        state: the robot's state (`observation.state`: joint positions and the TCP pose) as a channel of every frame:
+            its embedding is added to each position of the frame, and a head predicts the next frame's state from
+            this frame's state, its hidden state and the next frame's control; a rollout starts from the prompt's
+            real states and feeds back its own predictions, each frame's tokens generated under its predicted
+            state. The arm is the one part of the scene the data records exactly (DINO-WM, the 1X challenge's
+            winner); without it a rollout that loses the arm in one frame has nothing to find it again by.
+        state_dim: width of the states.
+        state_mean, state_std: per-dimension statistics of the training data's states, filled in by training, as the
+            actions' (std floored at STATE_STD_FLOOR). A saved model with a state channel and without them is
+            refused at load.
         text_encoder: T5 checkpoint (Hub id or local directory) for the text model; None builds a small random
             T5 with a byte-level tokenizer (tests and the tiny preset: instructions are told apart, not understood).
         text_max_length: instructions are truncated to this many T5 tokens.
+        patch: a transformer position holds patch x patch codes of one view's grid: one embedding of its codes (the
+            sum of one per place in the patch), an output head per code, masked and decoded per position. 2 on a
+            16x16 grid: 128 positions per two-view frame instead of 512, so that attention and the MLPs cost a
+            quarter per frame on the 2 CPU cores.
         n_layer: spatial-temporal blocks.
         n_head: attention heads.
         d_model: width of the transformer.
@@ -55,6 +69,9 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             off. Needs a model trained with control_dropout > 0. Measured on the synthetic motion world: on a model
             that half-follows its actions, guidance 2-4 lifts retrieval from 0.57 to 0.82 / 0.89; on the robot's
             data it did not (docs/results/world_model/report.md), so the presets leave both off.
+        corrupt_max: training replaces a share of the codes left unmasked (the context every prediction reads) with
+            random codes, the share drawn per clip uniformly in [0, corrupt_max] (1xgpt's collator after Copilot-4D,
+            GameNGen's context noise), so that the model learns to read through the mistakes of its own rollouts.
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
         changed_weight: weight of the masked tokens that differ from the previous frame's token at the same place,
@@ -75,12 +92,17 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     frame_skip: int = 4
     action_mean: list[float] | None = None
     action_std: list[float] | None = None
+    state: bool = True
+    state_dim: int = 16
+    state_mean: list[float] | None = None
+    state_std: list[float] | None = None
     text_encoder: str | None = None
     text_max_length: int = 64
     # Frames.
     n_cameras: int = 2
     tokens_per_side: int = 8
     vocab_size: int = 256
+    patch: int = 1
     # Transformer.
     n_layer: int = 2
     n_head: int = 4
@@ -98,6 +120,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     control_dropout: float = 0.0
     # Training.
     clean_frame_prob: float = 0.25
+    corrupt_max: float = 0.0
     changed_weight: float = 1.0
     done_hidden: int = 128
     done_weight: float = 1.0
@@ -122,8 +145,22 @@ class WorldModelConfig(draccus.ChoiceRegistry):
                     f"{name} has {len(stats)} dimensions but the actions have action_dim={self.action_dim}: "
                     "statistics of another action layout; retrain the world model on this dataset (roboscape-train-wm)"
                 )
-        if (self.action_mean is None) != (self.action_std is None):
-            raise InvalidInputError("action_mean and action_std are set together (from dataset.meta.stats['action'])")
+        for name in ("state_mean", "state_std"):
+            if (stats := getattr(self, name)) is not None and len(stats) != self.state_dim:
+                raise InvalidInputError(
+                    f"{name} has {len(stats)} dimensions but the states have state_dim={self.state_dim}: statistics "
+                    "of another state layout; retrain the world model on this dataset (roboscape-train-wm)"
+                )
+        for kind in ("action", "state"):
+            if (getattr(self, f"{kind}_mean") is None) != (getattr(self, f"{kind}_std") is None):
+                raise InvalidInputError(f"{kind}_mean and {kind}_std are set together (from dataset.meta.stats)")
+        if self.patch < 1 or self.tokens_per_side % self.patch:
+            raise InvalidInputError(
+                f"patch={self.patch} must divide tokens_per_side={self.tokens_per_side} (a position is patch x patch "
+                "codes of one view)"
+            )
+        if not 0 <= self.corrupt_max < 1:
+            raise InvalidInputError(f"corrupt_max must be in [0, 1), got {self.corrupt_max}")
         if self.adaln not in ADALN_GATES:
             raise InvalidInputError(f"adaln must be one of {ADALN_GATES}, got {self.adaln!r}")
         for name in ("control_dropout", "clean_frame_prob"):
@@ -143,6 +180,15 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     @property
     def tokens_per_frame(self) -> int:
         return self.n_cameras * self.tokens_per_side**2
+
+    @property
+    def codes_per_position(self) -> int:
+        return self.patch**2
+
+    @property
+    def positions_per_frame(self) -> int:
+        """Transformer positions per frame: each view's grid in patch x patch blocks."""
+        return self.n_cameras * (self.tokens_per_side // self.patch) ** 2
 
     @property
     def mask_token_id(self) -> int:

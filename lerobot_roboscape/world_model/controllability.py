@@ -16,6 +16,15 @@ actions do but whose decoding hides it scores here and not in the rollouts; a mo
 
 The action gain is Genie's delta-PSNR: the PSNR of each rollout to its real future, minus the PSNR to that future
 of the rollout from the same start under another start's actions (the next start's sequence of the same index).
+
+Measures that see the arm (a model can keep the table and lose the arm and still score well on the whole frame):
+- the state (a model with a state channel): the TCP position the rollout predicts against the simulator's, at the
+  horizon's last frame (median, in cm and as a share of the distance the real TCP moved from the start), and the
+  retrieval by state (each rollout's predicted TCP path nearest its own future's);
+- the arm region's PSNR: each rollout against its own future inside the robot's mask (dilated as the object's),
+  beside the tokenizer's reconstruction of the real future in the same region (the best a rollout can do);
+- the motion ratio: the rollout's mean change from frame to frame over the real future's. A model that stops moving
+  keeps a good PSNR; this ratio falls towards 0.
 """
 
 import json
@@ -31,9 +40,10 @@ import torch.nn.functional as F
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
-from lerobot_roboscape.dataset.segmentation import read_masks
+from lerobot_roboscape.dataset.segmentation import ROBOT, read_masks
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.metrics.image_fidelity import OBJECT, OBJECT_DILATION, dilate, psnr
+from lerobot_roboscape.robot import TCP_POSITION
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -100,6 +110,8 @@ class ControlStart:
     actions: torch.Tensor  # (K, T * k, A) each sequence's actions
     real: torch.Tensor  # (K, T, n, 3, H, W) uint8: the frames at control steps k, 2k, .., T * k
     masks: torch.Tensor  # (K, T, n, H, W) labels of those frames
+    first_state: torch.Tensor  # (1, D) the robot's state in the first frame
+    states: torch.Tensor  # (K, T, D) its states in the real frames at control steps k, 2k, .., T * k
 
 
 def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horizon: int, device) -> list[ControlStart]:
@@ -130,6 +142,8 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
                 torch.stack([torch.from_numpy(e.action[: T * k]) for e in episodes]).to(device),
                 real.permute(0, 1, 2, 5, 3, 4).to(device),  # (K, T, n, 3, H, W)
                 torch.from_numpy(np.stack(masks))[:, future].to(device),
+                torch.from_numpy(episodes[0].state[:1]).to(device),
+                torch.stack([torch.from_numpy(e.state[future]) for e in episodes]).to(device),
             )
         )
     if not starts:
@@ -137,7 +151,7 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
     return starts
 
 
-CONTROL_STARTS_FIELDS = ("first", "actions", "real", "masks")
+CONTROL_STARTS_FIELDS = ("first", "actions", "real", "masks", "first_state", "states")
 
 
 def save_control_starts(starts: list[ControlStart], path: str | Path, frame_skip: int) -> None:
@@ -155,6 +169,11 @@ def save_control_starts(starts: list[ControlStart], path: str | Path, frame_skip
 def load_control_starts(path: str | Path, frame_skip: int, device="cpu") -> list[ControlStart]:
     """The starts `save_control_starts` wrote; refuses a file read for another frame skip."""
     metadata, tensors = load_tensors(path, "save_control_starts", ("starts", "frame_skip"), device)
+    if "0.states" not in tensors:
+        raise InvalidInputError(
+            f"{path} was saved before controllability sets carried the robot's states; read its set again "
+            "(save_control_starts)"
+        )
     if int(metadata["frame_skip"]) != frame_skip:
         raise InvalidInputError(
             f"{path} was read for frame_skip={metadata['frame_skip']}, the model steps every {frame_skip} control steps"
@@ -171,7 +190,8 @@ def load_control_starts(path: str | Path, frame_skip: int, device="cpu") -> list
 def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other: ControlStart, null: bool) -> dict:
     """Rollouts of one start under its K sequences (and, for the action gain, under `other` start's sequences;
     with `null`, under the null action), in one batch. Returns for "world_model" (and "ignoring_actions") the (K, K)
-    PSNR per region and the decoded rollouts, and the action gain (dB, mean over the K sequences)."""
+    PSNR per region and the decoded rollouts, the action gain (dB, mean over the K sequences) and the measures that
+    see the arm (`arm_measures`)."""
     K, T = start.real.shape[:2]
     kinds = {"world_model": start.actions, "other_actions": other.actions[:K]}
     if null:
@@ -181,8 +201,10 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
     if null:
         no_action[-K:] = True
     prompt = start.first[None].expand(len(actions), -1, -1)
-    tokens = model.generate(prompt, T, actions=actions, no_action=no_action)[0]
-    pred = tokenizer.decode_views(tokens.flatten(0, 1), model.config.n_cameras).unflatten(0, (len(actions), T))
+    states = start.first_state[None].expand(len(actions), -1, -1) if model.config.state else None
+    generated = model.generate(prompt, T, actions=actions, no_action=no_action, states=states)
+    pred = tokenizer.decode_views(generated.tokens.flatten(0, 1), model.config.n_cameras)
+    pred = pred.unflatten(0, (len(actions), T))
     real = start.real.float() / 255
     out = {}
     for i, name in enumerate(kinds):
@@ -192,6 +214,53 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
     own = out["world_model"]["similarity"]["whole_frame"].diagonal()
     other_psnr = np.array([psnr(pred[K + j], real[j]).mean().item() for j in range(K)])
     out["action_gain"] = float(np.mean(own - other_psnr))
+    predicted_states = None if generated.state is None else generated.state[:K]
+    out["arm"] = arm_measures(tokenizer, start, out["world_model"]["pred"], predicted_states)
+    return out
+
+
+@torch.no_grad()
+def arm_measures(tokenizer: VisualTokenizer, start: ControlStart, pred, predicted_states) -> dict:
+    """The measures that see the arm, of the K rollouts (K, T, n, 3, H, W) of one start: the arm region's PSNR
+    (rollout and tokenizer, mean over the sequences), the motion ratio, and with predicted states (K, T, D) the
+    TCP's error at the last frame (per sequence, metres), the distance the real TCP moved (per sequence) and the
+    retrieval by state."""
+    K, T, n = pred.shape[:3]
+    real = start.real.float() / 255
+    region = dilate((start.masks == ROBOT).flatten(0, 2), OBJECT_DILATION).unflatten(0, (K, T, n))
+    recon = torch.stack(
+        [tokenizer.decode_views(tokenizer.encode_views([real[j, :, c] for c in range(n)]), n) for j in range(K)]
+    )
+    seen = region.flatten(3).sum(3) > 0  # (K, T, n): views where the arm is
+    out = {}
+    for name, images in (("arm_psnr", pred), ("arm_psnr_tokenizer", recon)):
+        values = psnr(images[seen], real[seen], region[seen])
+        out[name] = float(values.mean()) if seen.any() else float("nan")
+    if T > 1:
+        change = lambda x: (x[:, 1:] - x[:, :-1]).abs().mean()  # noqa: E731
+        out["motion_ratio"] = float(change(pred) / change(real).clamp_min(1e-6))
+    if predicted_states is not None:
+        tcp_pred, tcp_real = predicted_states[..., TCP_POSITION].float(), start.states[..., TCP_POSITION].float()
+        out["tcp_error_m"] = (tcp_pred[:, -1] - tcp_real[:, -1]).norm(dim=-1).tolist()
+        out["tcp_moved_m"] = (tcp_real[:, -1] - start.first_state[:, TCP_POSITION].float()).norm(dim=-1).tolist()
+        distance = (tcp_pred[:, None] - tcp_real[None]).norm(dim=-1).mean(-1)  # (K, K): rollout i, future j
+        out["retrieval_state"] = retrieval_accuracy(-distance.cpu().numpy())
+    return out
+
+
+def summarise_arm(measured: list[dict]) -> dict[str, float]:
+    """The arm's measures over starts: mean PSNRs and motion ratio; the TCP's median error (cm) and its median share
+    of the distance the real TCP moved; mean retrieval by state."""
+    out = {}
+    for name in ("arm_psnr", "arm_psnr_tokenizer", "motion_ratio", "retrieval_state"):
+        values = [m[name] for m in measured if name in m and not np.isnan(m[name])]
+        if values:
+            out[name] = float(np.mean(values))
+    if any("tcp_error_m" in m for m in measured):
+        error = np.concatenate([m["tcp_error_m"] for m in measured])
+        moved = np.concatenate([m["tcp_moved_m"] for m in measured])
+        out["tcp_error_cm"] = float(np.median(error) * 100)
+        out["tcp_error_share_of_moved"] = float(np.median(error / np.maximum(moved, 1e-3)))
     return out
 
 
@@ -206,12 +275,16 @@ def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart)
     index = torch.arange(K, device=futures.device)
     control = model.episode_control(start.actions[index.repeat_interleave(K)])
     tokens = futures[index.repeat(K)]  # (K * K, T + 1, S): pair (actions i, future j) at i * K + j
+    states = None
+    if model.config.state:  # each future's real states, as teacher forcing reads them
+        states = torch.cat([start.first_state[None].expand(K, -1, -1), start.states], 1)[index.repeat(K)]
     nll = torch.zeros(K * K, device=tokens.device)
     for t in range(1, T + 1):
         seen = slice(max(0, t + 1 - window), t + 1)
         inputs = tokens[:, seen].clone()
         inputs[:, -1] = model.config.mask_token_id
-        logits = model.compute_logits(inputs, control.frames(seen))[0][:, -1]  # (K * K, S, V)
+        seen_states = None if states is None else states[:, seen]
+        logits = model.compute_logits(inputs, control.frames(seen), states=seen_states)[0][:, -1]  # (K * K, S, V)
         nll += F.cross_entropy(logits.transpose(1, 2).float(), tokens[:, t], reduction="none").mean(1)
     return retrieval_accuracy(-nll.view(K, K).T.cpu().numpy())  # row j: future j under each sequence
 
@@ -219,7 +292,7 @@ def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart)
 def control_summary(model, tokenizer: VisualTokenizer, starts: list[ControlStart]) -> dict[str, float]:
     """Retrieval (whole frame, object) and action gain over a controllability set: the held-out measures that
     size the action model's training."""
-    retrieval, gain, likelihood = defaultdict(list), [], []
+    retrieval, gain, likelihood, arm = defaultdict(list), [], [], []
     for i, start in enumerate(starts):
         measured = measure_start(model, tokenizer, start, starts[(i + 1) % len(starts)], null=False)
         for region, sims in measured["world_model"]["similarity"].items():
@@ -227,10 +300,12 @@ def control_summary(model, tokenizer: VisualTokenizer, starts: list[ControlStart
                 retrieval[region].append(retrieval_accuracy(sims))
         gain.append(measured["action_gain"])
         likelihood.append(likelihood_retrieval(model, tokenizer, start))
+        arm.append(measured["arm"])
     return {
         **{f"retrieval_{region}": float(np.mean(v)) for region, v in retrieval.items()},
         "action_gain_db": float(np.mean(gain)),
         "likelihood_retrieval": float(np.mean(likelihood)),
+        **summarise_arm(arm),
     }
 
 
@@ -269,6 +344,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
             "task": start.task,
             "action_gain": measured["action_gain"],
             "likelihood_retrieval": likelihood_retrieval(model, tokenizer, start),
+            "arm": measured["arm"],
         }
         gains.append(measured["action_gain"])
         for name in ("world_model", "ignoring_actions"):
@@ -298,6 +374,7 @@ def evaluate_controllability(cfg: ControllabilityReportConfig) -> dict:
             }
     summary["action_gain_db"] = float(np.mean(gains))
     summary["likelihood_retrieval"] = float(np.mean([r["likelihood_retrieval"] for r in per_start]))
+    summary["arm"] = summarise_arm([r["arm"] for r in per_start])
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "sequences_per_start": len(per_start[0]["episodes"]),

@@ -39,11 +39,12 @@ def done_features(
         # Shorter episodes hold their last frame and action: their padded frames are left out below.
         held = [np.concatenate([f, np.repeat(f[-1:], T - len(f))]) for f in frames]
         tokens = torch.from_numpy(np.stack([cache.tokens[f].reshape(T, -1) for f in held]).astype(np.int64))
+        states = torch.from_numpy(np.stack([cache.states[f] for f in held])).float().to(device)
         steps = [r["start"] + np.minimum(np.arange((T - 1) * k), r["length"] - 1) for r in batch]
         actions = torch.from_numpy(np.stack([cache.actions[s] for s in steps])).float()
         tokens, actions = tokens.to(device), actions.to(device)
-        generated = _open_loop_features(model, tokens[:, :P], T - P, actions)
-        _, forced = model.teacher_forced(tokens, actions)
+        generated = _open_loop_features(model, tokens[:, :P], T - P, actions, states[:, :P])
+        _, forced = model.teacher_forced(tokens, actions, states=states)
         for i, f in enumerate(frames):
             n = len(f) - P
             done = torch.from_numpy(np.asarray(cache.done[f[P:]], dtype=np.float32))
@@ -54,11 +55,11 @@ def done_features(
     return torch.cat(features), torch.cat(labels), torch.cat(open_loop)
 
 
-def _open_loop_features(model: STWorldModel, prompt_BPS, n_frames: int, actions) -> torch.Tensor:
+def _open_loop_features(model: STWorldModel, prompt_BPS, n_frames: int, actions, states_BPD) -> torch.Tensor:
     """(B, n_frames, C): the done head's input at each frame the model generates."""
     P = prompt_BPS.shape[1]
     control = model.episode_control(actions)
-    rollout = Rollout.start(model, prompt_BPS, control.frames(slice(0, P)), guided=True)
+    rollout = Rollout.start(model, prompt_BPS, control.frames(slice(0, P)), guided=True, states=states_BPD)
     features = []
     for t in range(P, P + n_frames):
         rollout.predict_next_frame(control.frames(slice(t, t + 1)))

@@ -159,9 +159,10 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 "episode %d has %d frames, not more than the %d prompt frames: skipped", index, len(tokens), prompt
             )
             continue
-        pred_tokens, _ = model.generate(
-            tokens[None, :prompt], horizon, actions=actions[None, : (prompt + horizon - 1) * k]
-        )
+        states = torch.from_numpy(episode.state[frames][None, :prompt]).to(device)
+        pred_tokens = model.generate(
+            tokens[None, :prompt], horizon, actions=actions[None, : (prompt + horizon - 1) * k], states=states
+        ).tokens
         real = torch.stack([torch.from_numpy(f) for f in images.values()], 1).permute(0, 1, 4, 2, 3)
         real = real.to(device).float() / 255  # (T, n, 3, H, W)
         target = real[prompt : prompt + horizon]

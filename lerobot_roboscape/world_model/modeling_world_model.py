@@ -1,26 +1,40 @@
-"""STWorldModel: next-frame token prediction (MaskGIT-style) and a done head, conditioned on actions or text.
+"""STWorldModel: next-frame token prediction (MaskGIT-style) and a done head, conditioned on actions or text, with
+the robot's state as a channel (world_model/robot_state.py).
 
 A model frame stands for k = `frame_skip` control steps. Frame t is conditioned on the control that led to it: for
 the action model, the k actions taken from frame t - 1; for the text model, the instruction. Tokens are (B, T, S)
-integer grids flattened per frame (views side by side). Generation takes actions one per control step, k per frame.
+integer grids flattened per frame (views side by side); inside the model a position holds patch x patch of a view's
+codes (N positions of G codes each: `group`), while everything outside reads and writes codes. Generation takes
+actions one per control step, k per frame, and states one per frame.
 """
 
+import json
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from einops import rearrange
 from huggingface_hub import snapshot_download
 from torch import nn
 
 from lerobot_roboscape.io.weights import CheckedHubMixin
+from lerobot_roboscape.training.loop import TRAIN_CONFIG
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ACTION_TOKENS, ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 from roboscape_core.errors import InvalidInputError
 
 TEXT_ENCODER_DIR = "text_encoder"
+
+
+class Generated(NamedTuple):
+    tokens: torch.Tensor  # (B, n_frames, S)
+    done: torch.Tensor  # (B, n_frames) probabilities
+    state: torch.Tensor | None  # (B, n_frames, state_dim) the predicted raw states; None without a state channel
 
 
 def balanced_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -37,15 +51,31 @@ def balanced_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return (means[0] * present[0] + means[1] * present[1]) / (present[0] + present[1]).clamp(min=1)
 
 
+def retrain_command(model_dir: Path, control: str) -> str:
+    """The roboscape-train-wm command that trains a model again, from its run's record (the folder above the saved
+    model) where there is one."""
+    record = model_dir.parent / TRAIN_CONFIG
+    run = json.loads(record.read_text()) if record.is_file() else {}
+    dataset = run.get("dataset") or {}
+    return (
+        f"roboscape-train-wm --dataset.repo_id={dataset.get('repo_id', '<repo id>')} "
+        f"--dataset.root={dataset.get('root', '<dataset folder>')} --tokenizer={run.get('tokenizer', '<tokenizer>')} "
+        f"--wm.type=<preset> --wm.control={control} --output_dir={model_dir.parent}"
+    )
+
+
 class STWorldModel(
     nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "world-model", "robotics"]
 ):
     def __init__(self, config: WorldModelConfig, text_encoder_dir: str | None = None):
         super().__init__()
         self.config = config
-        C, S = config.d_model, config.tokens_per_frame
-        self.token_emb = nn.Embedding(config.vocab_size + 1, C)  # + the mask token
-        self.pos_emb = nn.Parameter(torch.zeros(S, C))
+        C, N, G = config.d_model, config.positions_per_frame, config.codes_per_position
+        # One table per place in a position's patch (+ the mask token each), summed into the position's embedding.
+        self.token_emb = nn.Embedding(G * (config.vocab_size + 1), C)
+        self.register_buffer("code_offsets", torch.arange(G) * (config.vocab_size + 1), persistent=False)
+        self.pos_emb = nn.Parameter(torch.zeros(N, C))
+        self.robot_state = RobotState(config) if config.state else None
         if config.control == "action":
             self.control_encoder = ActionEncoder(config)
         else:
@@ -54,7 +84,7 @@ class STWorldModel(
         self.ln_pooled = nn.LayerNorm(C) if config.normalize_control else nn.Identity()
         self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
         self.ln_f = nn.LayerNorm(C)
-        self.head = nn.Linear(C, config.vocab_size)
+        self.head = nn.Linear(C, G * config.vocab_size)  # a code's logits per place in the patch
         self.done_head = nn.Sequential(nn.Linear(C, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, 1))
         for name, module in self.named_modules():
             if not name.startswith("control_encoder.t5"):
@@ -62,6 +92,8 @@ class STWorldModel(
         nn.init.normal_(self.pos_emb, std=0.02)
         for block in self.blocks:
             block.zero_init_modulation()
+        if self.robot_state is not None:
+            self.robot_state.zero_init_head()
         self._compiled_blocks: list | None = None  # see compile()
 
     @staticmethod
@@ -78,6 +110,8 @@ class STWorldModel(
         if not 1 <= n_blocks <= len(self.blocks):
             raise InvalidInputError(f"the model has {len(self.blocks)} blocks; cannot take the last {n_blocks}")
         top = nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
+        if self.robot_state is not None:
+            top.append(self.robot_state.head)
         for module in top.modules():
             self._init_weights(module)
             if isinstance(module, nn.LayerNorm):
@@ -85,6 +119,8 @@ class STWorldModel(
         for module in top.modules():  # after the normal draw, which visits a block before its layers
             if isinstance(module, STBlock):
                 module.zero_init_modulation()
+        if self.robot_state is not None:
+            self.robot_state.zero_init_head()
         self.requires_grad_(False)
         return top.requires_grad_(True)
 
@@ -107,70 +143,129 @@ class STWorldModel(
 
     # ---- the network ---------------------------------------------------------------------------------------
 
-    def compute_hidden(self, tokens_BTS, control: Control, cache: KVCache | None = None, fill: KVCache | None = None):
-        """Final hidden states (B, T, S, C) and the frames' keys/values per layer. With a cache, T = 1 and the new
+    def group(self, codes_BTS: torch.Tensor) -> torch.Tensor:
+        """(B, T, S, ...) in code order -> (B, T, N, G, ...): each position's patch of codes."""
+        c = self.config
+        side = c.tokens_per_side // c.patch
+        return rearrange(
+            codes_BTS, "b t (n h p w q) ... -> b t (n h w) (p q) ...", n=c.n_cameras, h=side, w=side, p=c.patch
+        )
+
+    def ungroup(self, grouped_BTNG: torch.Tensor) -> torch.Tensor:
+        """(B, T, N, G, ...) -> (B, T, S, ...) in code order: the inverse of `group`."""
+        c = self.config
+        side = c.tokens_per_side // c.patch
+        return rearrange(
+            grouped_BTNG, "b t (n h w) (p q) ... -> b t (n h p w q) ...", n=c.n_cameras, h=side, w=side, p=c.patch
+        )
+
+    def _pooled(self, control: Control) -> Control:
+        """The control whose pooled vector is normalised as the blocks and the state head read it."""
+        return control._replace(pooled=self.ln_pooled(control.pooled))
+
+    def compute_hidden(
+        self,
+        tokens_BTS,
+        control: Control,
+        cache: KVCache | None = None,
+        fill: KVCache | None = None,
+        states: torch.Tensor | None = None,
+    ):
+        """Final hidden states (B, T, N, C) and the frames' keys/values per layer. With a cache, T = 1 and the new
         frame's keys/values are written into it instead; with `fill` (an empty cache), the frames' are written into
-        that cache, block by block, and none is returned."""
+        that cache, block by block, and none is returned. `states`: the frames' raw states (B, T, state_dim), which
+        a model with a state channel needs."""
         B, T, S = tokens_BTS.shape
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
-        x_BTSC = self.token_emb(tokens_BTS) + self.pos_emb
-        control = control._replace(pooled=self.ln_pooled(control.pooled))
+        x_BTNC = self.token_emb(self.group(tokens_BTS) + self.code_offsets).sum(3) + self.pos_emb
+        if self.robot_state is not None:
+            if states is None or states.shape[:2] != (B, T):
+                got = None if states is None else tuple(states.shape)
+                raise ValueError(
+                    f"a world model with a state channel needs the frames' states ({B}, {T}, D), got {got}"
+                )
+            x_BTNC = x_BTNC + self.robot_state.embedding(states).to(x_BTNC.dtype)[:, :, None]
+        control = self._pooled(control)
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         blocks = self._compiled_blocks if cache is None and self.training and self._compiled_blocks else self.blocks
         kvs = []
         for i, (block, layer_cache) in enumerate(zip(blocks, layer_caches, strict=True)):
-            x_BTSC, kv = block(x_BTSC, control, layer_cache)
+            x_BTNC, kv = block(x_BTNC, control, layer_cache)
             if fill is not None:
                 fill.fill(i, *kv)
                 kv = None
             kvs.append(kv)
-        return self.ln_f(x_BTSC), kvs
+        return self.ln_f(x_BTNC), kvs
 
     def cache_bytes(self, batch: int, dtype: torch.dtype = torch.float32) -> int:
         """Bytes of the key/value cache a rollout of `batch` samples holds in `dtype` (guided: twice the samples),
         the memory a generation needs beyond the weights and one frame's activations."""
-        rows = batch * (2 if self.config.guidance_scale != 1 else 1) * self.config.tokens_per_frame
+        rows = batch * (2 if self.config.guidance_scale != 1 else 1) * self.config.positions_per_frame
         itemsize = torch.finfo(dtype).bits // 8
         return KVCache.nbytes(self.config.n_layer, rows, self.config.d_model, self.config.window, itemsize)
 
-    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None):
-        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
-        hidden_BTSC, kvs = self.compute_hidden(tokens_BTS, control, cache)
-        return self.head(hidden_BTSC), self.done_logits(hidden_BTSC), kvs
+    def token_logits(self, hidden_BTNC) -> torch.Tensor:
+        """Logits (B, T, S, V) of every code, in code order."""
+        B, T, N, _ = hidden_BTNC.shape
+        return self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
 
-    def done_logits(self, hidden_BTSC) -> torch.Tensor:
-        """The done head reads the whole current frame: (B, T, S, C) -> (B, T)."""
-        return self.done_head(hidden_BTSC.mean(dim=2)).squeeze(-1)
+    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None, states=None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
+        hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states)
+        return self.token_logits(hidden_BTNC), self.done_logits(hidden_BTNC), kvs
+
+    def done_logits(self, hidden_BTNC) -> torch.Tensor:
+        """The done head reads the whole current frame: (B, T, N, C) -> (B, T)."""
+        return self.done_head(hidden_BTNC.mean(dim=2)).squeeze(-1)
+
+    def predict_state(self, features_BC, state_BD, control: Control) -> torch.Tensor | None:
+        """The next frame's raw state (B, D) from this frame's features and state and the next frame's control
+        ((B, 1, L, C), or the text's shared one); None without a state channel."""
+        if self.robot_state is None:
+            return None
+        pooled = self._pooled(control).pooled[: len(state_BD), -1]
+        return self.robot_state.predict_next(features_BC, state_BD, pooled)
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
-        """batch: tokens (B, T, S) long, done (B, T) float, and actions (B, T, k, A) + no_action (B, T) or task (B
-        strings). Frames after the first are masked at a MaskGIT ratio each, or left clean with clean_frame_prob;
-        controls are replaced by the null control with control_dropout. Masked tokens that changed since the
-        previous frame weigh changed_weight in the token loss."""
+        """batch: tokens (B, T, S) long, done (B, T) float, state (B, T, D) with a state channel, and actions
+        (B, T, k, A) + no_action (B, T) or task (B strings). Positions of frames after the first are masked at a
+        MaskGIT ratio each, or left clean with clean_frame_prob; a share of the codes left unmasked, drawn per clip
+        up to corrupt_max, is replaced by random codes; controls are replaced by the null control with
+        control_dropout. Masked tokens that changed since the previous frame weigh changed_weight in the token
+        loss; each frame's predicted next state is scored against the clip's next frame."""
         tokens, done = batch["tokens"], batch["done"]
         B, T, S = tokens.shape
+        c = self.config
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
-        if self.config.control_dropout > 0:
-            dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < self.config.control_dropout
+        if c.control_dropout > 0:
+            dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < c.control_dropout
             control = control.where(dropped, self.null_control(control))
         ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
-        ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= self.config.clean_frame_prob)
+        ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= c.clean_frame_prob)
         ratio[:, 0] = 0.0  # the first frame is the prompt
-        mask = torch.rand(B, T, S, device=tokens.device) < ratio
-        inputs = tokens.masked_fill(mask, self.config.mask_token_id)
+        masked_BTN = torch.rand(B, T, c.positions_per_frame, device=tokens.device) < ratio
+        mask = self.ungroup(masked_BTN[..., None].expand(-1, -1, -1, c.codes_per_position))
+        inputs = tokens
+        if c.corrupt_max > 0:
+            rate = c.corrupt_max * torch.rand(B, 1, 1, device=tokens.device)
+            corrupt = (torch.rand(B, T, S, device=tokens.device) < rate) & ~mask
+            inputs = torch.where(corrupt, torch.randint_like(tokens, c.vocab_size), tokens)
+        inputs = inputs.masked_fill(mask, c.mask_token_id)
 
-        logits, done_logits, _ = self.compute_logits(inputs, control)
+        states = batch.get("state")
+        hidden, _ = self.compute_hidden(inputs, control, states=states)
+        logits, done_logits = self.token_logits(hidden), self.done_logits(hidden)
         # Every token's loss, weighted: 0 where not masked, changed_weight where masked and changed since the previous
         # frame. No boolean indexing, so a training step never waits on the device.
         changed = torch.zeros_like(mask)
         changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
         masked, masked_changed = mask.float(), (mask & changed).float()
-        weight = masked + (self.config.changed_weight - 1) * masked_changed
+        weight = masked + (c.changed_weight - 1) * masked_changed
         token_ce = F.cross_entropy(logits.flatten(0, 2).float(), tokens.flatten(), reduction="none").view_as(weight)
         token_loss = (weight * token_ce).sum() / weight.sum().clamp(min=1e-6)
         done_loss = self.done_loss(done_logits.float(), done)
-        loss = token_loss + self.config.done_weight * done_loss
+        loss = token_loss + c.done_weight * done_loss
         hits = (logits.argmax(-1) == tokens).float()
         n_masked, n_changed = masked.sum(), masked_changed.sum()
         accuracy = (hits * masked).sum() / n_masked.clamp(min=1)
@@ -184,6 +279,10 @@ class STWorldModel(
             "changed_acc": changed_accuracy,
             "done_loss": done_loss,
         }
+        if self.robot_state is not None:
+            state_loss = self.robot_state.loss(hidden.mean(2), states, self._pooled(control).pooled)
+            loss = loss + state_loss
+            logs |= {"loss": loss, "state_mse": state_loss}
         return loss, {name: value.detach() for name, value in logs.items()}
 
     def done_loss(self, logits: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
@@ -205,14 +304,17 @@ class STWorldModel(
         included, as nanoGPT's estimate_mfu counts them; a training step costs 3x (the backward pass twice the
         forward's). The frozen T5 is left out: its states are computed once per instruction."""
         c = self.config
-        T, S, C, V = c.window, c.tokens_per_frame, c.d_model, c.vocab_size
+        T, S, C, V = c.window, c.positions_per_frame, c.d_model, c.vocab_size
         L = ACTION_TOKENS if c.control == "action" else c.text_max_length
         per_token = 8 * C * C + 8 * C * C + 4 * C * C + 4 * c.mlp_ratio * C * C  # spatial, temporal, cross, MLP
         attention = T * 4 * S * S * C + S * 4 * T * T * C + T * 4 * S * L * C  # spatial, temporal, cross
         modulated = T if c.control == "action" else 1  # the text's pooled control is one per clip
         modulation = modulated * 24 * C * C if c.adaln != "none" else 0
         blocks = c.n_layer * (T * S * per_token + attention + T * 4 * C * C * L + modulation)  # + cross keys/values
-        head = T * S * 2 * C * V + T * 2 * (C * c.done_hidden + c.done_hidden)
+        head = T * S * 2 * C * V * c.codes_per_position + T * 2 * (C * c.done_hidden + c.done_hidden)
+        if c.state:  # the state's embedding in every frame, its head on every frame but the last (nothing follows)
+            head += T * 2 * (c.state_dim * C + C * C)
+            head += (T - 1) * 2 * ((2 * C + c.state_dim) * c.done_hidden + c.done_hidden * c.state_dim)
         if c.control == "action":
             control = T * 2 * (c.frame_skip * c.action_dim * C + C * ACTION_TOKENS * C)
         else:
@@ -236,14 +338,15 @@ class STWorldModel(
         temperature: float = 0.0,
         generator=None,
         capture: bool = False,
-    ):
+        states=None,
+    ) -> Generated:
         """Open-loop generation of `n_frames` frames after the prompt (`capture`: each frame replayed as a CUDA
         graph, world_model/rollout.py).
 
         Action model: `actions` (B, (P + n_frames - 1) * k, A), one per control step, are the actions taken from the
         prompt frames and from each generated frame but the last (the control of frame t is the k actions from
-        frame t - 1); `no_action` (B, P + n_frames - 1) flags frames without one.
-        Returns tokens (B, n_frames, S) and done probabilities (B, n_frames).
+        frame t - 1); `no_action` (B, P + n_frames - 1) flags frames without one. `states` (B, P, D): the prompt
+        frames' real states (a model with a state channel); every later state is the model's own prediction.
         """
         P, k = prompt_BPS.shape[1], self.config.frame_skip
         if self.config.control == "action" and (actions is None or actions.shape[1] != (P + n_frames - 1) * k):
@@ -253,24 +356,32 @@ class STWorldModel(
                 f"got {got}"
             )
         control = self.episode_control(actions, no_action, instructions)
-        rollout = Rollout.start(self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True, capture=capture)
-        frames, dones = [], []
+        rollout = Rollout.start(
+            self, prompt_BPS, control.frames(slice(0, P)), use_cache, guided=True, capture=capture, states=states
+        )
+        frames, dones, predicted = [], [], []
         for t in range(P, P + n_frames):
             frame, done = rollout.predict_next_frame(control.frames(slice(t, t + 1)), temperature, generator)
             frames.append(frame)
             dones.append(done)
-        return torch.stack(frames, 1), torch.stack(dones, 1)
+            predicted.append(rollout.state)
+        state = None if rollout.state is None else torch.stack(predicted, 1)
+        return Generated(torch.stack(frames, 1), torch.stack(dones, 1), state)
 
     @torch.no_grad()
-    def teacher_forced(self, tokens_BTS, actions=None, instructions=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def teacher_forced(
+        self, tokens_BTS, actions=None, instructions=None, states=None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Read known frames one after the other, as a rollout would (each sees the window before it). Returns
         done probabilities (B, T) and features (B, T, C). Actions: (B, (T - 1) * k, A), actions t * k .. t * k + k - 1
-        leading to frame t + 1."""
+        leading to frame t + 1; states: the frames' real states (B, T, D) (a model with a state channel)."""
         control = self.episode_control(actions, instructions=instructions)
-        rollout = Rollout.start(self, tokens_BTS[:, :1], control.frames(slice(0, 1)))
+        first = None if states is None else states[:, :1]
+        rollout = Rollout.start(self, tokens_BTS[:, :1], control.frames(slice(0, 1)), states=first)
         done, features = [rollout.done], [rollout.features]
         for t in range(1, tokens_BTS.shape[1]):
-            done.append(rollout.observe(tokens_BTS[:, t : t + 1], control.frames(slice(t, t + 1))))
+            state = None if states is None else states[:, t]
+            done.append(rollout.observe(tokens_BTS[:, t : t + 1], control.frames(slice(t, t + 1)), state))
             features.append(rollout.features)
         return torch.stack(done, 1), torch.stack(features, 1)
 
@@ -335,6 +446,11 @@ class STWorldModel(
             token=token,
             **kwargs,
         )
+        if model.config.state and model.config.state_mean is None:
+            raise InvalidInputError(
+                f"{model_id}: a world model saved without the robot's state statistics (before the state was a "
+                f"channel of every frame); retrain it: {retrain_command(root, model.config.control)}"
+            )
         if model.config.control == "action" and model.config.action_mean is None:
             zeros, ones = [0.0] * model.config.action_dim, [1.0] * model.config.action_dim
             raise InvalidInputError(

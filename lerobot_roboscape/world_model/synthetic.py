@@ -7,6 +7,7 @@ Only the square moves, and only the control says where:
   at the borders;
 - *text*: the instruction says which way the square moves, one cell per step.
 Actions are 7-D and small, as the robot planner's are (at most ACTION_SCALE of the range, rotation almost still).
+The square's cell is the world's state (the robot's `observation.state` in the real data), 2-D.
 
 `retrieval` asks the world model to roll out from one start under K controls and scores how often each rollout is
 nearer its own real future than the others' (token agreement, averaged over the horizon): chance is 1 / K.
@@ -25,6 +26,7 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 WORLDS = ("wiring", "motion", "text")
 ACTION_SCALE = 0.35  # the planner uses at most this share of the translation range
 ACTION_DIM = 7
+STATE_DIM = 2  # the square's cell (x, y)
 SQUARE = 2
 INSTRUCTIONS = {"move the square right": (1, 0), "move the square down": (0, 1)}
 
@@ -97,14 +99,19 @@ class SyntheticWorld:
         return frame.reshape(len(frame), -1)
 
     def episodes(self, rng: np.random.Generator, n: int, steps: int, controls=None, starts=None) -> dict:
-        """n episodes of `steps` controls: tokens (n, steps + 1, S), controls and their instructions."""
+        """n episodes of `steps` controls: tokens (n, steps + 1, S), states (n, steps + 1, 2) and the controls."""
         background, position = self.random_starts(rng, n, steps) if starts is None else starts
         controls = self.random_controls(rng, n, steps) if controls is None else controls
-        frames = [self.render(background, position)]
+        frames, positions = [self.render(background, position)], [position]
         for t in range(steps):
             position = self.next_position(position, controls if self.kind == "text" else controls[:, t])
             frames.append(self.render(background, position))
-        return {"tokens": np.stack(frames, 1), "controls": controls}
+            positions.append(position)
+        return {
+            "tokens": np.stack(frames, 1),
+            "states": np.stack(positions, 1).astype(np.float32),
+            "controls": controls,
+        }
 
     # ---- what the world model reads ------------------------------------------------------------------------
 
@@ -113,7 +120,7 @@ class SyntheticWorld:
     ) -> dict:
         """A batch in the world-model training layout (ClipSampler's), a pure function of (seed, step): tokens
         (B, T, S) every `frame_skip` (k) control steps, actions (B, T, k, 7) with frame t carrying the k actions that
-        led to it, no_action, done and task. `shuffle`: every clip gets another clip's controls (text: one
+        led to it, no_action, state, done and task. `shuffle`: every clip gets another clip's controls (text: one
         instruction for all), so that nothing but chance links a control to its frames."""
         rng = np.random.default_rng([seed, step])
         k = frame_skip
@@ -134,6 +141,7 @@ class SyntheticWorld:
             "tokens": torch.from_numpy(episode["tokens"][:, ::k]).long(),
             "actions": torch.from_numpy(actions),
             "no_action": torch.from_numpy(no_action),
+            "state": torch.from_numpy(episode["states"][:, ::k]),
             "done": torch.zeros(batch_size, window),
             "task": task,
         }
@@ -144,6 +152,11 @@ class SyntheticWorld:
             raise ValueError("the text world has instructions, not actions")
         actions = self.random_controls(np.random.default_rng(seed), n, 1)[:, 0]
         return {"mean": actions.mean(0), "std": actions.std(0), "min": actions.min(0), "max": actions.max(0)}
+
+    def state_stats(self) -> dict[str, np.ndarray]:
+        """The states' statistics: a cell drawn uniformly."""
+        cells = np.arange(self.cells, dtype=np.float64)
+        return {"mean": np.full(STATE_DIM, cells.mean()), "std": np.full(STATE_DIM, cells.std())}
 
 
 @torch.no_grad()
@@ -160,14 +173,16 @@ def retrieval(model, world: SyntheticWorld, starts: int = 32, K: int = 4, horizo
     else:
         controls = world.random_controls(rng, starts * K, horizon * k)
     starts_K = (np.repeat(background, K, 0), np.repeat(position, K, 0))
-    real = world.episodes(rng, starts * K, horizon * k, controls=controls, starts=starts_K)["tokens"][:, ::k]
+    episodes = world.episodes(rng, starts * K, horizon * k, controls=controls, starts=starts_K)
+    real = episodes["tokens"][:, ::k]
     device = next(model.parameters()).device
     prompt = torch.from_numpy(real[:, :1]).to(device)
+    first = torch.from_numpy(episodes["states"][:, :1]).to(device)
     if world.kind == "text":
         names = list(INSTRUCTIONS)
-        rollout, _ = model.generate(prompt, horizon, instructions=[names[c] for c in controls])
+        rollout = model.generate(prompt, horizon, instructions=[names[c] for c in controls], states=first).tokens
     else:
-        rollout, _ = model.generate(prompt, horizon, actions=torch.from_numpy(controls).to(device))
+        rollout = model.generate(prompt, horizon, actions=torch.from_numpy(controls).to(device), states=first).tokens
     rollout = rollout.cpu().numpy().reshape(starts, K, horizon, -1)
     future = real[:, 1:].reshape(starts, K, horizon, -1)
     # agreement[s, i, j]: rollout i of start s against real future j
@@ -181,10 +196,15 @@ def world_model(
 ) -> STWorldModel:
     """The tiny preset (its architecture and control path) sized to the world's grid, a frame per action (the
     worlds move one cell per action), its initial weights drawn from `seed`; the actions normalised by the world's
-    statistics unless `normalize_actions` is off; any other config field as `overrides`."""
+    statistics unless `normalize_actions` is off; the square's cell as its state; any other config field as
+    `overrides`."""
     if normalize_actions and world.kind != "text":
         stats = world.action_stats()
         overrides.update(action_mean=stats["mean"].tolist(), action_std=stats["std"].tolist())
+    stats = world.state_stats()
+    overrides = (
+        dict(state_dim=STATE_DIM, state_mean=stats["mean"].tolist(), state_std=stats["std"].tolist()) | overrides
+    )
     torch.manual_seed(seed)
     config = TinyWorldModelConfig(
         control="text" if world.kind == "text" else "action",

@@ -11,12 +11,13 @@ import torch
 from accelerate.utils import set_seed
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.compute_stats import aggregate_feature_stats
-from lerobot.utils.constants import ACTION
+from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import (
-    ACTION_STATS_FILE,
+    STATS_FILE,
+    STATS_KEYS,
     TokenCache,
     dataset_fingerprint,
     load_or_build_token_cache,
@@ -135,15 +136,15 @@ def prepare_token_cache(
     device: str = "auto",
 ) -> tuple[TokenCache, dict]:
     """The token cache of every episode of the dataset under this tokenizer, built on first use, and the dataset's
-    action statistics (LeRobot's dataset.meta.stats["action"]). A cache imported from an exported file
-    (import_token_cache) carries those statistics and is read without its dataset."""
+    statistics of its actions and states (LeRobot's dataset.meta.stats of STATS_KEYS). A cache imported from an
+    exported file (import_token_cache) carries those statistics and is read without its dataset."""
     tokenizer = VisualTokenizer.from_pretrained(tokenizer_path)
-    if token_cache is not None and (Path(token_cache) / ACTION_STATS_FILE).is_file():
+    if token_cache is not None and (Path(token_cache) / STATS_FILE).is_file():
         cache = open_token_cache(token_cache, tokenizer_fp=tokenizer_fingerprint(tokenizer))
-        stats = json.loads((Path(token_cache) / ACTION_STATS_FILE).read_text())
-        return cache, {name: np.asarray(value) for name, value in stats.items()}
+        stats = json.loads((Path(token_cache) / STATS_FILE).read_text())
+        return cache, {key: {k: np.asarray(v) for k, v in stats[key].items()} for key in STATS_KEYS}
     dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root)  # the cache covers all episodes
-    stats = dataset.meta.stats[ACTION]
+    stats = {key: dataset.meta.stats[key] for key in STATS_KEYS}
     if token_cache is not None:
         cache = open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
     else:
@@ -153,32 +154,34 @@ def prepare_token_cache(
 
 def check_same_layout(cache: TokenCache, other: TokenCache) -> None:
     """Two token caches one model trains on must share the frame layout and the action width."""
-    names = ("cameras", "tokens_per_side", "vocab_size", "action_dim")
+    names = ("cameras", "tokens_per_side", "vocab_size", "action_dim", "state_dim")
     if differ := {n: (getattr(cache, n), getattr(other, n)) for n in names if getattr(cache, n) != getattr(other, n)}:
         raise InvalidInputError(f"token caches {cache.root} and {other.root} differ in {differ}")
 
 
-def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, action_stats: dict) -> WorldModelConfig:
-    """A copy of `wm` whose frame layout, action width and action statistics come from the data; says so when the
-    layout differs from the preset. The caller's config stays as it was given (a pipeline records it)."""
+def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, stats: dict) -> WorldModelConfig:
+    """A copy of `wm` whose frame layout, action and state widths and their statistics come from the data; says so
+    when the layout differs from the preset. The caller's config stays as it was given (a pipeline records it)."""
     wm = copy.deepcopy(wm)
     for name, value in (
         ("n_cameras", len(cache.cameras)),
         ("tokens_per_side", cache.tokens_per_side),
         ("vocab_size", cache.vocab_size),
         ("action_dim", cache.action_dim),
+        ("state_dim", cache.state_dim),
     ):
         if getattr(wm, name) != value:
             logger.info("wm.%s = %s (from the token cache; the preset had %s)", name, value, getattr(wm, name))
             setattr(wm, name, value)
-    wm.action_mean = np.asarray(action_stats["mean"], dtype=np.float64).reshape(-1).tolist()
-    wm.action_std = np.asarray(action_stats["std"], dtype=np.float64).reshape(-1).tolist()
-    wm.__post_init__()  # the statistics must fit the action layout
+    for name, key in (("action", ACTION), ("state", OBS_STATE)):
+        for moment in ("mean", "std"):
+            setattr(wm, f"{name}_{moment}", np.asarray(stats[key][moment], dtype=np.float64).reshape(-1).tolist())
+    wm.__post_init__()  # the statistics must fit the action and state layouts
     return wm
 
 
 def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
-    cache, action_stats = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
+    cache, stats = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
     text = cfg.wm.control == "text"
     episodes = select_episodes(
         cache,
@@ -217,7 +220,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         )
         share = cfg.exploration_share
         batches = ClipMixture([sampler, explore], [1 - share, share], cfg.train.batch_size, cfg.train.seed)
-        action_stats = aggregate_feature_stats([action_stats, explore_stats])
+        stats = {key: aggregate_feature_stats([stats[key], explore_stats[key]]) for key in STATS_KEYS}
         run_config["exploration_token_cache"] = str(explore_cache.root)
     device = resolve_device("auto")  # where fit trains (Accelerate's choice)
     if cfg.train.resident if cfg.train.resident is not None else device == "cuda":
@@ -225,7 +228,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         logger.info("token caches resident on %s: %.0f MiB", device, batches.nbytes / 2**20)
     set_seed(cfg.train.seed)  # the initial weights too, so a run is reproducible
     if cfg.init_from is None:
-        model = STWorldModel(fit_config_to_cache(cfg.wm, cache, action_stats))
+        model = STWorldModel(fit_config_to_cache(cfg.wm, cache, stats))
     else:
         model = start_from(cfg.init_from, cfg.retrain_blocks, cache, cfg.wm.control)
     model = fit(

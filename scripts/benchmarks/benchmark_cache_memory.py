@@ -17,6 +17,7 @@ import torch
 
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.robot_state import UNIT_STATE_STATS
 from lerobot_roboscape.world_model.st_transformer import KVCache
 
 
@@ -32,7 +33,7 @@ def main():
     args = parser.parse_args()
     torch.manual_seed(0)
     cfg = WorldModelConfig.get_choice_class(args.preset)(
-        control="action", text_encoder=None, action_mean=[0.0] * 7, action_std=[1.0] * 7
+        control="action", text_encoder=None, action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS
     )
     model = STWorldModel(cfg).eval()
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -40,14 +41,15 @@ def main():
     frames = cfg.window - 1  # a full prompt
     tokens = torch.randint(0, cfg.vocab_size, (args.batch, frames, cfg.tokens_per_frame), device=device)
     actions = torch.zeros(args.batch, (frames - 1) * cfg.frame_skip, cfg.action_dim, device=device)
+    states = torch.zeros(args.batch, frames, cfg.state_dim, device=device)
     with torch.no_grad(), torch.autocast(torch.device(device).type, torch.bfloat16):
         control = model.episode_control(actions)
         if "fill" in STWorldModel.compute_hidden.__code__.co_varnames:  # filled block by block
             cache = KVCache(cfg.n_layer, cfg.window)
-            model.compute_hidden(tokens, control, fill=cache)
+            model.compute_hidden(tokens, control, fill=cache, states=states)
             held = 0
         else:  # every layer's prompt keys and values returned, then copied into the rings
-            _, kvs = model.compute_hidden(tokens, control)
+            _, kvs = model.compute_hidden(tokens, control, states=states)
             held = storage_bytes([t for kv in kvs for t in kv])
             cache = KVCache(kvs, cfg.window)
     rings = storage_bytes([t for ring in cache.layers for t in (ring.k, ring.v)])

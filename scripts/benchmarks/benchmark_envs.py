@@ -37,6 +37,7 @@ from lerobot_roboscape.tokenizer.configuration_tokenizer import TokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.robot_state import UNIT_STATE_STATS
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
 
@@ -127,6 +128,7 @@ def random_models_config(demo: Path, preset: str, frame_skip: int, out: Path) ->
         vocab_size=tokenizer.config.codebook_size,
         action_mean=[0.0] * 7,
         action_std=[0.3] * 7,
+        **UNIT_STATE_STATS,
     )
     STWorldModel(wm).save_pretrained(out / "action_world_model")
     return RoboscapeWorldModelEnvConfig(

@@ -33,6 +33,7 @@ from lerobot_roboscape.training.loop import TRAIN_LOG, fit, peak_flops
 from lerobot_roboscape.world_model.clips import ClipSampler, ResidentClips
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.robot_state import UNIT_STATE_STATS
 from lerobot_roboscape.world_model.train import WorldModelTrainingConfig
 
 PATHS = {
@@ -54,6 +55,7 @@ def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int =
         manifest={"vocab_size": vocab, "cameras": [f"view{i}" for i in range(cameras)], "tokens_per_side": side},
         tokens=rng.integers(0, vocab, (N, cameras, side, side), dtype=np.uint16),
         actions=rng.uniform(-1, 1, (N, 7)).astype(np.float32),
+        states=rng.normal(size=(N, UNIT_STATE_STATS["state_dim"])).astype(np.float32),
         done=np.zeros(N, np.float32),
         rewards=np.zeros(N, np.float32),
         episodes=rows,
@@ -62,7 +64,9 @@ def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int =
 
 def run(preset: str, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device) -> dict:
     settings = PATHS[path]
-    config = WorldModelConfig.get_choice_class(preset)(control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7)
+    config = WorldModelConfig.get_choice_class(preset)(
+        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS
+    )
     torch.manual_seed(0)
     model = STWorldModel(config)
     batches = ClipSampler(cache, cache.episodes, config.window, batch, seed=0, frame_skip=config.frame_skip)

@@ -78,10 +78,11 @@ def frames_per_second(
     prompt = torch.randint(0, cfg.vocab_size, (batch, prompt_len, cfg.tokens_per_frame), generator=g).to(device)
     k = cfg.frame_skip  # actions per frame
     actions = (torch.rand(batch, (prompt_len + frames) * k, cfg.action_dim, generator=g) * 2 - 1).to(device)
+    states = torch.randn(batch, prompt_len, cfg.state_dim, generator=g).to(device) if cfg.state else None
 
     def generate(n: int):
         actions_n = actions[:, : (prompt_len + n - 1) * k]
-        model.generate(prompt, n, actions=actions_n, use_cache=use_cache, capture=capture)
+        model.generate(prompt, n, actions=actions_n, use_cache=use_cache, capture=capture, states=states)
 
     with torch.autocast(device_type=device, dtype=dtype, enabled=dtype != torch.float32):
         generate(1)  # warm-up

@@ -57,8 +57,8 @@ def trained(member: STWorldModel, world: SyntheticWorld, seed: int, steps: int) 
     return {"steps": steps, "seconds": time.perf_counter() - tic, "retrieval": curve[-1]["retrieval"]}
 
 
-def episodes(world: SyntheticWorld, condition: str, n: int, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Tokens (n, steps + 1, S) and actions (n, steps, 7) of episodes under `condition`."""
+def episodes(world: SyntheticWorld, condition: str, n: int, steps: int, seed: int) -> tuple[np.ndarray, ...]:
+    """Tokens (n, steps + 1, S), actions (n, steps, 7) and states (n, steps + 1, 2) of episodes under `condition`."""
     rng = np.random.default_rng(seed)
     background, position = world.random_starts(rng, n, steps)
     if condition == "frames off the data":  # tokens between the training backgrounds' and the square's
@@ -67,23 +67,25 @@ def episodes(world: SyntheticWorld, condition: str, n: int, steps: int, seed: in
     if condition == "actions off the data":
         actions[..., :2] *= 3.0
     played = world.episodes(rng, n, steps, controls=actions, starts=(background, position))
-    return played["tokens"], actions
+    return played["tokens"], actions, played["states"]
 
 
 @torch.no_grad()
-def disagreement(model: STWorldModel, members: list[STWorldModel], tokens: np.ndarray, actions: np.ndarray) -> float:
+def disagreement(
+    model: STWorldModel, members: list[STWorldModel], tokens: np.ndarray, actions: np.ndarray, states: np.ndarray
+) -> float:
     """Mean over episodes and frames of the ensemble's disagreement on each next frame, the frames read as they were."""
-    tokens_t, actions_t = torch.from_numpy(tokens).long(), torch.from_numpy(actions)
+    tokens_t, actions_t, states_t = torch.from_numpy(tokens).long(), torch.from_numpy(actions), torch.from_numpy(states)
     B, A = len(tokens), ACTION_DIM
     ensemble = Ensemble(members)
-    ensemble.start(tokens_t[:, :1])
-    own = Rollout.start(model, tokens_t[:, :1], model.episode_control(torch.zeros(B, 0, A)))
+    ensemble.start(tokens_t[:, :1], states_t[:, :1])
+    own = Rollout.start(model, tokens_t[:, :1], model.episode_control(torch.zeros(B, 0, A)), states=states_t[:, :1])
     values = []
     for t in range(actions.shape[1]):
         chunk = actions_t[:, t : t + 1, None]  # (B, 1, k=1, A)
         values.append(ensemble.disagreement(own, chunk))
-        own.observe(tokens_t[:, t + 1 : t + 2], model.encode_control(chunk))
-        ensemble.observe(tokens_t[:, t + 1], chunk)
+        own.observe(tokens_t[:, t + 1 : t + 2], model.encode_control(chunk), states_t[:, t + 1])
+        ensemble.observe(tokens_t[:, t + 1], chunk, states_t[:, t + 1])
     return float(torch.stack(values).mean())
 
 

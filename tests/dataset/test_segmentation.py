@@ -4,7 +4,7 @@ import torch
 
 from lerobot_roboscape.dataset.episode import Episode
 from lerobot_roboscape.dataset.reader import CameraFrames, FrameBank, read_episode
-from lerobot_roboscape.dataset.segmentation import CONTAINER, OBJECT, has_masks, mask_path, read_masks
+from lerobot_roboscape.dataset.segmentation import CONTAINER, OBJECT, ROBOT, has_masks, mask_path, read_masks
 from lerobot_roboscape.dataset.writer import write_dataset
 from roboscape_core.errors import InvalidInputError
 from tests.dataset import still_episode
@@ -21,7 +21,7 @@ def test_masks_are_stored_beside_the_dataset_and_mark_the_red_cube(demo_dataset)
         for camera in CAMERAS:
             labels, images = masks[camera], episode.images[camera]
             assert labels.shape == images.shape[:3] and labels.dtype == np.uint8
-            assert set(np.unique(labels)) <= {0, OBJECT, CONTAINER}
+            assert set(np.unique(labels)) <= {0, OBJECT, CONTAINER, ROBOT}
         # The third view sees the object on the table at the start; its pixels are the red cube's (the video's
         # compression blurs its outline, so only the pixels well inside the mask are compared).
         third = masks["third_view"][0] == OBJECT

@@ -18,6 +18,9 @@ MICRO = dict(
     prompt_frames=1,
     done_hidden=32,
     frame_skip=1,
+    state_dim=3,
+    state_mean=[0.2] * 3,
+    state_std=[0.5] * 3,
 )
 TASKS = ["push the red cube forward", "pull the red cube back"]
 STATS = dict(action_mean=[0.1] * 7, action_std=[0.3] * 7)
@@ -27,8 +30,10 @@ VARIANTS = [
     ("action", {"adaln": "none"}),
     ("action", {}),
     ("action", CONTROL_PATH),
+    ("action", {"patch": 2, "maskgit_steps": 2}),
     ("text", {"adaln": "none"}),
     ("text", CONTROL_PATH),
+    ("text", {"patch": 2}),
 ]
 
 
@@ -49,14 +54,16 @@ def random_batch(B=2, T=4, S=8, V=16, seed=0):
         "done": (torch.rand(B, T, generator=g) > 0.5).float(),
         "actions": torch.rand(B, T, 1, 7, generator=g) * 2 - 1,  # frame t: the k = 1 action that led to it
         "no_action": torch.zeros(B, T, dtype=torch.bool),
+        "state": torch.randn(B, T, 3, generator=g),
         "task": TASKS[:B],
     }
 
 
 def control_kwargs(model, batch, n):
-    if model.config.control == "action":
-        return {"actions": batch["actions"][:, :n, 0]}  # generation takes one action per control step
-    return {"instructions": batch["task"]}
+    """What generation from the batch's first frame reads besides it: its state, and its controls."""
+    if model.config.control == "action":  # generation takes one action per control step
+        return {"actions": batch["actions"][:, :n, 0], "states": batch["state"][:, :1]}
+    return {"instructions": batch["task"], "states": batch["state"][:, :1]}
 
 
 def test_paper_preset_matches_the_paper():
@@ -77,12 +84,12 @@ def test_shapes_and_loss(control):
     model = make_model(control)
     batch = random_batch()
     control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
-    logits, done, kvs = model.compute_logits(batch["tokens"], control_tokens)
+    logits, done, kvs = model.compute_logits(batch["tokens"], control_tokens, states=batch["state"])
     assert logits.shape == (2, 4, 8, 16) and done.shape == (2, 4)
     assert len(kvs) == 2 and kvs[0][0].shape == (2 * 8, 2, 4, 16)  # (B * S, heads, T, head_dim)
     loss, logs = model.train()(batch)
     loss.backward()
-    assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_loss"}
+    assert torch.isfinite(loss) and set(logs) >= {"token_ce", "token_acc", "done_loss", "state_mse"}
 
 
 @pytest.mark.parametrize("control,overrides", VARIANTS)
@@ -90,13 +97,15 @@ def test_future_frames_never_influence_the_past(control, overrides):
     model = make_model(control, **overrides)
     batch = random_batch()
     control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
-    logits, done, _ = model.compute_logits(batch["tokens"], control_tokens)
+    logits, done, _ = model.compute_logits(batch["tokens"], control_tokens, states=batch["state"])
     changed = batch["tokens"].clone()
     changed[:, 2:] = (changed[:, 2:] + 5) % 16
+    states = batch["state"].clone()
+    states[:, 2:] += 1.0
     if control == "action":
         batch["actions"][:, 2:] = -batch["actions"][:, 2:]
         control_tokens = model.encode_control(batch["actions"], batch["no_action"])
-    logits2, done2, _ = model.compute_logits(changed, control_tokens)
+    logits2, done2, _ = model.compute_logits(changed, control_tokens, states=states)
     torch.testing.assert_close(logits2[:, :2], logits[:, :2])
     torch.testing.assert_close(done2[:, :2], done[:, :2])
     assert not torch.allclose(logits2[:, 2:], logits[:, 2:])
@@ -109,10 +118,15 @@ def test_cached_generation_equals_recomputing_the_window(control, overrides):
     batch = random_batch(T=4)
     prompt = batch["tokens"][:, :1]
     kw = control_kwargs(model, batch, 3)
-    cached, done_cached = model.generate(prompt, 3, use_cache=True, generator=torch.Generator().manual_seed(0), **kw)
-    full, done_full = model.generate(prompt, 3, use_cache=False, generator=torch.Generator().manual_seed(0), **kw)
+    cached, done_cached, state_cached = model.generate(
+        prompt, 3, use_cache=True, generator=torch.Generator().manual_seed(0), **kw
+    )
+    full, done_full, state_full = model.generate(
+        prompt, 3, use_cache=False, generator=torch.Generator().manual_seed(0), **kw
+    )
     assert torch.equal(cached, full)
     torch.testing.assert_close(done_cached, done_full)
+    torch.testing.assert_close(state_cached, state_full)
 
 
 def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame():
@@ -120,10 +134,13 @@ def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame()
     plain = make_model(adaln="none")
     torch.manual_seed(0)  # unperturbed: the zero-initialised modulation, as training starts
     fresh = STWorldModel(TinyWorldModelConfig(control="action", adaln="one_plus", **MICRO, **STATS)).eval()
-    logits = fresh.compute_logits(batch["tokens"], fresh.encode_control(batch["actions"], batch["no_action"]))[0]
+    states = batch["state"]
+    control = fresh.encode_control(batch["actions"], batch["no_action"])
+    logits = fresh.compute_logits(batch["tokens"], control, states=states)[0]
     # the same weights as the model without AdaLN: the same function
     plain.load_state_dict({k: v for k, v in fresh.state_dict().items() if "modulation" not in k})
-    expected = plain.compute_logits(batch["tokens"], plain.encode_control(batch["actions"], batch["no_action"]))
+    control = plain.encode_control(batch["actions"], batch["no_action"])
+    expected = plain.compute_logits(batch["tokens"], control, states=states)
     torch.testing.assert_close(logits, expected[0])
 
     model = make_model(adaln="one_plus")
@@ -132,8 +149,11 @@ def test_adaln_starts_from_its_block_and_then_reaches_every_token_of_its_frame()
         torch.nn.init.zeros_(block.cross.proj.bias)
     flipped = batch["actions"].clone()
     flipped[:, 2] = -flipped[:, 2]  # frame 2's action only
-    a = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]))[0]
-    b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]))[0]
+    states = batch["state"]
+    a = model.compute_logits(
+        batch["tokens"], model.encode_control(batch["actions"], batch["no_action"]), states=states
+    )[0]
+    b = model.compute_logits(batch["tokens"], model.encode_control(flipped, batch["no_action"]), states=states)[0]
     torch.testing.assert_close(a[:, :2], b[:, :2])
     assert ((a[:, 2] - b[:, 2]).abs().amax(-1) > 1e-6).all()  # every token of frame 2
 
@@ -175,12 +195,15 @@ def test_guidance_extrapolates_from_the_null_control():
     control = model.episode_control(batch["actions"][:, :1, 0])
     prompt = batch["tokens"][:, :1]
     frame = torch.full((2, 1, 8), model.config.mask_token_id)
-    guided = Rollout.start(model, prompt, control.frames(slice(0, 1)))
-    logits = guided._logits_of_new_frame(frame, guided._paired(control.frames(slice(1, 2))))
+    first, following = batch["state"][:, :1], batch["state"][:, 1:2]
+    guided = Rollout.start(model, prompt, control.frames(slice(0, 1)), states=first)
+    logits = guided._logits_of_new_frame(
+        frame, guided._paired(control.frames(slice(1, 2))), torch.cat([following, following])
+    )
     parts = []
     for c in (control, model.null_control(control)):
-        plain = Rollout.start(model, prompt, c.frames(slice(0, 1)), guided=False)
-        parts.append(plain._logits_of_new_frame(frame, c.frames(slice(1, 2))))
+        plain = Rollout.start(model, prompt, c.frames(slice(0, 1)), guided=False, states=first)
+        parts.append(plain._logits_of_new_frame(frame, c.frames(slice(1, 2)), following))
     torch.testing.assert_close(logits, parts[1] + 2.0 * (parts[0] - parts[1]))
 
 
@@ -190,11 +213,12 @@ def test_changed_tokens_weigh_changed_weight_in_the_token_loss(changed_weight):
     batch = random_batch()
     batch["tokens"][:, 2] = batch["tokens"][:, 1]  # frame 2 copies frame 1: none of its tokens changed
     seen = []
-    compute = model.compute_logits
-    model.compute_logits = lambda tokens, *a, **k: (
-        seen.append((tokens, compute(tokens, *a, **k)[0])) or compute(tokens, *a, **k)
+    compute = model.compute_hidden
+    model.compute_hidden = lambda tokens, *a, **k: (
+        seen.append((tokens, model.token_logits(compute(tokens, *a, **k)[0]))) or compute(tokens, *a, **k)
     )
     loss, metrics = model(batch)
+    loss = loss - metrics["state_mse"]  # the state's own loss, beside the tokens'
     inputs, logits = seen[0]
     tokens = batch["tokens"]
     mask = inputs == model.config.mask_token_id
@@ -225,8 +249,11 @@ def test_cached_generation_on_gpu_equals_recomputing_the_window():
     model = make_model("action", window=6).cuda()
     batch = random_batch(T=6)
     prompt, actions = batch["tokens"][:, :1].cuda(), batch["actions"][:, :5, 0].cuda()
-    cached, done_cached = model.generate(prompt, 5, actions=actions, use_cache=True)  # fills the window
-    full, done_full = model.generate(prompt, 5, actions=actions, use_cache=False)
+    states = batch["state"][:, :1].cuda()
+    cached, done_cached, _ = model.generate(
+        prompt, 5, actions=actions, use_cache=True, states=states
+    )  # fills the window
+    full, done_full, _ = model.generate(prompt, 5, actions=actions, use_cache=False, states=states)
     assert torch.equal(cached, full)
     torch.testing.assert_close(done_cached, done_full)
 
@@ -238,7 +265,9 @@ def test_a_new_episode_refilling_a_used_cache_generates_what_a_fresh_cache_does(
     control = model.episode_control(batch["actions"][:, :6, 0].repeat(1, 2, 1))
 
     def episode(reuse=None):
-        rollout = Rollout.start(model, batch["tokens"][:, :1], control.frames(slice(0, 1)), reuse=reuse)
+        rollout = Rollout.start(
+            model, batch["tokens"][:, :1], control.frames(slice(0, 1)), reuse=reuse, states=batch["state"][:, :1]
+        )
         frames = [rollout.predict_next_frame(control.frames(slice(t, t + 1)))[0] for t in range(1, 6)]
         return rollout, torch.stack(frames, 1)
 
@@ -275,6 +304,7 @@ def test_captured_generation_on_gpu_gives_the_uncaptured_tokens(control, overrid
             runs.append(model.generate(prompt, 9, capture=capture, generator=generator, **kw))
     assert torch.equal(runs[0][0], runs[1][0])
     torch.testing.assert_close(runs[0][1], runs[1][1])
+    torch.testing.assert_close(runs[0][2], runs[1][2])
 
 
 def test_long_rollout_stays_finite_with_a_bounded_cache():
@@ -282,11 +312,13 @@ def test_long_rollout_stays_finite_with_a_bounded_cache():
     g = torch.Generator().manual_seed(1)
     prompt = torch.randint(0, 16, (3, 1, 8), generator=g)
     actions = torch.rand(3, 320, 7, generator=g) * 2 - 1
-    tokens, done = model.generate(prompt, 320, actions=actions, temperature=1.0, generator=g)
+    first = torch.randn(3, 1, 3, generator=g)
+    tokens, done, states = model.generate(prompt, 320, actions=actions, temperature=1.0, generator=g, states=first)
     assert tokens.shape == (3, 320, 8) and tokens.min() >= 0 and tokens.max() < 16
     assert torch.isfinite(done).all() and (done >= 0).all() and (done <= 1).all()
+    assert states.shape == (3, 320, 3) and torch.isfinite(states).all()
     first_control = model.episode_control(actions[:, :1]).frames(slice(0, 1))
-    rollout = Rollout.start(model, prompt, first_control)
+    rollout = Rollout.start(model, prompt, first_control, states=first)
     control = model.episode_control(actions)
     for t in range(1, 12):
         rollout.predict_next_frame(control.frames(slice(t, t + 1)))
@@ -307,9 +339,12 @@ def test_overfits_one_clip():
         opt.step()
     model.eval()
     # In a batch, frame t carries the action that led to it; generate() takes actions in the order they were taken.
-    tokens, done = model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, 1:, 0])
+    tokens, done, states = model.generate(
+        batch["tokens"][:, :1], 3, actions=batch["actions"][:, 1:, 0], states=batch["state"][:, :1]
+    )
     assert (tokens == batch["tokens"][:, 1:]).float().mean() > 0.95
     assert (done - batch["done"][:, 1:]).abs().max() < 0.2
+    assert (states - batch["state"][:, 1:]).abs().max() < 0.2  # the state fed back, frame after frame
 
 
 @pytest.mark.parametrize("control", ["action", "text"])
@@ -322,7 +357,7 @@ def test_save_load_round_trip(control, tmp_path):
     kw = control_kwargs(model, batch, 3)
     a = model.generate(batch["tokens"][:, :1], 3, **kw)
     b = loaded.generate(batch["tokens"][:, :1], 3, **kw)
-    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert torch.equal(a.tokens, b.tokens) and torch.equal(a.done, b.done) and torch.equal(a.state, b.state)
 
 
 def test_a_frame_per_action_chunk():
@@ -331,7 +366,7 @@ def test_a_frame_per_action_chunk():
     model = make_model(frame_skip=2)
     g = torch.Generator().manual_seed(2)
     prompt, actions = torch.randint(0, 16, (2, 1, 8), generator=g), torch.rand(2, 6, 7, generator=g) * 2 - 1
-    tokens, done = model.generate(prompt, 3, actions=actions)
+    tokens, done, _ = model.generate(prompt, 3, actions=actions, states=torch.zeros(2, 1, 3))
     assert tokens.shape == (2, 3, 8) and done.shape == (2, 3)
     control = model.episode_control(actions)
     chunks = torch.cat([torch.zeros(2, 1, 2, 7), actions.reshape(2, 3, 2, 7)], 1)
@@ -352,7 +387,11 @@ def test_bad_inputs_are_named():
     with pytest.raises(ValueError, match="need 3 actions"):
         model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, :2, 0])
     with pytest.raises(ValueError, match="frames must have 8 tokens"):
-        model.compute_logits(batch["tokens"][..., :5], model.encode_control(batch["actions"]))
+        model.compute_logits(batch["tokens"][..., :5], model.encode_control(batch["actions"]), states=batch["state"])
+    with pytest.raises(ValueError, match=r"needs the frames' states \(2, 4, D\), got None"):
+        model.compute_logits(batch["tokens"], model.encode_control(batch["actions"]))
+    with pytest.raises(ValueError, match="starts a rollout from its prompt frames' states"):
+        model.generate(batch["tokens"][:, :1], 3, actions=batch["actions"][:, :3, 0])
     text = make_model("text")
     with pytest.raises(ValueError, match="needs instructions"):
         text.encode_control(actions=batch["actions"])
@@ -383,7 +422,8 @@ def test_loss_is_the_masked_mean_without_waiting_on_the_device(control):
     ratio[:, 0] = 0.0
     mask = torch.rand(B, T, S) < ratio
     control_tokens = model.encode_control(batch["actions"], batch["no_action"], batch["task"])
-    logits, done_logits, _ = model.compute_logits(tokens.masked_fill(mask, model.config.mask_token_id), control_tokens)
+    inputs = tokens.masked_fill(mask, model.config.mask_token_id)
+    logits, done_logits, _ = model.compute_logits(inputs, control_tokens, states=batch["state"])
     changed = torch.zeros_like(mask)
     changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
     ce = torch.nn.functional.cross_entropy(logits[mask], tokens[mask], reduction="none")
@@ -391,7 +431,7 @@ def test_loss_is_the_masked_mean_without_waiting_on_the_device(control):
     bce = torch.nn.functional.binary_cross_entropy_with_logits(done_logits, batch["done"], reduction="none")
     positive = batch["done"] > 0.5
     expected = (weight * ce).sum() / weight.sum() + (bce[positive].mean() + bce[~positive].mean()) / 2
-    torch.testing.assert_close(loss, expected)
+    torch.testing.assert_close(loss, expected + logs["state_mse"])  # the state's own loss beside them
     hits = logits[mask].argmax(-1) == tokens[mask]
     torch.testing.assert_close(logs["token_acc"], hits.float().mean())
     torch.testing.assert_close(logs["changed_acc"], hits[changed[mask]].float().mean())
@@ -426,8 +466,67 @@ def test_cache_holds_what_cache_bytes_says_in_the_compute_dtype(guided, dtype):
     batch = random_batch(B=3, T=6)
     control = model.episode_control(batch["actions"][:, :5, 0])
     with torch.autocast("cpu", torch.bfloat16, enabled=dtype == torch.bfloat16):
-        rollout = Rollout.start(model, batch["tokens"], control)
+        rollout = Rollout.start(model, batch["tokens"], control, states=batch["state"])
     cache = rollout.cache
     assert {ring.k.dtype for ring in cache.layers} == {dtype} and len(cache.layers) == model.config.n_layer
     assert cache.allocated_bytes == model.cache_bytes(3, dtype)
     assert cache.frames == 6 and cache.layers[0].k.shape[2] == model.config.window
+
+
+def test_a_model_without_state_statistics_is_refused_at_load_with_the_command_that_retrains_it(tmp_path):
+    run = tmp_path / "world_model_action"
+    make_model(state_mean=None, state_std=None).save_pretrained(run / "pretrained_model")
+    (run / "train_config.json").write_text(
+        '{"dataset": {"repo_id": "local/demos", "root": "/data/demos"}, "tokenizer": "/runs/tokenizer"}'
+    )
+    with pytest.raises(
+        InvalidInputError,
+        match=r"without the robot's state statistics.*roboscape-train-wm --dataset.repo_id=local/demos "
+        r"--dataset.root=/data/demos --tokenizer=/runs/tokenizer .*--wm.control=action",
+    ):
+        STWorldModel.from_pretrained(run / "pretrained_model")
+    make_model(state=False).save_pretrained(tmp_path / "no_state")  # a model trained without the channel loads
+    assert STWorldModel.from_pretrained(tmp_path / "no_state").robot_state is None
+
+
+def test_a_position_holds_a_patch_of_codes_masked_and_predicted_together():
+    """patch=2 on two 4x4 views: 8 positions of 4 codes; `group` takes each view's 2x2 blocks, `ungroup` puts them
+    back; training masks a position's codes together."""
+    model = make_model(patch=2, tokens_per_side=4, clean_frame_prob=0.0).train()
+    assert model.config.positions_per_frame == 8 and model.pos_emb.shape == (8, 32)
+    codes = torch.arange(32).view(1, 1, 32)
+    grouped = model.group(codes)
+    assert grouped.shape == (1, 1, 8, 4)
+    assert grouped[0, 0, 0].tolist() == [0, 1, 4, 5] and grouped[0, 0, 4].tolist() == [16, 17, 20, 21]
+    assert torch.equal(model.ungroup(grouped), codes)
+    batch = random_batch(B=4, T=4, S=32)
+    seen = []
+    compute = model.compute_hidden
+    model.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
+    model(batch)
+    masked = model.group(seen[0] == model.config.mask_token_id)  # (B, T, N, 4)
+    assert masked.any() and (masked.all(-1) == masked.any(-1)).all()  # whole positions, never part of one
+    logits = model.compute_logits(batch["tokens"], model.encode_control(batch["actions"]), states=batch["state"])[0]
+    assert logits.shape == (4, 4, 32, 16)
+
+
+def test_training_corrupts_a_share_of_the_unmasked_context_drawn_per_clip():
+    model = make_model(corrupt_max=0.9, clean_frame_prob=0.0).train()
+    batch = random_batch(B=64, T=4)
+    seen = []
+    compute = model.compute_hidden
+    model.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
+    torch.manual_seed(0)
+    model(batch)
+    inputs, tokens = seen[0], batch["tokens"]
+    unmasked = inputs != model.config.mask_token_id
+    replaced = (inputs != tokens) & unmasked  # a random code may equal the true one: a lower bound of the rate
+    share = replaced.flatten(1).sum(1) / unmasked.flatten(1).sum(1)
+    assert share.max() > 0.4 and share.min() < 0.15  # drawn per clip in [0, 0.9], 15/16 of draws visible
+    assert (inputs[:, 0] != model.config.mask_token_id).all()  # the prompt is never masked, only corrupted
+    model.compute_hidden = compute
+    plain = make_model(clean_frame_prob=0.0).train()
+    seen.clear()
+    plain.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
+    plain(batch)
+    assert ((seen[0] == tokens) | (seen[0] == plain.config.mask_token_id)).all()  # corrupt_max=0: none
