@@ -3,7 +3,9 @@
 For each episode the model reads `prompt_frames` real model frames, then generates `horizon` control steps (a frame
 per `frame_skip` steps) from the recorded actions alone. Per generated frame it reports PSNR, SSIM and LPIPS of the
 decoded prediction against the real frame, next to the tokenizer's own reconstruction of the real frame (the best
-the world model could do), on the whole frame and on the task object's region. The done signals have their own
+the world model could do), on the whole frame, on the task object's region and on the arm's (the robot's mask, dilated
+as the object's); and the motion ratio, the prediction's mean change from frame to frame over the real frames' (a
+model that stops moving keeps a good PSNR and a ratio near 0). The done signals have their own
 report (reward/done_report.py), and so does whether the model follows its actions (world_model/controllability.py).
 """
 
@@ -22,9 +24,9 @@ from lerobot.configs.default import DatasetConfig
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open_dataset, read_episode
-from lerobot_roboscape.dataset.segmentation import has_masks, read_masks
+from lerobot_roboscape.dataset.segmentation import ROBOT, has_masks, read_masks
 from lerobot_roboscape.io.templates import render_report
-from lerobot_roboscape.metrics.image_fidelity import frame_measures
+from lerobot_roboscape.metrics.image_fidelity import OBJECT_DILATION, dilate, frame_measures, psnr
 from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
@@ -50,13 +52,14 @@ logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
 # Of the task object (metrics/image_fidelity.py), when the held-out dataset has its masks: over views and the
 # frames that show it.
-OBJECT_METRICS = ("object_psnr", "object_survival")
+OBJECT_METRICS = ("object_psnr", "object_survival", "arm_psnr")
 LABELS = {
     "psnr": "PSNR",
     "ssim": "SSIM",
     "lpips": "LPIPS",
     "object_psnr": "object PSNR",
     "object_survival": "object survives",
+    "arm_psnr": "arm PSNR",
 }
 
 
@@ -107,15 +110,26 @@ def _image_metrics(pred, real, lpips_metric) -> dict[str, np.ndarray]:
 
 
 def _object_metrics(pred, real, labels) -> dict[str, np.ndarray]:
-    """Per frame, averaged over the views that show the object (NaN where none does): pred/real (T, n_cameras, 3,
-    H, W) in [0, 1], labels (T, n_cameras, H, W)."""
+    """Per frame, averaged over the views that show the object (the arm's: those that show the arm; NaN where none
+    does): pred/real (T, n_cameras, 3, H, W) in [0, 1], labels (T, n_cameras, H, W)."""
     views = [frame_measures(pred[:, v], real[:, v], labels[:, v]) for v in range(pred.shape[1])]
+    arm = dilate((labels == ROBOT).flatten(0, 1), OBJECT_DILATION)
+    seen = arm.flatten(1).any(1)
+    arm_psnr = torch.full(seen.shape, float("nan"), device=pred.device)
+    if seen.any():
+        arm_psnr[seen] = psnr(pred.flatten(0, 1)[seen].float(), real.flatten(0, 1)[seen].float(), arm[seen])
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a frame where no view shows the object: NaN
         return {
             "object_psnr": np.nanmean([m["object_psnr"] for m in views], 0),
             "object_survival": np.nanmean([m["object_survives"] for m in views], 0),
+            "arm_psnr": np.nanmean(arm_psnr.view(labels.shape[:2]).cpu().numpy(), 1),
         }
+
+
+def motion(frames) -> float:
+    """Mean absolute change from frame to frame of (T, n, 3, H, W) images."""
+    return float((frames[1:] - frames[:-1]).abs().mean())
 
 
 def _side_by_side(real, pred, prompt: int) -> np.ndarray:
@@ -180,8 +194,18 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
                 for step, value in enumerate(per_frame):
                     if not np.isnan(value):
                         per_step[f"{kind}_{metric}"][step].append(float(value))
+        # both from the tokenizer's picture of the last prompt frame: its own error is not motion
+        last = tokenizer.decode_views(tokens[prompt - 1 : prompt], n_cameras)
+        ratio = motion(torch.cat([last, pred])) / max(motion(torch.cat([last, recon])), 1e-6)
         episodes_out.append(
-            {"episode_index": index, "task": episode.task, "frames": len(tokens), "horizon": horizon, "frame_skip": k}
+            {
+                "episode_index": index,
+                "task": episode.task,
+                "frames": len(tokens),
+                "horizon": horizon,
+                "frame_skip": k,
+                "motion_ratio": ratio,
+            }
         )
         if len(videos) < cfg.video_episodes:
             videos.append(_side_by_side(real[: prompt + horizon], pred, prompt))
@@ -195,6 +219,7 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "per_step": {k: [float(np.mean(v)) if v else None for v in steps] for k, steps in per_step.items()},
         "mean": {k: float(np.mean(sum(steps, []))) if any(steps) else None for k, steps in per_step.items()},
         "episodes": episodes_out,
+        "motion_ratio": float(np.mean([e["motion_ratio"] for e in episodes_out])),
     }
     if cfg.controllability is not None:
         readings = {"controllability": (cfg.horizon, cfg.output_dir)}

@@ -1,12 +1,15 @@
-"""Held-out curves of action world-model runs side by side: retrieval (whole frame, object) and action gain on the
-controllability set against training minutes, from each run's heldout_curve.jsonl (`roboscape-train-wm
---heldout_control...`). Writes OUT/wm_curves.png and prints a markdown table of each run at every point.
+"""Held-out curves of action world-model runs side by side: retrieval (whole frame, object, by state), action gain and
+the measures that see the arm (the TCP's error, the arm region's PSNR, the motion ratio) on each controllability
+set against training minutes, from each run's heldout_curve.jsonl (`roboscape-train-wm --heldout_control...` or
+`--heldout_starts=[ind.safetensors,ood.safetensors]`, whose measures are named `ind/...`, `ood/...`). Writes
+OUT/NAME.png (a row per set, a column per measure; runs named `<lever>_seed<n>` share a colour per lever, a line style
+per seed) and prints a markdown table of each run at every point.
 
-    python scripts/experiments/wm_curves.py outputs/wm37/wm_share0 outputs/wm37/wm_share0.5 \
-        --out docs/results/world_model
+    python scripts/experiments/wm_curves.py outputs/screen/levers/*_seed* --out docs/results/world_model/levers70
 """
 
 import argparse
+import re
 from pathlib import Path
 
 import matplotlib
@@ -19,9 +22,25 @@ from lerobot_roboscape.training.loop import read_curve  # noqa: E402
 MEASURES = {
     "retrieval_whole_frame": "retrieval, whole frame (K = 4)",
     "retrieval_object": "retrieval, object region",
+    "retrieval_state": "retrieval by state",
     "action_gain_db": "action gain (dB)",
     "likelihood_retrieval": "retrieval from the likelihood",
+    "tcp_error_share_of_moved": "TCP error / distance moved (median)",
+    "arm_psnr": "arm region PSNR (dB)",
+    "motion_ratio": "motion ratio",
 }
+GOALS = {
+    "retrieval_whole_frame": 0.9,
+    "retrieval_state": 0.95,
+    "action_gain_db": 3.0,
+    "tcp_error_share_of_moved": 0.15,
+    "motion_ratio": 1.0,
+}
+
+
+def split(key: str) -> tuple[str, str]:
+    """'ind/retrieval_state' -> ('ind', 'retrieval_state'); an unprefixed measure is the run's own set ('')."""
+    return tuple(key.split("/", 1)) if "/" in key else ("", key)
 
 
 def main():
@@ -32,28 +51,36 @@ def main():
     parser.add_argument("--x", choices=("minutes", "steps"), default="minutes", help="steps: for runs not timed alone")
     args = parser.parse_args()
     curves = {run.name: read_curve(run) for run in args.runs}
-    measures = {k: v for k, v in MEASURES.items() if any(k in p for c in curves.values() for p in c)}
-    fig, axes = plt.subplots(1, len(measures), figsize=(5 * len(measures), 3.6))
-    for ax, (key, label) in zip(axes, measures.items(), strict=True):
-        for name, curve in curves.items():
-            x = [p["seconds"] / 60 if args.x == "minutes" else p["step"] for p in curve]
-            ax.plot(x, [p.get(key) for p in curve], marker="o", ms=3, label=name)
-        if "retrieval" in key:
-            ax.axhline(0.25, color="grey", ls=":", lw=1, label="chance")
-            ax.axhline(0.9, color="grey", ls="--", lw=1, label="goal")
-        else:
-            ax.axhline(3.0, color="grey", ls="--", lw=1, label="goal")
-        ax.set_xlabel("training minutes (2 CPU cores)" if args.x == "minutes" else "training steps")
-        ax.set_title(label)
-    axes[0].legend(fontsize=7)
+    keys = {split(k) for c in curves.values() for p in c for k in p if split(k)[1] in MEASURES}
+    sets = sorted({s for s, _ in keys})
+    measures = [m for m in MEASURES if any(m == k for _, k in keys)]
+    levers = sorted({re.sub(r"_seed\d+$", "", name) for name in curves})
+    colours = {lever: f"C{i}" for i, lever in enumerate(levers)}
+    fig, axes = plt.subplots(len(sets), len(measures), figsize=(3.6 * len(measures), 3.2 * len(sets)), squeeze=False)
+    for row, subset in zip(axes, sets, strict=True):
+        for ax, measure in zip(row, measures, strict=True):
+            key = f"{subset}/{measure}" if subset else measure
+            for name, curve in curves.items():
+                lever = re.sub(r"_seed\d+$", "", name)
+                style = "--" if name.endswith(("_seed1", "_seed3")) else "-"
+                x = [p["seconds"] / 60 if args.x == "minutes" else p["step"] for p in curve]
+                ax.plot(x, [p.get(key) for p in curve], style, marker="o", ms=3, color=colours[lever], label=name)
+            if "retrieval" in measure:
+                ax.axhline(0.25, color="grey", ls=":", lw=1)
+            if measure in GOALS:
+                ax.axhline(GOALS[measure], color="grey", ls="--", lw=1)
+            ax.set_xlabel("training minutes (one core)" if args.x == "minutes" else "training steps")
+            ax.set_title(f"{subset.upper()} {MEASURES[measure]}".strip(), fontsize=9)
+    axes[0][0].legend(fontsize=6)
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / f"{args.name}.png", dpi=70)
-    print("| run | step | minutes | " + " | ".join(measures) + " |")
-    print("|---|---:|---:|" + "---:|" * len(measures))
+    columns = [f"{s}/{m}" if s else m for s in sets for m in measures]
+    print("| run | step | minutes | " + " | ".join(columns) + " |")
+    print("|---|---:|---:|" + "---:|" * len(columns))
     for name, curve in curves.items():
         for p in curve:
-            values = " | ".join(f"{p[k]:.3f}" if p.get(k) is not None else "" for k in measures)
+            values = " | ".join(f"{p[k]:.3f}" if p.get(k) is not None else "" for k in columns)
             print(f"| {name} | {p['step']} | {p['seconds'] / 60:.1f} | {values} |")
 
 

@@ -306,9 +306,14 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     the tokenizer, the goal is the text model's from them under the given instruction, and the horizon is as given."""
     _, root = demo_dataset
     env = RoboscapeWorldModelEnv(env_config(), num_envs=2)
-    frames = read_episode(open_dataset("test/demos", root), 4).images  # a push episode's frames
+    episode = read_episode(open_dataset("test/demos", root), 4)  # a push episode
+    frames, states = episode.images, episode.state[[0, -1]]
     first = {cam: np.stack([images[0], images[-1]]) for cam, images in frames.items()}
-    obs, info = env.reset(options={"frames": first, "task": ["push the cube", "push the cube"], "horizon": [5, 9]})
+    with pytest.raises(InvalidInputError, match=r"options\['states'\] of shape \(2, 16\)"):
+        env.reset(options={"frames": first, "task": ["push the cube"] * 2})
+    obs, info = env.reset(
+        options={"frames": first, "states": states, "task": ["push the cube", "push the cube"], "horizon": [5, 9]}
+    )
     expected = env._pixels(env.decode(env.encode(first)))
     for cam in env.cameras:
         assert np.array_equal(obs["pixels"][cam], expected[cam])
@@ -320,10 +325,33 @@ def test_reset_from_given_frames_starts_there_with_a_goal_made_from_them(env_con
     ended = [env.step(np.zeros((2, 7), np.float32))[3] for _ in range(9)]
     assert [t[0] for t in ended].index(True) == 4 and [t[1] for t in ended].index(True) == 8  # horizons 5 and 9
     last = {cam: np.stack([images[-1], images[-1]]) for cam, images in frames.items()}  # a goal given instead
-    _, info = env.reset(options={"frames": first, "task": ["push the cube"] * 2, "goal_frames": last})
+    _, info = env.reset(options={"frames": first, "states": states, "task": ["push the cube"] * 2, "goal_frames": last})
     for cam in env.cameras:
         assert np.array_equal(info["goal"][cam], env._pixels(env.decode(env.encode(last)))[cam])
     assert info["goal_from_text_model"].all()
+
+
+def test_include_state_returns_the_start_state_then_the_models_own(env_config, demo_dataset):
+    """With include_state, `agent_pos` is the start frame's recorded state at reset, then the action model's
+    predicted state, which moves with the actions and is the state it generates each frame under."""
+    _, root = demo_dataset
+    env = RoboscapeWorldModelEnv(env_config(include_state=True), num_envs=2)
+    obs, info = env.reset(options={"episode_index": 0})
+    assert obs in env.observation_space and obs["agent_pos"].shape == (2, 16)
+    recorded = read_episode(open_dataset("test/demos", root), 0).state[0]
+    np.testing.assert_allclose(obs["agent_pos"], np.stack([recorded, recorded]), rtol=1e-6)
+    actions = np.stack([np.zeros(7), np.full(7, 0.8)]).astype(np.float32)
+    for _ in range(env.frame_skip):
+        obs, *_ = env.step(actions)
+    first = env.encode(read_frames(open_dataset("test/demos", root), 0, [0]))
+    with env.autocast():  # the same first frame, state and actions, generated outside the env
+        expected = env.action_model.generate(
+            first[None].expand(2, -1, -1),
+            1,
+            actions=torch.from_numpy(actions)[:, None].expand(-1, env.frame_skip, -1),
+            states=torch.from_numpy(np.stack([recorded, recorded]))[:, None],
+        ).state[:, 0]
+    np.testing.assert_allclose(obs["agent_pos"], expected.float().numpy(), rtol=1e-5, atol=1e-6)
 
 
 def test_reset_from_frames_refuses_a_wrong_camera_or_shape(env_config):

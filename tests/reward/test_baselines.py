@@ -235,10 +235,13 @@ def test_reward_report_open_loop_pays_the_frames_generated_from_the_recorded_act
     k, indices = env.frame_skip, model_frames(len(episode.action), env.frame_skip)
     first = env.encode({cam: episode.images[cam][:1] for cam in env.cameras})
     actions = torch.from_numpy(episode.action[: (len(indices) - 1) * k])
+    first_state = torch.from_numpy(episode.state[:1])
     with env.autocast():  # as the report generates: in the env's precision
-        generated, _ = env.action_model.generate(first[None], len(indices) - 1, actions=actions[None])
-    frames = torch.cat([first, generated[0]])
-    done, _ = teacher_forced_done(env, frames, actions)
+        generated = env.action_model.generate(
+            first[None], len(indices) - 1, actions=actions[None], states=first_state[None]
+        )
+    frames = torch.cat([first, generated.tokens[0]])
+    done, _ = teacher_forced_done(env, frames, actions, torch.cat([first_state, generated.state[0].float()]))
     expected, _ = replay_rewards(env, episode.index, frames, done)
     np.testing.assert_allclose(open_loop["world_model"], expected, rtol=1e-5)
     np.testing.assert_allclose(open_loop["rule_based"], real["rule_based"])  # the recording's own

@@ -6,14 +6,20 @@ import torch
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode
+from lerobot_roboscape.dataset.segmentation import ROBOT
 from lerobot_roboscape.demos.controllability import ControllabilityConfig, collect_controllability, offsets
+from lerobot_roboscape.robot import TCP_POSITION
+from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.world_model.controllability import (
     ControllabilityReportConfig,
+    ControlStart,
+    arm_measures,
     evaluate_controllability,
     likelihood_retrieval,
     read_control_set,
     retrieval_accuracy,
+    summarise_arm,
 )
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE
@@ -41,6 +47,36 @@ def test_retrieval_counts_own_future_and_shares_ties():
     assert retrieval_accuracy(np.array([[3.0, 1.0], [0.0, 2.0]])) == 1.0
     assert retrieval_accuracy(np.array([[1.0, 3.0], [2.0, 0.0]])) == 0.0
     assert retrieval_accuracy(np.ones((4, 4))) == 0.25  # one rollout for every sequence: chance
+
+
+def test_the_arms_measures_see_the_tcp_the_arm_and_the_motion():
+    """K = 3 sequences whose TCPs move 10 cm apart: rollouts that predict their own TCP exactly are retrieved by state
+    at 1 with no error; rollouts that keep the start's TCP have an error of the whole distance moved; a rollout equal
+    to the real future moves as it does (ratio 1), a frozen one not at all (ratio 0)."""
+    torch.manual_seed(0)
+    tokenizer = VisualTokenizer(TinyTokenizerConfig(image_size=32)).eval()
+    K, T, n, D = 3, 4, 2, 16
+    states = torch.zeros(K, T, D)
+    for j in range(K):  # sequence j's TCP moves along axis j, 2.5 cm a frame
+        states[j, :, TCP_POSITION.start + j] = 0.025 * torch.arange(1, T + 1)
+    real = (torch.rand(K, T, n, 3, 32, 32) * 255).to(torch.uint8)
+    masks = torch.zeros(K, T, n, 32, 32, dtype=torch.uint8)
+    masks[..., 8:20, 8:20] = ROBOT
+    start = ControlStart(
+        0, [0, 1, 2], "push", torch.zeros(1, 2 * 64), torch.zeros(K, T * 4, 7), real, masks, torch.zeros(1, D), states
+    )
+    exact = arm_measures(tokenizer, start, real.float() / 255, states)
+    assert exact["retrieval_state"] == 1.0 and max(exact["tcp_error_m"]) == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(exact["tcp_moved_m"], 0.1, rtol=1e-5)
+    assert exact["motion_ratio"] == pytest.approx(1.0) and exact["arm_psnr"] > 60  # the real future itself
+    assert exact["arm_psnr_tokenizer"] < 40  # an untrained tokenizer does not reconstruct noise
+    frozen = (real[:, :1].float() / 255).expand(-1, T, -1, -1, -1, -1)
+    still = arm_measures(tokenizer, start, frozen, torch.zeros(K, T, D))
+    assert still["motion_ratio"] == 0.0 and still["retrieval_state"] == pytest.approx(1 / K)  # tied: chance
+    np.testing.assert_allclose(still["tcp_error_m"], 0.1, rtol=1e-5)
+    summary = summarise_arm([exact, still])
+    assert summary["tcp_error_cm"] == pytest.approx(5.0, abs=1e-3)  # median of three 0 cm and three 10 cm
+    assert summary["retrieval_state"] == pytest.approx((1 + 1 / K) / 2)
 
 
 def test_offsets_are_distinct_directions_of_the_given_length():
@@ -80,6 +116,10 @@ def test_controllability_report(control_set, trained_tokenizer, world_models, tm
         for name in ("world_model", "ignoring_actions"):
             assert np.asarray(start[name]["whole_frame"]["psnr"]).shape == (SEQUENCES, SEQUENCES)
     assert np.isfinite(report["summary"]["action_gain_db"])
+    arm = report["summary"]["arm"]  # the collection's robot masks and states, read by the model's state channel
+    assert {"arm_psnr", "arm_psnr_tokenizer", "tcp_error_cm", "tcp_error_share_of_moved", "retrieval_state"} <= set(arm)
+    assert 0 <= arm["retrieval_state"] <= 1 and arm["tcp_error_cm"] >= 0
+    assert all(len(start["arm"]["tcp_error_m"]) == SEQUENCES for start in report["starts"])
     assert report["summary"]["likelihood_retrieval"] == pytest.approx(
         np.mean([start["likelihood_retrieval"] for start in report["starts"]])
     )

@@ -80,10 +80,12 @@ def test_permuting_the_actions_permutes_the_rollouts(trained):
     background, position = world.random_starts(rng, 1, HORIZON)
     actions = torch.from_numpy(world.random_controls(rng, 4, HORIZON))
     prompt = torch.from_numpy(world.render(background, position))[:, None].expand(4, 1, -1)
-    rollouts, _ = model.generate(prompt, HORIZON, actions=actions)
+    state = torch.from_numpy(position).float()[:, None].expand(4, 1, -1)
+    rollouts, _, states = model.generate(prompt, HORIZON, actions=actions, states=state)
     order = torch.tensor([2, 0, 3, 1])
-    permuted, _ = model.generate(prompt, HORIZON, actions=actions[order])
+    permuted, _, permuted_states = model.generate(prompt, HORIZON, actions=actions[order], states=state)
     assert torch.equal(permuted, rollouts[order])
+    torch.testing.assert_close(permuted_states, states[order])
 
 
 def test_text_model_tells_its_instructions_apart(trained):

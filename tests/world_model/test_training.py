@@ -215,9 +215,11 @@ def test_text_world_model_trains_on_successful_optimal_episodes(demo_dataset, tr
     assert loaded.config.control == "text" and (tmp_path / FINAL / "text_encoder").is_dir()
     task = "push the red cube forward"
     prompt = torch.from_numpy(token_cache.tokens[:1].astype("int64")).reshape(1, 1, -1)
-    a = model.eval().generate(prompt, 2, instructions=[task])
-    b = loaded.eval().generate(prompt, 2, instructions=[task])
-    assert torch.equal(a[0], b[0])
+    state = torch.from_numpy(token_cache.states[:1]).reshape(1, 1, -1)
+    a = model.eval().generate(prompt, 2, instructions=[task], states=state)
+    b = loaded.eval().generate(prompt, 2, instructions=[task], states=state)
+    assert torch.equal(a.tokens, b.tokens) and torch.equal(a.state, b.state)
+    assert loaded.config.state_mean is not None and len(loaded.config.state_mean) == token_cache.state_dim
 
 
 def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
