@@ -22,6 +22,7 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_DIR,
     DEMOS_REPO_ID,
     EXPLORE_DIR,
+    EXPLORE_REPO_ID,
     HELDOUT_DIR,
     INITIAL_SCENE_DIR,
     INITIAL_SCENE_REPO_ID,
@@ -205,7 +206,7 @@ def demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> Datasets
     if data.explore_episodes_per_scene:
         exploration = _collect(
             CollectConfig(
-                repo_id="local/roboscape_explore",
+                repo_id=EXPLORE_REPO_ID,
                 root=str(out / EXPLORE_DIR),
                 families=data.families,
                 split="ind",

@@ -151,6 +151,12 @@ def read_control_set(dataset, tokenizer: VisualTokenizer, frame_skip: int, horiz
     return starts
 
 
+def spread(starts: list[ControlStart], keep: int) -> list[ControlStart]:
+    """At most `keep` of the starts, evenly spread over the set (over its scenes, as collected)."""
+    picked = np.linspace(0, len(starts) - 1, min(keep, len(starts))).round().astype(int)
+    return [starts[i] for i in np.unique(picked)]
+
+
 CONTROL_STARTS_FIELDS = ("first", "actions", "real", "masks", "first_state", "states")
 
 

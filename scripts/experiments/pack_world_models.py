@@ -19,7 +19,6 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
@@ -29,6 +28,7 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_DIR,
     DEMOS_REPO_ID,
     EXPLORE_DIR,
+    EXPLORE_REPO_ID,
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
 )
@@ -36,7 +36,7 @@ from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import export_token_cache
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts
+from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts, spread
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
 
@@ -67,7 +67,7 @@ def main():
         raise SystemExit(f"{tokenizer_dir} does not exist: run roboscape-demo --scale=bench on {run} first")
     shutil.copytree(tokenizer_dir, out / "tokenizer")
     sizes = {}
-    caches = (("demos", DEMOS_REPO_ID, DEMOS_DIR), ("explore", "local/roboscape_explore", EXPLORE_DIR))
+    caches = (("demos", DEMOS_REPO_ID, DEMOS_DIR), ("explore", EXPLORE_REPO_ID, EXPLORE_DIR))
     for name, repo_id, folder in caches:
         cache, stats = prepare_token_cache(
             DatasetConfig(repo_id=repo_id, root=str(run / folder)), str(tokenizer_dir), run / TOKEN_CACHE_DIR
@@ -81,8 +81,7 @@ def main():
     for name, folder, keep in (("ind", CONTROL_IND_DIR, args.ind_starts), ("ood", CONTROL_DIR, args.ood_starts)):
         dataset = open_dataset(f"local/{Path(folder).name}", run / folder)
         starts = read_control_set(dataset, tokenizer, frame_skip, args.horizon, "cpu")
-        spread = np.linspace(0, len(starts) - 1, min(keep, len(starts))).round().astype(int)
-        picked = [starts[i] for i in np.unique(spread)]
+        picked = spread(starts, keep)
         save_control_starts(picked, out / f"{name}.safetensors", frame_skip)
         path = xz(out / f"{name}.safetensors")
         sizes[path.name] = path.stat().st_size

@@ -3,12 +3,14 @@ the measures that see the arm (the TCP's error, the arm region's PSNR, the motio
 set against training minutes, from each run's heldout_curve.jsonl (`roboscape-train-wm --heldout_control...` or
 `--heldout_starts=[ind.safetensors,ood.safetensors]`, whose measures are named `ind/...`, `ood/...`). Writes
 OUT/NAME.png (a row per set, a column per measure; runs named `<lever>_seed<n>` share a colour per lever, a line style
-per seed) and prints a markdown table of each run at every point.
+per seed) and OUT/NAME.json (every run's curve), and prints markdown tables of each run at every point and at its
+last.
 
     python scripts/experiments/wm_curves.py outputs/screen/levers/*_seed* --out docs/results/world_model/levers70
 """
 
 import argparse
+import json
 import re
 from pathlib import Path
 
@@ -76,12 +78,17 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / f"{args.name}.png", dpi=70)
     columns = [f"{s}/{m}" if s else m for s in sets for m in measures]
-    print("| run | step | minutes | " + " | ".join(columns) + " |")
-    print("|---|---:|---:|" + "---:|" * len(columns))
-    for name, curve in curves.items():
-        for p in curve:
-            values = " | ".join(f"{p[k]:.3f}" if p.get(k) is not None else "" for k in columns)
-            print(f"| {name} | {p['step']} | {p['seconds'] / 60:.1f} | {values} |")
+    (args.out / f"{args.name}.json").write_text(json.dumps(curves, indent=1))
+    for title, points in (
+        ("Every reading", {name: curve for name, curve in curves.items()}),
+        ("Last reading of each run", {name: curve[-1:] for name, curve in curves.items()}),
+    ):
+        print(f"\n{title}\n\n| run | step | minutes | " + " | ".join(columns) + " |")
+        print("|---|---:|---:|" + "---:|" * len(columns))
+        for name, curve in points.items():
+            for p in curve:
+                values = " | ".join(f"{p[k]:.3f}" if p.get(k) is not None else "" for k in columns)
+                print(f"| {name} | {p['step']} | {p['seconds'] / 60:.1f} | {values} |")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
@@ -26,13 +25,14 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_DIR,
     DEMOS_REPO_ID,
     EXPLORE_DIR,
+    EXPLORE_REPO_ID,
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
 )
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts
+from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts, spread
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
 # Each lever alone against today's model, then all of them; --wm fields of the bench preset.
@@ -43,7 +43,6 @@ LEVERS = {
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},
 }
-EXPLORE_REPO_ID = "local/roboscape_explore"
 
 
 def control_starts(run: Path, out: Path, frame_skip: int, horizon: int, keep: int) -> list[Path]:
@@ -55,9 +54,9 @@ def control_starts(run: Path, out: Path, frame_skip: int, horizon: int, keep: in
         path = out / f"{name}.safetensors"
         if not path.is_file():
             dataset = open_dataset(f"local/{Path(folder).name}", run / folder)
-            starts = read_control_set(dataset, tokenizer, frame_skip, horizon, "cpu")
-            spread = np.unique(np.linspace(0, len(starts) - 1, min(keep, len(starts))).round().astype(int))
-            save_control_starts([starts[i] for i in spread], path, frame_skip)
+            save_control_starts(
+                spread(read_control_set(dataset, tokenizer, frame_skip, horizon, "cpu"), keep), path, frame_skip
+            )
         paths.append(path)
     return paths
 

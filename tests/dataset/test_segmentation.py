@@ -27,7 +27,9 @@ def test_masks_are_stored_beside_the_dataset_and_mark_the_red_cube(demo_dataset)
         third = masks["third_view"][0] == OBJECT
         assert third.sum() >= 2
         object_colour = episode.images["third_view"][0][third].mean(0)
-        background = episode.images["third_view"][0][masks["third_view"][0] == 0].mean(0)
+        # the rest of the view (the table, the container and the arm, now labelled on its own)
+        background = episode.images["third_view"][0][masks["third_view"][0] != OBJECT].mean(0)
+        assert (masks["third_view"][0] == ROBOT).sum() >= 20  # the arm is in view and labelled
         assert object_colour[0] > object_colour[1] + 40 and object_colour[0] > object_colour[2] + 40, object_colour
         assert np.abs(object_colour - background).sum() > 60
 

@@ -102,13 +102,14 @@ def test_exported_cache_travels_whole_and_trains_without_its_dataset(
     from tests.world_model.test_training import train_args
 
     dataset, _ = demo_dataset
-    size = export_token_cache(token_cache, tmp_path / "cache.xz", dataset.meta.stats["action"])
-    raw = sum(getattr(token_cache, name).nbytes for name in ("tokens", "actions", "done", "rewards"))
+    stats = {key: dataset.meta.stats[key] for key in ("action", "observation.state")}
+    size = export_token_cache(token_cache, tmp_path / "cache.xz", stats)
+    raw = sum(getattr(token_cache, name).nbytes for name in ("tokens", "actions", "states", "done", "rewards"))
     assert size == (tmp_path / "cache.xz").stat().st_size < raw
     imported = open_token_cache(import_token_cache(tmp_path / "cache.xz", tmp_path / "there"))
     assert imported.root.name == token_cache.root.name and imported.manifest == token_cache.manifest
     assert imported.episodes == token_cache.episodes
-    for name in ("tokens", "actions", "done", "rewards"):
+    for name in ("tokens", "actions", "states", "done", "rewards"):
         assert np.array_equal(getattr(imported, name), getattr(token_cache, name)), name
     args = [
         *train_args(demo_dataset, trained_tokenizer, token_cache, tmp_path / "here", steps=3),

@@ -12,6 +12,7 @@ from lerobot_roboscape.training.loop import TRAIN_LOG
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, gather, select_episodes
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.robot_state import UNIT_STATE_STATS
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 from tests.harness import assert_same_weights, command, kill_when, run
 
@@ -145,9 +146,10 @@ def test_resident_clips_are_the_samplers_batches(token_cache):
         for step in (0, 7):
             host, sliced = source(step), resident(step)
             assert host["task"] == sliced["task"]
-            for key in ("tokens", "actions", "no_action", "done", "reward"):
+            for key in ("tokens", "actions", "no_action", "state", "done", "reward"):
                 assert host[key].dtype == sliced[key].dtype and torch.equal(host[key], sliced[key]), key
-    one_cache = token_cache.tokens.size * 4 + token_cache.actions.nbytes + 2 * len(token_cache.done) * 4
+    one_cache = token_cache.tokens.size * 4 + token_cache.actions.nbytes + token_cache.states.nbytes
+    one_cache += 2 * len(token_cache.done) * 4
     assert resident.nbytes == 2 * one_cache  # the mixture's two samplers read one cache: it is held twice
 
 
@@ -255,7 +257,11 @@ def test_fidelity_report(action_wm, demo_dataset, trained_tokenizer, tmp_path):
 
 def test_fidelity_needs_the_action_model(demo_dataset, trained_tokenizer, tmp_path):
     _, root = demo_dataset
-    text = STWorldModel(draccus.parse(TrainWorldModelConfig, args=["--wm.control=text", "--wm.n_layer=1"]).wm)
+    text = STWorldModel(
+        dataclasses.replace(
+            draccus.parse(TrainWorldModelConfig, args=["--wm.control=text", "--wm.n_layer=1"]).wm, **UNIT_STATE_STATS
+        )
+    )
     text.save_pretrained(tmp_path / "text")
     cfg = FidelityConfig(tokenizer=str(trained_tokenizer), world_model=str(tmp_path / "text"), output_dir=tmp_path)
     cfg.dataset.root = str(root)
@@ -311,7 +317,9 @@ def test_a_member_started_from_a_model_retrains_its_top_alone(
     train_world_model(draccus.parse(TrainWorldModelConfig, args=[*args, *start]))
     trained, member = STWorldModel.from_pretrained(base), STWorldModel.from_pretrained(tmp_path / FINAL)
     top = {
-        name for name, _ in member.named_parameters() if name.startswith(("blocks.1.", "ln_f.", "head.", "done_head."))
+        name
+        for name, _ in member.named_parameters()
+        if name.startswith(("blocks.1.", "ln_f.", "head.", "done_head.", "robot_state.head."))
     }
     assert top and any(name.startswith("blocks.0.") for name, _ in member.named_parameters())
     theirs = dict(trained.named_parameters())
@@ -324,7 +332,9 @@ def test_a_member_started_from_a_model_retrains_its_top_alone(
     batch = ClipSampler(token_cache, select_episodes(token_cache), 4, 2, seed=0, frame_skip=k)(step=0)
     with torch.no_grad():
         logits = [
-            m.eval().compute_logits(batch["tokens"], m.encode_control(batch["actions"], batch["no_action"]))[0][:, -1]
+            m.eval().compute_logits(
+                batch["tokens"], m.encode_control(batch["actions"], batch["no_action"]), states=batch["state"]
+            )[0][:, -1]
             for m in (trained, member)
         ]
     assert (mutual_information(logits) > 1e-4).all()
