@@ -17,14 +17,8 @@ actions do but whose decoding hides it scores here and not in the rollouts; a mo
 The action gain is Genie's delta-PSNR: the PSNR of each rollout to its real future, minus the PSNR to that future
 of the rollout from the same start under another start's actions (the next start's sequence of the same index).
 
-Measures that see the arm (a model can keep the table and lose the arm and still score well on the whole frame):
-- the state (a model with a state channel): the TCP position the rollout predicts against the simulator's, at the
-  horizon's last frame (median, in cm and as a share of the distance the real TCP moved from the start), and the
-  retrieval by state (each rollout's predicted TCP path nearest its own future's);
-- the arm region's PSNR: each rollout against its own future inside the robot's mask (dilated as the object's),
-  beside the tokenizer's reconstruction of the real future in the same region (the best a rollout can do);
-- the motion ratio: the rollout's mean change from frame to frame over the real future's. A model that stops moving
-  keeps a good PSNR; this ratio falls towards 0.
+Beside them, the measures that see the arm (world_model/arm_measures.py): the TCP's error and retrieval by state, the
+arm region's PSNR and the motion ratio.
 """
 
 import json
@@ -40,13 +34,14 @@ import torch.nn.functional as F
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_facts, episode_indices, open_dataset, read_episode
-from lerobot_roboscape.dataset.segmentation import ROBOT, read_masks
+from lerobot_roboscape.dataset.segmentation import read_masks
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.metrics.image_fidelity import OBJECT, OBJECT_DILATION, dilate, psnr
-from lerobot_roboscape.robot import TCP_POSITION
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
+from lerobot_roboscape.world_model.arm_measures import arm_measures, summarise_arm
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
+from lerobot_roboscape.world_model.retrieval import retrieval_accuracy
 from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -73,16 +68,6 @@ class ControllabilityReportConfig:
     horizon: int = 16
     picture_starts: int = 4
     device: str = "auto"
-
-
-def retrieval_accuracy(similarity_KK: np.ndarray) -> float:
-    """similarity[i, j]: rollout i against real future j. The share of rollouts whose most similar future is their
-    own; a tie among the most similar counts as 1 / (tied futures) when their own is among them."""
-    hits = []
-    for i, row in enumerate(similarity_KK):
-        best = np.isclose(row, row.max(), rtol=0, atol=1e-6)
-        hits.append(best[i] / best.sum())
-    return float(np.mean(hits))
 
 
 def _groups(dataset) -> dict[int, list[int]]:
@@ -222,51 +207,6 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
     out["action_gain"] = float(np.mean(own - other_psnr))
     predicted_states = None if generated.state is None else generated.state[:K]
     out["arm"] = arm_measures(tokenizer, start, out["world_model"]["pred"], predicted_states)
-    return out
-
-
-@torch.no_grad()
-def arm_measures(tokenizer: VisualTokenizer, start: ControlStart, pred, predicted_states) -> dict:
-    """The measures that see the arm, of the K rollouts (K, T, n, 3, H, W) of one start: the arm region's PSNR
-    (rollout and tokenizer, mean over the sequences), the motion ratio, and with predicted states (K, T, D) the
-    TCP's error at the last frame (per sequence, metres), the distance the real TCP moved (per sequence) and the
-    retrieval by state."""
-    K, T, n = pred.shape[:3]
-    real = start.real.float() / 255
-    region = dilate((start.masks == ROBOT).flatten(0, 2), OBJECT_DILATION).unflatten(0, (K, T, n))
-    recon = torch.stack(
-        [tokenizer.decode_views(tokenizer.encode_views([real[j, :, c] for c in range(n)]), n) for j in range(K)]
-    )
-    seen = region.flatten(3).sum(3) > 0  # (K, T, n): views where the arm is
-    out = {}
-    for name, images in (("arm_psnr", pred), ("arm_psnr_tokenizer", recon)):
-        values = psnr(images[seen], real[seen], region[seen])
-        out[name] = float(values.mean()) if seen.any() else float("nan")
-    if T > 1:
-        change = lambda x: (x[:, 1:] - x[:, :-1]).abs().mean()  # noqa: E731
-        out["motion_ratio"] = float(change(pred) / change(real).clamp_min(1e-6))
-    if predicted_states is not None:
-        tcp_pred, tcp_real = predicted_states[..., TCP_POSITION].float(), start.states[..., TCP_POSITION].float()
-        out["tcp_error_m"] = (tcp_pred[:, -1] - tcp_real[:, -1]).norm(dim=-1).tolist()
-        out["tcp_moved_m"] = (tcp_real[:, -1] - start.first_state[:, TCP_POSITION].float()).norm(dim=-1).tolist()
-        distance = (tcp_pred[:, None] - tcp_real[None]).norm(dim=-1).mean(-1)  # (K, K): rollout i, future j
-        out["retrieval_state"] = retrieval_accuracy(-distance.cpu().numpy())
-    return out
-
-
-def summarise_arm(measured: list[dict]) -> dict[str, float]:
-    """The arm's measures over starts: mean PSNRs and motion ratio; the TCP's median error (cm) and its median share
-    of the distance the real TCP moved; mean retrieval by state."""
-    out = {}
-    for name in ("arm_psnr", "arm_psnr_tokenizer", "motion_ratio", "retrieval_state"):
-        values = [m[name] for m in measured if name in m and not np.isnan(m[name])]
-        if values:
-            out[name] = float(np.mean(values))
-    if any("tcp_error_m" in m for m in measured):
-        error = np.concatenate([m["tcp_error_m"] for m in measured])
-        moved = np.concatenate([m["tcp_moved_m"] for m in measured])
-        out["tcp_error_cm"] = float(np.median(error) * 100)
-        out["tcp_error_share_of_moved"] = float(np.median(error / np.maximum(moved, 1e-3)))
     return out
 
 

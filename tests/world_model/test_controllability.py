@@ -11,15 +11,14 @@ from lerobot_roboscape.demos.controllability import ControllabilityConfig, colle
 from lerobot_roboscape.robot import TCP_POSITION
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.world_model.arm_measures import arm_measures, summarise_arm
 from lerobot_roboscape.world_model.controllability import (
     ControllabilityReportConfig,
     ControlStart,
-    arm_measures,
     evaluate_controllability,
     likelihood_retrieval,
     read_control_set,
     retrieval_accuracy,
-    summarise_arm,
 )
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE
