@@ -13,13 +13,14 @@ Clips/s are read from the run's own training log (output_dir/train_log.jsonl) be
 and the last; MFU against the card's dense bf16 peak (training/loop.py: PEAK_BF16_TFLOPS), with the model's FLOPs per
 clip (STWorldModel.training_flops_per_clip: matmuls, attention included, the backward pass twice the forward).
 
-    # on the 2 CPU cores: a smoke figure of the bench preset
-    python scripts/benchmarks/benchmark_wm_training.py --presets bench --batch-sizes 4 --steps 6
+    # on the 2 CPU cores: a smoke figure of the bench preset, a code or 2x2 codes per position
+    python scripts/benchmarks/benchmark_wm_training.py --presets bench --patches 1 2 --batch-sizes 4 --steps 6
     # on a GPU: both presets over a batch sweep
     python scripts/benchmarks/benchmark_wm_training.py --presets bench gpu --batch-sizes 16 64 256 --steps 40
 """
 
 import argparse
+import itertools
 import json
 import tempfile
 from pathlib import Path
@@ -62,10 +63,10 @@ def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int =
     )
 
 
-def run(preset: str, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device) -> dict:
+def run(preset: str, patch: int, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device) -> dict:
     settings = PATHS[path]
     config = WorldModelConfig.get_choice_class(preset)(
-        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS
+        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, patch=patch, **UNIT_STATE_STATS
     )
     torch.manual_seed(0)
     model = STWorldModel(config)
@@ -88,7 +89,7 @@ def run(preset: str, batch: int, path: str, steps: int, cache: TokenCache, devic
         torch.cuda.reset_peak_memory_stats(device)
     with tempfile.TemporaryDirectory() as out:
         try:
-            fit(model, lambda m, b: m(b), batches, train, out, {}, desc=f"{preset} {path} b{batch}",
+            fit(model, lambda m, b: m(b), batches, train, out, {}, desc=f"{preset} p{patch} {path} b{batch}",
                 flops_per_sample=model.training_flops_per_clip())  # fmt: skip
         except torch.OutOfMemoryError:
             return {"error": "out of memory"}
@@ -111,6 +112,7 @@ def run(preset: str, batch: int, path: str, steps: int, cache: TokenCache, devic
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--presets", nargs="+", default=["bench"])
+    parser.add_argument("--patches", nargs="+", type=int, default=[1], help="codes per position side (--wm.patch)")
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[4])
     parser.add_argument("--steps", type=int, default=6, help="steps per run; the first (compilation) is not timed")
     parser.add_argument("--episodes", type=int, default=64, help="episodes of the random token cache")
@@ -120,24 +122,25 @@ def main():
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     cache = random_token_cache(args.episodes, 80)
     print(f"device: {name}, torch {torch.__version__}; {args.steps} steps per run, the first not timed")
-    print("| preset | batch | today clips/s | new clips/s | speed-up | today MFU | new MFU | new TFLOP/s | new GiB |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    header = ["preset", "patch", "batch", "today clips/s", "new clips/s", "speed-up", "today MFU", "new MFU"]
+    print("| " + " | ".join([*header, "new TFLOP/s", "new GiB"]) + " |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     rows = []
-    for preset in args.presets:
-        for batch in args.batch_sizes:
-            today, new = (run(preset, batch, path, args.steps, cache, device) for path in ("today", "new"))
-            rows.append({"preset": preset, "batch": batch, "today": today, "new": new, "device": name})
+    for preset, patch, batch in itertools.product(args.presets, args.patches, args.batch_sizes):
+        today, new = (run(preset, patch, batch, path, args.steps, cache, device) for path in ("today", "new"))
+        rows.append({"preset": preset, "patch": patch, "batch": batch, "today": today, "new": new, "device": name})
 
-            def cell(figures, key, fmt):
-                return figures.get("error", "-") if key not in figures else format(figures[key], fmt)
+        def cell(figures, key, fmt):
+            return figures.get("error", "-") if key not in figures else format(figures[key], fmt)
 
-            ratio = f"{new['clips_per_s'] / today['clips_per_s']:.1f}x" if "error" not in today | new else "-"
-            print(
-                f"| {preset} | {batch} | {cell(today, 'clips_per_s', '.3g')} | {cell(new, 'clips_per_s', '.3g')} | "
-                f"{ratio} | {cell(today, 'mfu', '.1%')} | {cell(new, 'mfu', '.1%')} | {cell(new, 'tflops', '.3g')} | "
-                f"{cell(new, 'peak_gib', '.1f')} |",
-                flush=True,
-            )
+        ratio = f"{new['clips_per_s'] / today['clips_per_s']:.1f}x" if "error" not in today | new else "-"
+        print(
+            f"| {preset} | {patch} | {batch} | {cell(today, 'clips_per_s', '.3g')} | "
+            f"{cell(new, 'clips_per_s', '.3g')} | "
+            f"{ratio} | {cell(today, 'mfu', '.1%')} | {cell(new, 'mfu', '.1%')} | {cell(new, 'tflops', '.3g')} | "
+            f"{cell(new, 'peak_gib', '.1f')} |",
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
 
