@@ -13,15 +13,15 @@ import sys
 
 from lerobot_roboscape.cli import one_line_errors
 from lerobot_roboscape.pipeline.config import parse_config
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig, run_experiment
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig, Packed, run_or_pack
 
 
 @one_line_errors("roboscape-experiment")
 def main(argv: list[str] | None = None):
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    print(
-        f"report: {run_experiment(parse_config(ExperimentConfig, sys.argv[1:] if argv is None else argv, 'pipeline.'))}"
-    )
+    result = run_or_pack(parse_config(ExperimentConfig, sys.argv[1:] if argv is None else argv, "pipeline."))
+    if not isinstance(result, Packed):  # the pack has said what to do next
+        print(f"report: {result}")
 
 
 if __name__ == "__main__":

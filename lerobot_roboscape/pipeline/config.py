@@ -316,11 +316,16 @@ def scale_config(scale: str = TINY, args: tuple[str, ...] = ()) -> PipelineConfi
 
 def settings_flags(cfg: PipelineConfig) -> list[str]:
     """The flags that make `cfg` from its scale's file: each setting that differs from it, as `--a.b=value`."""
-    preset = flatten_dict(draccus.encode(scale_config(cfg.scale)), sep=".")
+    return changed_flags(cfg, scale_config(cfg.scale), ("scale", "output_dir", "report_dir"))
+
+
+def changed_flags(cfg, reference, skip: tuple[str, ...] = ()) -> list[str]:
+    """Each setting of the config `cfg` that differs from `reference`'s, as `--a.b=value`, but those under `skip`."""
+    before = flatten_dict(draccus.encode(reference), sep=".")
     return [
         f"--{name}={as_flag(value)}"
         for name, value in flatten_dict(draccus.encode(cfg), sep=".").items()
-        if name not in ("scale", "output_dir", "report_dir") and preset.get(name) != value
+        if name.split(".")[0] not in skip and before.get(name) != value
     ]
 
 

@@ -6,7 +6,6 @@ results.json, figures, videos), and the README's results block."""
 import json
 import re
 import shutil
-from dataclasses import fields
 from datetime import date
 from pathlib import Path
 
@@ -23,30 +22,28 @@ from lerobot_roboscape.evaluation.tables import (
     table_splits,
     write_table,
 )
-from lerobot_roboscape.pipeline.config import as_flag, settings_flags
+from lerobot_roboscape.pipeline.config import changed_flags, settings_flags
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
-from lerobot_roboscape.pipeline.layout import EVAL_DIR, GOAL_FILE, protocol_dir, rl_dir
+from lerobot_roboscape.pipeline.layout import CURVE_DIR, EVAL_DIR, GOAL_FILE, REPLAY_DIR, protocol_dir, rl_dir
+from lerobot_roboscape.pipeline.levers import lever_descriptions
 from lerobot_roboscape.pipeline.methods import (
-    OOD_ONLY,
     PAPER_PROTOCOL,
     PROTOCOLS,
     REWARD_ABLATION,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
-    RL_WORLD_MODEL_BRANCHED,
-    RL_WORLD_MODEL_ENSEMBLE,
-    RL_WORLD_MODEL_KL,
-    RL_WORLD_MODEL_REFRESH,
     SFT,
+    Method,
     initial_scene,
 )
+from lerobot_roboscape.pipeline.replay import REPLAY_PNG
 from lerobot_roboscape.pipeline.report import machine, render_pipeline_report
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
 from lerobot_roboscape.pipeline.world_model_runs import GOALS, RESULTS, RUNS_DIR
-from lerobot_roboscape.training.records import read_history
+from lerobot_roboscape.rl.history import read_ppo_history
 
 matplotlib.use("Agg")
 
@@ -95,55 +92,34 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
     rows = []
     for policy in policies:
         for method in methods:
-            history = read_history(out / rl_dir(policy, method))
+            history = read_ppo_history(out / rl_dir(policy, method))
             if not history:
                 continue
-            last = history[-3:]
+            first, last = history[0], history[-3:]
             rows.append(
                 {
                     "policy": policy,
                     "method": method,
-                    "iterations": history[-1]["iteration"],
-                    "ppo_seconds": round(history[-1]["seconds"], 1),
-                    "decisions": int(sum(row["charts/samples"] for row in history)),
-                    "first_return": round(history[0]["charts/episode_return"], 3),
-                    "last_return": round(float(np.mean([row["charts/episode_return"] for row in last])), 3),
-                    "first_success": round(history[0]["charts/success"], 3),
-                    "last_success": round(float(np.mean([row["charts/success"] for row in last])), 3),
+                    "iterations": history[-1].iteration,
+                    "ppo_seconds": round(history[-1].seconds, 1),
+                    "decisions": sum(row.samples for row in history),
+                    "first_return": round(first.episode_return, 3),
+                    "last_return": round(float(np.mean([row.episode_return for row in last])), 3),
+                    "first_success": round(first.success, 3),
+                    "last_success": round(float(np.mean([row.success for row in last])), 3),
                     "wall_seconds": stage_seconds(out / rl_dir(policy, method)),
                     "simulator_steps_beside_ppo": sum(
                         r["simulator_steps"] for r in refresh_rounds(out / rl_dir(policy, method))
                     ),
                 }
             )
-            if "charts/disagreement" in history[0]:  # an ensemble guarded the run: how far from the data it went
+            if first.disagreement is not None:  # an ensemble guarded the run: how far from the data it went
                 rows[-1] |= {
-                    "first_disagreement": round(history[0]["charts/disagreement"], 4),
-                    "last_disagreement": round(float(np.mean([row["charts/disagreement"] for row in last])), 4),
-                    "last_halted": round(float(np.mean([row["charts/halted"] for row in last])), 3),
+                    "first_disagreement": round(first.disagreement, 4),
+                    "last_disagreement": round(float(np.mean([row.disagreement for row in last])), 4),
+                    "last_halted": round(float(np.mean([row.halted for row in last])), 3),
                 }
     return rows
-
-
-def lever_settings(cfg, levers) -> dict[str, str]:
-    """{lever's method: what it ran with, in words} of the levers that ran."""
-    retrained = cfg.ensemble_retrain_blocks
-    members = f"the run's action model and {cfg.ensemble_members} more " + (
-        f"(its last {retrained} block(s) and heads drawn afresh and retrained alone"
-        if retrained is not None
-        else "(whole models trained from other seeds"
-    )
-    halt = "" if cfg.disagreement_threshold is None else f"; episodes halt above {cfg.disagreement_threshold} nats"
-    settings = {
-        RL_WORLD_MODEL_KL: f"KL to the SFT policy x {cfg.kl_coef}",
-        RL_WORLD_MODEL_ENSEMBLE: f"{members}, {cfg.ensemble_steps_share:.0%} of its steps each); reward - "
-        f"{cfg.disagreement_penalty} x their disagreement{halt}",
-        RL_WORLD_MODEL_BRANCHED: f"{cfg.branches_per_episode} starts per demonstration, episodes of "
-        f"{cfg.branch_episode_length} steps",
-        RL_WORLD_MODEL_REFRESH: f"the done head refitted {cfg.refresh_rounds - 1} times on {cfg.refresh_episodes} "
-        "simulator episodes of the current policy",
-    }
-    return {method: settings[method] for method in levers}
 
 
 def write_experiment_report(
@@ -154,7 +130,8 @@ def write_experiment_report(
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
     lever_curves = lever_curves or {}
-    table = {policy: {m: s for m, s in methods.items() if m not in OOD_ONLY} for policy, methods in results.items()}
+    ood_only = {m for methods in results.values() for m in methods if Method.named(m).ood_only}
+    table = {policy: {m: s for m, s in methods.items() if m not in ood_only} for policy, methods in results.items()}
     ablation = {
         policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
     }
@@ -180,7 +157,7 @@ def write_experiment_report(
         "ppo_runs": runs,
         "curve": curve,
         "lever_curves": lever_curves,
-        "lever_settings": lever_settings(cfg, lever_curves),
+        "lever_settings": lever_descriptions(lever_curves, cfg.lever),
         "replays": replays,
         "seconds": times,
     }
@@ -201,8 +178,8 @@ def write_experiment_report(
     shutil.rmtree(videos, ignore_errors=True)
     videos.mkdir()
     for row in replays:
-        shutil.copy2(out / "replay" / row["video"], videos / row["video"])
-    shutil.copy2(out / "replay" / "replay.png", folder / "replay.png")
+        shutil.copy2(out / REPLAY_DIR / row["video"], videos / row["video"])
+    shutil.copy2(out / REPLAY_DIR / REPLAY_PNG, folder / REPLAY_PNG)
     text = markdown(cfg, summary)
     (folder / "report.md").write_text(text)
     if cfg.readme:
@@ -248,10 +225,10 @@ def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]
             times[f"PPO {run['method']}: wall-clock with its setup"] = run["wall_seconds"]
     evaluations = [stage_seconds(f.parent) or 0.0 for f in (out / EVAL_DIR).glob("*/*/*/stage.json")]
     times[f"simulator evaluation, Table 1 and the ablation ({len(evaluations)} jobs)"] = sum(evaluations)
-    curves = (out / "curve").glob("*/**/stage.json")  # a folder per policy (and per lever), then per checkpoint
+    curves = (out / CURVE_DIR).glob("*/**/stage.json")  # a folder per policy (and per lever), then per checkpoint
     points = [stage_seconds(f.parent) or 0.0 for f in curves]
     times[f"simulator evaluation of PPO's checkpoints ({len(points)} points)"] = sum(points)
-    times["world-model rollouts replayed in the simulator"] = stage_seconds(out / "replay") or 0.0
+    times["world-model rollouts replayed in the simulator"] = stage_seconds(out / REPLAY_DIR) or 0.0
     return {k: round(v, 1) for k, v in times.items()}
 
 
@@ -393,7 +370,7 @@ def markdown(cfg, summary: dict) -> str:
     for policy, methods in summary["reward_ablation"].items():
         if methods:
             rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
-                m.split(", ")[1]: s["ood"] for m, s in methods.items()
+                Method.named(m).variant: s["ood"] for m, s in methods.items()
             }
             ablation_rows += [(name, [cells[f] for f in [*p.data.families, "all"]]) for name, cells in rows.items()]
     beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary["ppo_runs"]}
@@ -440,12 +417,7 @@ def command(cfg) -> str:
     parts = [f"roboscape-experiment --protocol={cfg.protocol} --pipeline.scale={p.scale}"]
     parts.append(f"--pipeline.output_dir={p.output_dir}")
     parts += [flag.replace("--", "--pipeline.", 1) for flag in settings_flags(p)]
-    default = type(cfg)()
-    for f in fields(cfg):
-        if f.name not in ("pipeline", "protocol", "report_dir", "readme") and getattr(cfg, f.name) != getattr(
-            default, f.name
-        ):
-            parts.append(f"--{f.name}={as_flag(getattr(cfg, f.name))}")
+    parts += changed_flags(cfg, type(cfg)(), ("pipeline", "protocol", "report_dir", "readme"))
     parts.append(f"--report_dir={cfg.report_dir}")
     if cfg.readme != "README.md":
         parts.append(f"--readme={cfg.readme or 'null'}")

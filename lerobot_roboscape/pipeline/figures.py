@@ -8,8 +8,8 @@ import matplotlib
 import numpy as np
 
 from lerobot_roboscape.pipeline.layout import rl_dir
-from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL
-from lerobot_roboscape.training.records import read_history
+from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, Method
+from lerobot_roboscape.rl.history import read_ppo_history
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -30,14 +30,12 @@ def ppo_curves(
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
     for policy in policies:
         for method in methods:
-            history = read_history(out / rl_dir(policy, method))
+            history = read_ppo_history(out / rl_dir(policy, method))
             if not history:
                 continue
-            minutes = [row["seconds"] / 60 for row in history]
-            axes[0].plot(
-                minutes, [row["charts/success"] for row in history], "-o", markersize=3, label=f"{policy}: {method}"
-            )
-            axes[1].plot(minutes, [row["charts/episode_return"] for row in history], "-o", markersize=3)
+            minutes = [row.seconds / 60 for row in history]
+            axes[0].plot(minutes, [row.success for row in history], "-o", markersize=3, label=f"{policy}: {method}")
+            axes[1].plot(minutes, [row.episode_return for row in history], "-o", markersize=3)
     axes[0].set_ylabel("success in its own env")
     axes[1].set_ylabel("episode return in its own env")
     for ax in axes:
@@ -51,11 +49,11 @@ def ppo_curves(
 def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
     """PPO in the world model over its iterations: its return in the world model (left axis), and the simulator
     success of its checkpoints out of domain with 95% intervals (right axis)."""
-    history = read_history(out / rl_dir(policy, RL_WORLD_MODEL))
+    history = read_ppo_history(out / rl_dir(policy, RL_WORLD_MODEL))
     fig, left = plt.subplots(figsize=(7, 3.4))
     left.plot(
-        [row["iteration"] for row in history],
-        [row["charts/episode_return"] for row in history],
+        [row.iteration for row in history],
+        [row.episode_return for row in history],
         color="tab:blue",
         label="return in the world model (training episodes)",
     )
@@ -84,11 +82,11 @@ def gaming_figure(out: Path, policy: str, curves: dict[str, list[dict]], path: P
         rate = np.array([100 * point["success_rate"] for point in curve])
         ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
         ax.errorbar(minutes, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color=colour, capsize=3)
-        ax.plot([], [], "-", color=colour, label=method.removeprefix("RL w. World Model").strip(", ") or "no lever")
-        history = read_history(out / rl_dir(policy, method))
+        ax.plot([], [], "-", color=colour, label=Method.named(method).variant or "no lever")
+        history = read_ppo_history(out / rl_dir(policy, method))
         ax.plot(
-            [row["seconds"] / 60 for row in history],
-            [100 * row["charts/success"] for row in history],
+            [row.seconds / 60 for row in history],
+            [100 * row.success for row in history],
             "--",
             color=colour,
             alpha=0.6,

@@ -3,7 +3,7 @@ there)."""
 
 from pathlib import Path
 
-from lerobot_roboscape.pipeline.methods import ALL_SCENES_PROTOCOL, PROTOCOLS, method_tag
+from lerobot_roboscape.pipeline.methods import ALL_SCENES_PROTOCOL, PROTOCOLS, Method
 
 DEMOS_DIR = "datasets/roboscape_demos"
 DEMOS_REPO_ID = "local/roboscape_demos"
@@ -28,6 +28,7 @@ TABLES_DIR = "tables"
 GOAL_FILE = "rl/text_model_goals.safetensors"
 RL_DIR = "rl"
 EVAL_DIR = "eval"
+CURVE_DIR, REPLAY_DIR = "curve", "replay"  # the claim experiment's, in a protocol's folder
 
 
 def fidelity_dir(domain: str) -> str:
@@ -62,9 +63,9 @@ def lerobot_eval_dir(policy: str) -> str:
 
 
 def rl_dir(policy: str, method: str) -> Path:
-    return Path(RL_DIR) / policy / method_tag(method)
+    return Path(RL_DIR) / policy / Method.named(method).tag
 
 
 def eval_dir(policy: str, method: str) -> Path:
     """The simulator evaluation of one checkpoint (a folder per split inside)."""
-    return Path(EVAL_DIR) / policy / method_tag(method)
+    return Path(EVAL_DIR) / policy / Method.named(method).tag

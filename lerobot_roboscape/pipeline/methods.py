@@ -3,52 +3,54 @@ models beside the world model's own reward, and the methods' names in folders an
 
 from lerobot_roboscape.tasks import select_scenes
 
-SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, RL_WORLD_MODEL = (
-    "Supervised finetune",
-    "RL w. ManiSkill (one scene)",
-    "RL w. ManiSkill",
-    "RL w. World Model",
-)
-# The reward ablation (issue 29): PPO in the world model paid one of its two reward terms; evaluated OOD only.
-RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE = (
-    "RL w. World Model, sparse reward only",
-    "RL w. World Model, dense reward only",
-)
+
+class Method(str):
+    """A method a policy is trained by. It is Table 1's name, so results keyed by it read and write as plain
+    strings; `tag` names it in folders and Hub repos; `variant` sets a variant of PPO in the world model apart
+    (the reward ablation's and the levers': run, and evaluated, out of domain only). Every method made is found
+    again by its name (`Method.named`), so a name read back from a results file gives back the method."""
+
+    tag: str
+    variant: str
+    _known: dict[str, "Method"] = {}
+
+    def __new__(cls, label: str, tag: str, variant: str = "") -> "Method":
+        if label in cls._known:
+            raise ValueError(f"two methods are named {label!r}")
+        method = super().__new__(cls, label)
+        method.tag, method.variant = tag, variant
+        cls._known[label] = method
+        return method
+
+    @property
+    def ood_only(self) -> bool:
+        return bool(self.variant)
+
+    @classmethod
+    def named(cls, label: str) -> "Method":
+        if label not in cls._known:
+            raise KeyError(f"no method is named {label!r}; known: {list(cls._known)}")
+        return cls._known[label]
+
+
+SFT = Method("Supervised finetune", "sft")
+RL_MANISKILL_ONE_SCENE = Method("RL w. ManiSkill (one scene)", "ppo_maniskill_one_scene")
+RL_MANISKILL = Method("RL w. ManiSkill", "ppo_maniskill")
+RL_WORLD_MODEL = Method("RL w. World Model", "ppo_world_model")
+
+
+def world_model_variant(variant: str, tag: str) -> Method:
+    """A variant of PPO in the world model (a reward term alone, a lever), named as Table 1's rows name it."""
+    return Method(f"{RL_WORLD_MODEL}, {variant}", f"{RL_WORLD_MODEL.tag}_{tag}", variant)
+
+
+# The reward ablation (issue 29): PPO in the world model paid one of its two reward terms.
+RL_WORLD_MODEL_SPARSE = world_model_variant("sparse reward only", "sparse")
+RL_WORLD_MODEL_DENSE = world_model_variant("dense reward only", "dense")
 REWARD_ABLATION = (RL_WORLD_MODEL_SPARSE, RL_WORLD_MODEL_DENSE)
-# The guards against a policy that games the world model (issue 49), each a run of PPO in the world model, judged
-# by the simulator success of its checkpoints (OOD), not by its own return.
-RL_WORLD_MODEL_KL, RL_WORLD_MODEL_ENSEMBLE, RL_WORLD_MODEL_BRANCHED, RL_WORLD_MODEL_REFRESH = (
-    "RL w. World Model, KL to SFT",
-    "RL w. World Model, ensemble disagreement",
-    "RL w. World Model, branched short rollouts",
-    "RL w. World Model, done refreshed in the simulator",  # uses simulator rollouts: its own row
-)
-LEVERS = {
-    "kl": RL_WORLD_MODEL_KL,
-    "ensemble": RL_WORLD_MODEL_ENSEMBLE,
-    "branched": RL_WORLD_MODEL_BRANCHED,
-    "refresh": RL_WORLD_MODEL_REFRESH,
-}
-OOD_ONLY = (*REWARD_ABLATION, *LEVERS.values())  # the methods evaluated out of domain only
 POLICIES = ("roboscape_mlp", "openvla")
 REWARD_BASELINES = ("embedding", "proxy")
 SUCCESS_CLASSIFIER = "success"  # the reward model kind that is a success classifier (a done source)
-
-
-def method_tag(method: str) -> str:
-    """The method's name in folders and Hub repos."""
-    return {
-        SFT: "sft",
-        RL_WORLD_MODEL: "ppo_world_model",
-        RL_MANISKILL: "ppo_maniskill",
-        RL_MANISKILL_ONE_SCENE: "ppo_maniskill_one_scene",
-        RL_WORLD_MODEL_SPARSE: "ppo_world_model_sparse",
-        RL_WORLD_MODEL_DENSE: "ppo_world_model_dense",
-        RL_WORLD_MODEL_KL: "ppo_world_model_kl",
-        RL_WORLD_MODEL_ENSEMBLE: "ppo_world_model_ensemble",
-        RL_WORLD_MODEL_BRANCHED: "ppo_world_model_branched",
-        RL_WORLD_MODEL_REFRESH: "ppo_world_model_done_refresh",
-    }[method]
 
 
 # The claim's protocols. "paper": the policy's SFT sees the demonstrations of the initial scene only (and PPO in the

@@ -3,8 +3,8 @@ lerobot-train, LeRobot's evaluation in the world model, PPO in the world model a
 simulator evaluation behind Table 1. Each resumes as the others do (`resume.py`)."""
 
 import json
-from dataclasses import asdict, replace
-from functools import partial
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from lerobot.configs.default import DatasetConfig
@@ -23,7 +23,6 @@ from lerobot_roboscape.evaluation.success_rate import (
 from lerobot_roboscape.evaluation.tables import SCENE, SPLITS
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
 from lerobot_roboscape.pipeline.layout import (
     GOAL_FILE,
     eval_dir,
@@ -33,12 +32,12 @@ from lerobot_roboscape.pipeline.layout import (
 )
 from lerobot_roboscape.pipeline.lerobot_cli import lerobot_eval, lerobot_sft
 from lerobot_roboscape.pipeline.methods import (
-    OOD_ONLY,
     RL_MANISKILL,
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
     RL_WORLD_MODEL_DENSE,
     RL_WORLD_MODEL_SPARSE,
+    Method,
     initial_scene,
 )
 from lerobot_roboscape.pipeline.ppo_run import ppo
@@ -166,27 +165,34 @@ def ppo_config(
     )
 
 
+@dataclass(frozen=True)
+class RLRun:
+    """One PPO run of a method: its env, PPO's settings beside the pipeline's (`--pipeline.ppo.*`), and what runs
+    it (PPO, or PPO wrapped by a lever that acts between slices of its clock)."""
+
+    env: object
+    settings: dict = field(default_factory=dict)
+    runner: Callable[[PPOConfig, bool], Path] = ppo
+
+
 def rl(
     cfg: PipelineConfig,
     out: Path,
     demonstrations: DatasetConfig,
     wm_env: RoboscapeWorldModelEnvConfig | None,
     checkpoints: dict[str, Path],
-    levers: dict[str, tuple] | None = None,
+    levers: dict[Method, RLRun] | None = None,
 ) -> dict[str, dict[str, Path]]:
     """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock), and
-    the runs of `levers` ({method: (its env, PPO's settings beside these; "done_refresh": a `DoneRefresh` runs it
-    with the done refresh)}); returns {policy: {method: checkpoint}}."""
-    runs = {}
-    envs = {method: (env, {}) for method, env in rl_envs(cfg, out, demonstrations, wm_env).items()} | (levers or {})
-    for name, sft_checkpoint in checkpoints.items():
-        runs[name] = {}
-        for method, (env, settings) in envs.items():
-            settings = dict(settings)
-            refresh = settings.pop("done_refresh", None)
-            run = partial(ppo_with_done_refresh, refresh=refresh) if refresh is not None else ppo
-            runs[name][method] = run(ppo_config(cfg, out, name, method, sft_checkpoint, env, settings), cfg.fresh)
-    return runs
+    the runs of `levers`; returns {policy: {method: checkpoint}}."""
+    runs = {method: RLRun(env) for method, env in rl_envs(cfg, out, demonstrations, wm_env).items()} | (levers or {})
+    return {
+        name: {
+            method: run.runner(ppo_config(cfg, out, name, method, sft_checkpoint, run.env, run.settings), cfg.fresh)
+            for method, run in runs.items()
+        }
+        for name, sft_checkpoint in checkpoints.items()
+    }
 
 
 # ---- evaluation in the simulator ---------------------------------------------------------------------------------
@@ -255,7 +261,7 @@ def simulator_eval(
     jobs, splits = {}, [split for split in SPLITS if scene or split != SCENE]
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
-            for split in ("ood",) if method in OOD_ONLY else splits:
+            for split in ("ood",) if Method.named(method).ood_only else splits:
                 jobs[name, method, split] = eval_job(
                     cfg,
                     demonstrations,

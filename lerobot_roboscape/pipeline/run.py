@@ -130,7 +130,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     policies = {}
     for name, runs in checkpoints.items():
         for method, checkpoint in runs.items():
-            tag = methods.method_tag(method)
+            tag = methods.Method.named(method).tag
             policies[f"{name}_{tag}"] = (checkpoint, out / layout.eval_dir(name, method))
             labels[f"{name} {tag} repo"] = ArtifactKind.POLICY
     world_models = dict(

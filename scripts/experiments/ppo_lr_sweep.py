@@ -12,10 +12,10 @@ from pathlib import Path
 
 from lerobot_roboscape.pipeline import methods, policy_stages, stages
 from lerobot_roboscape.pipeline.config import scale_config
-from lerobot_roboscape.pipeline.experiment import trained_stages
+from lerobot_roboscape.pipeline.trained import trained_stages
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.ppo import train_ppo
-from lerobot_roboscape.training.records import read_history
 
 
 def main():
@@ -47,11 +47,11 @@ def main():
                 save_freq=args.iterations,
             )
         )
-        for r in read_history(folder):
+        for r in read_ppo_history(folder):
             print(
-                f"{name} {r['iteration']} succ {r['charts/success']:.2f} ret {r['charts/episode_return']:.1f} "
-                f"kl {r.get('losses/approx_kl', 0):.3f} clip {r.get('losses/clip_fraction', 0):.2f} "
-                f"stop {int(r.get('charts/update_stopped_by_kl', 0))}",
+                f"{name} {r.iteration} succ {r.success:.2f} ret {r.episode_return:.1f} "
+                f"kl {r.logs.get('losses/approx_kl', 0):.3f} clip {r.logs.get('losses/clip_fraction', 0):.2f} "
+                f"stop {int(r.logs.get('charts/update_stopped_by_kl', 0))}",
                 flush=True,
             )
 

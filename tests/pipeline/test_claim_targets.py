@@ -7,17 +7,13 @@ from lerobot_roboscape.evaluation.success_rate import summarise
 from lerobot_roboscape.evaluation.tables import format_table, table_splits
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import command, differences, lever_settings, markdown, paper_methods
-from lerobot_roboscape.pipeline.methods import (
-    RL_MANISKILL,
-    RL_MANISKILL_ONE_SCENE,
-    RL_WORLD_MODEL,
-    RL_WORLD_MODEL_KL,
-    SFT,
-)
-from lerobot_roboscape.pipeline.methods import RL_WORLD_MODEL_ENSEMBLE as ENSEMBLE
+from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown, paper_methods
+from lerobot_roboscape.pipeline.levers import LEVERS, KLSettings, LeverSettings, lever_descriptions
+from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
 from lerobot_roboscape.pipeline.targets import claim_targets
 from roboscape_core.errors import InvalidInputError
+
+RL_WORLD_MODEL_KL, ENSEMBLE = LEVERS["kl"].method, LEVERS["ensemble"].method
 
 
 def cell(successes: int, episodes: int = 50, first: int = 0) -> dict:
@@ -113,15 +109,14 @@ def test_regenerate_command_gives_back_the_same_settings():
         protocol="all_scenes",
         sft_checkpoint="outputs/sft/pretrained_model",
         levers=["kl", "branched"],
-        kl_coef=0.3,
-        disagreement_threshold=0.5,
+        lever=LeverSettings(kl=KLSettings(coef=0.3)),
         report_dir="docs/results/x",
         readme=None,
     )
     args = command(cfg).split()[1:]
     assert "--pipeline.data.max_scenes=8" in args and "--pipeline.reward_ablation=false" in args
     assert "--pipeline.ppo.time_budget_s=360" in args and not any("wm_train" in a for a in args)
-    assert "--levers=[kl,branched]" in args and "--kl_coef=0.3" in args
+    assert "--levers=[kl,branched]" in args and "--lever.kl.coef=0.3" in args
     assert parse_config(ExperimentConfig, args, "pipeline.") == cfg
     assert ExperimentConfig().protocol == "paper"  # the paper's protocol unless told otherwise
     with pytest.raises(InvalidInputError, match="--protocol must be one of \\['paper', 'all_scenes'\\], got 'one'"):
@@ -150,7 +145,7 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
         "reward_ablation": {"mlp": {}},
         "levers": {"mlp": {m: {"ood": {"push": cell(12), "all": cell(12)}} for m in (RL_WORLD_MODEL_KL, ENSEMBLE)}},
         "lever_curves": {RL_WORLD_MODEL_KL: curve, ENSEMBLE: curve},
-        "lever_settings": lever_settings(cfg, [RL_WORLD_MODEL_KL, ENSEMBLE]),
+        "lever_settings": lever_descriptions([RL_WORLD_MODEL_KL, ENSEMBLE], cfg.lever),
         "ppo_runs": [
             {"policy": "mlp", "method": ENSEMBLE, "iterations": 9, "ppo_seconds": 60.0, "decisions": 900}
             | {"first_return": 0.1, "last_return": 0.2, "first_success": 0.0, "last_success": 0.1}

@@ -15,11 +15,12 @@ from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.clock import header
 from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
-from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment
+from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment, run_or_pack
 from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.pipeline.run import STAGES, run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
+from roboscape_core.errors import MissingInputError
 from tests.harness import command, kill_at_line, output_differences, run
 
 pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
@@ -181,7 +182,8 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, eval_dir, rl_dir, sft_dir
-    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, RL_WORLD_MODEL_KL, SFT, initial_scene
+    from lerobot_roboscape.pipeline.levers import LEVERS
+    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, SFT, initial_scene
     from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
 
     run = demo[0] / "demo"
@@ -198,7 +200,9 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
         "--readme=null",
     ]
     cfg = parse_config(ExperimentConfig, args, "pipeline.")
-    pack = run_experiment(cfg)
+    with pytest.raises(MissingInputError, match="the runs in the world model are not back in"):
+        run_experiment(cfg)
+    pack = run_or_pack(cfg).folder
     assert pack == tmp_path / "pack" and not (tmp_path / "claim").exists()
     protocol = run / "protocol_paper"
     assert (protocol / rl_dir("roboscape_mlp", RL_MANISKILL) / STAGE_FILE).is_file()  # done here meanwhile
@@ -210,11 +214,12 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
 
     models = {c: str(run / f"world_model_{c}" / "pretrained_model") for c in ("action", "text")}
     run_pack(RunPackConfig(pack=str(pack), **models, output_dir=str(tmp_path / "runs"), device="cpu"))
-    report = run_experiment(cfg)
+    report = run_or_pack(cfg)
     claim = json.loads((tmp_path / "claim" / "results.json").read_text())
     assert claim["world_model_runs"]["folder"] == str(tmp_path / "runs") and "--world_model_runs" in report.read_text()
-    assert {RL_WORLD_MODEL, RL_WORLD_MODEL_KL, RL_MANISKILL} <= {r["method"] for r in claim["ppo_runs"]}
-    assert claim["replays"] and claim["lever_curves"][RL_WORLD_MODEL_KL]
+    kl = LEVERS["kl"].method
+    assert {RL_WORLD_MODEL, kl, RL_MANISKILL} <= {r["method"] for r in claim["ppo_runs"]}
+    assert claim["replays"] and claim["lever_curves"][kl]
     # The paper's IND, the scene SFT learned with new initial states, is a column of its own for every method.
     assert all(list(splits) == ["scene", "ind", "ood"] for splits in claim["table"]["roboscape_mlp"].values())
     scene_eval = json.loads((protocol / eval_dir("roboscape_mlp", SFT) / "scene" / STAGE_FILE).read_text())

@@ -173,7 +173,7 @@ def test_a_pack_or_results_of_another_kind_are_refused_by_name(tmp_path):
 
 def test_the_experiment_names_what_it_needs_without_world_models(tmp_path):
     from lerobot_roboscape.pipeline.config import PipelineConfig
-    from lerobot_roboscape.pipeline.experiment import trained_stages
+    from lerobot_roboscape.pipeline.trained import trained_stages
 
     with pytest.raises(FileNotFoundError, match="--stop_after=tokenizer"):
         trained_stages(PipelineConfig(output_dir=str(tmp_path)), Path(tmp_path), world_models=False)

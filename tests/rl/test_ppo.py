@@ -10,10 +10,10 @@ from safetensors.torch import load_file
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
-from lerobot_roboscape.training.records import read_history
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -252,9 +252,9 @@ def test_time_budget_stops_the_run_and_history_records_each_iteration(fresh_mlp,
     state = json.loads((final.parent / "training_state" / "iteration.json").read_text())
     clock = json.loads((final.parent / "training_state" / "clock.json").read_text())
     assert state["iteration"] == 1 and clock["seconds"] > 0  # the first iteration spends the budget; it is saved
-    history = read_history(tmp_path / "ppo")
-    assert [row["iteration"] for row in history] == [1] and history[0]["seconds"] == clock["seconds"]
-    assert "charts/success" in history[0]
+    history = read_ppo_history(tmp_path / "ppo")
+    assert [row.iteration for row in history] == [1] and history[0].seconds == clock["seconds"]
+    assert history[0].samples > 0 and 0 <= history[0].success <= 1 and history[0].disagreement is None
 
 
 def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_path):

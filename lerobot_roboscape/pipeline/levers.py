@@ -1,0 +1,203 @@
+"""The guards against a policy that games the world model (issue 49), one entry each in `LEVERS`: its name on the
+command line (`--levers=[kl,...]`), its method (a run of PPO in the world model beside the plain one, judged by the
+simulator success of its checkpoints, OOD), its settings (`--lever.<name>.<field>`), the run it makes and how the
+report describes it. Adding a lever is a settings class, a field of `LeverSettings` and an entry here."""
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from functools import partial
+from pathlib import Path
+
+from lerobot.configs.default import DatasetConfig
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.pipeline import data_stages, layout, stages
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.done_refresh import DoneRefresh, ppo_with_done_refresh
+from lerobot_roboscape.pipeline.methods import Method, world_model_variant
+from lerobot_roboscape.pipeline.policy_stages import RLRun
+from roboscape_core.errors import InvalidInputError
+
+
+@dataclass
+class KLSettings:
+    """coef: the weight of the KL penalty to the SFT policy (PPO's --kl_coef)."""
+
+    coef: float = 0.1
+
+
+@dataclass
+class EnsembleSettings:
+    """members: action world models beside the run's own (seeds 1..n); retrain_blocks: each member is the run's
+    action model with its last this many blocks and heads drawn afresh and trained alone, the trunk shared (null:
+    whole models trained as the run's own); steps_share: each member's training steps, as a share of the run's
+    action model's; disagreement_penalty: lambda on their disagreement (roboscape_wm's --env.disagreement_penalty);
+    disagreement_threshold: episodes halt above it (--env.disagreement_threshold; null: never)."""
+
+    members: int = 2
+    retrain_blocks: int | None = 1
+    steps_share: float = 0.25
+    disagreement_penalty: float = 1.0
+    disagreement_threshold: float | None = None
+
+    def __post_init__(self):
+        if self.members < 1:
+            raise InvalidInputError(f"--lever.ensemble.members must be >= 1, got {self.members}")
+        if not 0 < self.steps_share <= 1:
+            raise InvalidInputError(f"--lever.ensemble.steps_share must be in (0, 1], got {self.steps_share}")
+
+
+@dataclass
+class BranchedSettings:
+    """branches_per_episode: starts per demonstration (--env.branches_per_episode); episode_length: in control
+    steps."""
+
+    branches_per_episode: int = 4
+    episode_length: int = 24
+
+
+@dataclass
+class RefreshSettings:
+    """rounds: slices of PPO's clock, the done head refitted before each after the first on simulator rollouts of
+    the current policy in the training scenes; episodes: simulator episodes of the policy per refit."""
+
+    rounds: int = 3
+    episodes: int = 16
+
+    def __post_init__(self):
+        for name in ("rounds", "episodes"):
+            if getattr(self, name) < 1:
+                raise InvalidInputError(f"--lever.refresh.{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class LeverSettings:
+    """Each lever's settings: starting points; what each measured goes in the claim's report."""
+
+    kl: KLSettings = field(default_factory=KLSettings)
+    ensemble: EnsembleSettings = field(default_factory=EnsembleSettings)
+    branched: BranchedSettings = field(default_factory=BranchedSettings)
+    refresh: RefreshSettings = field(default_factory=RefreshSettings)
+
+
+@dataclass
+class LeverContext:
+    """What a lever's run is made from: the pipeline run (`folder`, its settings, demonstrations and tokenizer),
+    PPO in the world model's own env and the simulator's over the training scenes. `members`: the ensemble's world
+    models where they were trained elsewhere (null: trained here)."""
+
+    pipeline: PipelineConfig
+    folder: Path
+    demonstrations: DatasetConfig
+    tokenizer: Path
+    world_model: RoboscapeWorldModelEnvConfig
+    simulator: RoboscapeManiSkillEnvConfig
+    members: list[str] | None = None
+
+
+@dataclass(frozen=True)
+class Lever:
+    """name: on the command line; method: its row; make: its run (env, PPO's settings, runner) from the context and
+    its settings; describe: what it ran with, in words; simulator: it uses the simulator during PPO, so it runs
+    where the simulator is."""
+
+    name: str
+    method: Method
+    make: Callable[[LeverContext, LeverSettings], RLRun]
+    describe: Callable[[LeverSettings], str]
+    simulator: bool = False
+
+
+def _ensemble(context: LeverContext, settings: LeverSettings) -> RLRun:
+    s, p = settings.ensemble, context.pipeline
+    members = context.members
+    if members is None:
+        data = data_stages.demonstrations(p.data, context.folder, p.fresh)  # complete: found, not collected again
+        trained = stages.ensemble_members(
+            p, context.folder, data, context.tokenizer, s.members, s.retrain_blocks, s.steps_share
+        )
+        members = [str(m) for m in trained]
+    env = replace(
+        context.world_model,
+        ensemble=members,
+        disagreement_penalty=s.disagreement_penalty,
+        disagreement_threshold=s.disagreement_threshold,
+    )
+    return RLRun(env)
+
+
+def _describe_ensemble(settings: LeverSettings) -> str:
+    s = settings.ensemble
+    members = f"the run's action model and {s.members} more " + (
+        f"(its last {s.retrain_blocks} block(s) and heads drawn afresh and retrained alone"
+        if s.retrain_blocks is not None
+        else "(whole models trained from other seeds"
+    )
+    halt = "" if s.disagreement_threshold is None else f"; episodes halt above {s.disagreement_threshold} nats"
+    penalty = f"reward - {s.disagreement_penalty} x their disagreement{halt}"
+    return f"{members}, {s.steps_share:.0%} of its steps each); {penalty}"
+
+
+def _refresh(context: LeverContext, settings: LeverSettings) -> RLRun:
+    p = context.pipeline
+    refresh = DoneRefresh(
+        sim=context.simulator,
+        tokenizer=str(context.tokenizer),
+        demonstrations_repo_id=context.demonstrations.repo_id,
+        demonstrations_root=context.demonstrations.root,
+        cache_dir=str(context.folder / layout.TOKEN_CACHE_DIR),
+        rounds=settings.refresh.rounds,
+        episodes=settings.refresh.episodes,
+        device=p.device,
+    )
+    return RLRun(context.world_model, runner=partial(ppo_with_done_refresh, refresh=refresh))
+
+
+LEVERS = {
+    lever.name: lever
+    for lever in (
+        Lever(
+            "kl",
+            world_model_variant("KL to SFT", "kl"),
+            lambda context, settings: RLRun(context.world_model, {"kl_coef": settings.kl.coef}),
+            lambda settings: f"KL to the SFT policy x {settings.kl.coef}",
+        ),
+        Lever("ensemble", world_model_variant("ensemble disagreement", "ensemble"), _ensemble, _describe_ensemble),
+        Lever(
+            "branched",
+            world_model_variant("branched short rollouts", "branched"),
+            lambda context, settings: RLRun(
+                replace(
+                    context.world_model,
+                    branches_per_episode=settings.branched.branches_per_episode,
+                    episode_length=settings.branched.episode_length,
+                )
+            ),
+            lambda settings: (
+                f"{settings.branched.branches_per_episode} starts per demonstration, episodes of "
+                f"{settings.branched.episode_length} steps"
+            ),
+        ),
+        Lever(
+            "refresh",
+            world_model_variant("done refreshed in the simulator", "done_refresh"),  # uses the simulator: its own row
+            _refresh,
+            lambda settings: (
+                f"the done head refitted {settings.refresh.rounds - 1} times on "
+                f"{settings.refresh.episodes} simulator episodes of the current policy"
+            ),
+            simulator=True,
+        ),
+    )
+}
+BY_METHOD = {lever.method: lever for lever in LEVERS.values()}
+
+
+def lever_runs(names: list[str], context: LeverContext, settings: LeverSettings) -> dict[Method, RLRun]:
+    """{lever's method: its run} of the levers named, in their order."""
+    return {LEVERS[name].method: LEVERS[name].make(context, settings) for name in names}
+
+
+def lever_descriptions(methods, settings: LeverSettings) -> dict[str, str]:
+    """{lever's method: what it ran with, in words} of the levers whose methods are given."""
+    return {method: BY_METHOD[Method.named(method)].describe(settings) for method in methods}

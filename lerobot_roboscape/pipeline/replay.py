@@ -1,0 +1,88 @@
+"""The policy after PPO in the world model, rolled out there and its actions replayed open loop in the simulator
+from the same scene and initial state: what each world said of the same actions (the claim's replay step)."""
+
+import json
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
+from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.pipeline import resume, world_model_runs
+from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.layout import REPLAY_DIR
+from lerobot_roboscape.robot import CONTROL_FREQ
+from lerobot_roboscape.training.records import write_video
+
+REPLAY_JSON, REPLAY_PNG = "replay.json", "replay.png"
+REPLAY_STRIPS = 4  # replays drawn in replay.png
+
+
+def replay_in_simulator(
+    p: PipelineConfig,
+    episodes: int,
+    out: Path,
+    env_cfg: RoboscapeWorldModelEnvConfig | None,
+    checkpoint: Path,
+    rollouts_file: Path | None = None,
+) -> list[dict]:
+    """The policy after PPO in the world model, rolled out in `roboscape_wm` from `episodes` starts (spread
+    over the starts, so over families and scenes), or its rollouts made where the world models are
+    (`rollouts_file`), and its actions replayed open loop in the simulator from the same scene and initial state.
+    Writes side-by-side videos (world model | its goal | simulator) and returns, per start, what each world said:
+    the world model's return and success, the simulator's success."""
+    folder = out / REPLAY_DIR
+    if rollouts_file is None:
+        settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": episodes}
+    else:
+        settings = {
+            "rollouts": str(rollouts_file),
+            "bytes": rollouts_file.stat().st_size,
+            "checkpoint": str(checkpoint),
+        }
+
+    def replay():
+        if rollouts_file is None:
+            rollouts = world_model_runs.roll_out(env_cfg, checkpoint, episodes, p.device)
+        else:
+            rollouts = world_model_runs.load_rollouts(rollouts_file)
+        _replay(folder, rollouts, p.data.image_size)
+
+    resume.run_once(folder, settings, p.fresh, replay)
+    return json.loads((folder / REPLAY_JSON).read_text())
+
+
+def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) -> None:
+    folder.mkdir(parents=True)
+    rows, strips = [], []
+    for i, start in enumerate(rollouts.starts):
+        family, scene, seed = start["task_family"], start["scene"], int(start["seed"])
+        job = EpisodeJob(family, scene, seed, "optimal", image_size)
+        replayed = replay_actions(worker_env(job), job, rollouts.actions[:, i], {})
+        simulator = np.concatenate([replayed.images[camera] for camera in rollouts.cameras], axis=1)  # (T, 2H, W, 3)
+        clip = [np.concatenate([rollouts.frames[t, i], simulator[t]], axis=1) for t in range(len(simulator))]
+        row = {
+            "episode_index": start["episode_index"],
+            "family": family,
+            "scene": scene,
+            "world_model_return": round(float(rollouts.returns[i]), 3),
+            "world_model_success": bool(rollouts.success[i]),
+            "simulator_success": bool(replayed.success.any()),
+        }
+        outcome = f"wm-{'success' if row['world_model_success'] else 'failure'}_sim-" + (
+            "success" if row["simulator_success"] else "failure"
+        )
+        row["video"] = f"{i:02d}_{family}_{outcome}.mp4"
+        write_video(folder / row["video"], clip, CONTROL_FREQ)
+        rows.append(row)
+        strips.append(_strip(clip))
+    iio.imwrite(folder / REPLAY_PNG, np.concatenate(strips[:REPLAY_STRIPS], axis=0))
+    write_text_atomically(folder / REPLAY_JSON, json.dumps(rows, indent=2))
+
+
+def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:
+    """`columns` frames of a clip, evenly spaced, side by side."""
+    picks = np.linspace(0, len(clip) - 1, columns).round().astype(int)
+    return np.concatenate([clip[t] for t in picks], axis=1)

@@ -1,0 +1,95 @@
+"""The methods as values and the levers' registry: a method read back from a results file by its name is the same
+method (its tag, whether it runs OOD only); each lever makes its run from its own settings (env, PPO's settings,
+runner) and describes it; the experiment's config takes them from the command line."""
+
+from functools import partial
+from pathlib import Path
+
+import pytest
+from draccus.utils import ParsingError
+from lerobot.configs.default import DatasetConfig
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
+from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig
+from lerobot_roboscape.pipeline.layout import rl_dir
+from lerobot_roboscape.pipeline.levers import (
+    LEVERS,
+    EnsembleSettings,
+    LeverContext,
+    LeverSettings,
+    lever_descriptions,
+    lever_runs,
+)
+from lerobot_roboscape.pipeline.methods import REWARD_ABLATION, RL_WORLD_MODEL, SFT, Method
+from lerobot_roboscape.pipeline.ppo_run import ppo
+from roboscape_core.errors import InvalidInputError
+
+
+def test_a_method_read_back_by_its_name_is_the_same_method():
+    kl = LEVERS["kl"].method
+    assert Method.named(str(kl)) is kl and Method.named("RL w. World Model, KL to SFT").tag == "ppo_world_model_kl"
+    assert kl == "RL w. World Model, KL to SFT" and {kl: 1} == {"RL w. World Model, KL to SFT": 1}  # a results key
+    assert rl_dir("mlp", "RL w. World Model, done refreshed in the simulator") == Path(
+        "rl/mlp/ppo_world_model_done_refresh"
+    )
+    assert [m.variant for m in REWARD_ABLATION] == ["sparse reward only", "dense reward only"]
+    assert all(m.ood_only for m in (*REWARD_ABLATION, *(lever.method for lever in LEVERS.values())))
+    assert not SFT.ood_only and not RL_WORLD_MODEL.ood_only
+    with pytest.raises(KeyError, match="no method is named 'RL w. gravity'"):
+        Method.named("RL w. gravity")
+    with pytest.raises(ValueError, match="two methods are named 'Supervised finetune'"):
+        Method("Supervised finetune", "sft_again")
+    assert len({m.tag for m in Method._known.values()}) == len(Method._known)  # one folder per method
+
+
+@pytest.fixture
+def context(tmp_path) -> LeverContext:
+    return LeverContext(
+        PipelineConfig(output_dir=str(tmp_path)),
+        tmp_path,
+        DatasetConfig(repo_id="local/demos", root=str(tmp_path / "demos")),
+        tmp_path / "tokenizer",
+        RoboscapeWorldModelEnvConfig(episode_length=30),
+        RoboscapeManiSkillEnvConfig(),
+        members=["member_1", "member_2"],
+    )
+
+
+def test_each_lever_makes_its_run_from_its_own_settings(context):
+    cfg = parse_config(
+        ExperimentConfig,
+        [
+            "--levers=[kl,ensemble,branched,refresh]",
+            "--lever.kl.coef=0.3",
+            "--lever.ensemble.disagreement_penalty=2.0",
+            "--lever.branched.episode_length=12",
+            "--lever.refresh.rounds=4",
+        ],
+        "pipeline.",
+    )
+    runs = lever_runs(cfg.levers, context, cfg.lever)
+    kl, ensemble, branched, refresh = (runs[LEVERS[name].method] for name in cfg.levers)
+    assert kl.env == context.world_model and kl.settings == {"kl_coef": 0.3} and kl.runner is ppo
+    assert ensemble.env.ensemble == ["member_1", "member_2"] and ensemble.env.disagreement_penalty == 2.0
+    assert (branched.env.episode_length, branched.env.branches_per_episode) == (12, 4)
+    assert context.world_model.episode_length == 30  # the plain run's env is left as it was
+    assert isinstance(refresh.runner, partial) and refresh.runner.func is ppo_with_done_refresh
+    assert (
+        refresh.runner.keywords["refresh"].rounds == 4 and refresh.runner.keywords["refresh"].sim is context.simulator
+    )
+    described = lever_descriptions(runs, cfg.lever)
+    assert described[LEVERS["kl"].method] == "KL to the SFT policy x 0.3"
+    assert described[LEVERS["refresh"].method].startswith("the done head refitted 3 times on 16 simulator episodes")
+
+
+def test_the_levers_settings_are_checked_where_they_are_given():
+    with pytest.raises(ParsingError) as parsing:  # the command line's one-line error gives the cause
+        parse_config(ExperimentConfig, ["--lever.refresh.rounds=0"], "pipeline.")
+    assert str(parsing.value.__cause__) == "--lever.refresh.rounds must be >= 1, got 0"
+    with pytest.raises(InvalidInputError, match="--lever.ensemble.steps_share must be in \\(0, 1\\], got 1.5"):
+        EnsembleSettings(steps_share=1.5)
+    with pytest.raises(InvalidInputError, match="--levers=\\['refresh'\\] cannot run with --world_model_runs"):
+        ExperimentConfig(levers=["kl", "refresh"], world_model_runs="elsewhere")
+    assert ExperimentConfig(lever=LeverSettings()).lever.kl.coef == 0.1
