@@ -1,0 +1,35 @@
+"""The committed results re-render byte for byte from their JSON: each stored Table 1, and the paper protocol's
+claim report with its targets and differences (the command it gives, parsed back, is its config). A change to the
+results' types or to the report's code that changes a stored report shows here."""
+
+import json
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from lerobot_roboscape.evaluation.tables import format_table
+from lerobot_roboscape.pipeline.config import parse_config
+from lerobot_roboscape.pipeline.experiment import ExperimentConfig
+from lerobot_roboscape.pipeline.experiment_report import differences, markdown
+from lerobot_roboscape.pipeline.targets import claim_targets
+
+RESULTS = Path(__file__).parents[2] / "docs" / "results"
+
+
+@pytest.mark.parametrize("name", ["bench", "claim", "claim_paper"])
+def test_each_stored_table_1_renders_again_from_its_json(name):
+    summary = json.loads((RESULTS / name / "results.json").read_text())
+    table = format_table(summary["table"], summary["families"], f"{summary['scale']} scale")
+    assert table == (RESULTS / name / "tables.md").read_text()
+
+
+def test_the_claim_report_renders_again_from_its_json():
+    folder = RESULTS / "claim_paper"
+    text, summary = (folder / "report.md").read_text(), json.loads((folder / "results.json").read_text())
+    command = re.search(r"`(roboscape-experiment [^`]*)`", text).group(1)
+    cfg = parse_config(ExperimentConfig, shlex.split(command)[1:], "pipeline.")
+    assert claim_targets(summary["table"], summary["families"], summary["curve"]) == summary["targets"]
+    assert differences(summary["table"], summary["families"]) == summary["differences"]
+    assert markdown(cfg, summary) == text
