@@ -27,7 +27,8 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_frames, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play, summarise
+from lerobot_roboscape.evaluation.results import Cell
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import (
@@ -179,8 +180,8 @@ def agreement_summary(episodes: list[dict]) -> dict:
     wm = np.array([e["wm_success"] for e in episodes], bool)
     return {
         "episodes": len(episodes),
-        "simulator": summarise(sim.tolist()),
-        "world_model": summarise(wm.tolist()),
+        "simulator": Cell.of(sim.tolist()).to_json(),
+        "world_model": Cell.of(wm.tolist()).to_json(),
         "confusion": {
             "sim_success_wm_success": int((sim & wm).sum()),
             "sim_success_wm_failure": int((sim & ~wm).sum()),

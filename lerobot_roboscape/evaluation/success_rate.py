@@ -12,6 +12,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
+from lerobot_roboscape.evaluation.results import ALL, Cell
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import PolicyIO, check_policy_fits_env, load_policy
@@ -23,9 +24,10 @@ from roboscape_core.errors import InvalidInputError, OutputExistsError
 EVAL_JSON = "eval.json"
 
 
-def read_cells(folder: Path, split: str) -> dict[str, dict]:
+def read_cells(folder: Path, split: str) -> dict[str, Cell]:
     """{family (and "all"): cell} of `split` in the evaluation `evaluate_success` wrote into `folder`."""
-    return json.loads((Path(folder) / EVAL_JSON).read_text())["splits"][split]
+    cells = json.loads((Path(folder) / EVAL_JSON).read_text())["splits"][split]
+    return {family: Cell.from_json(cell) for family, cell in cells.items()}
 
 
 logger = logging.getLogger(__name__)
@@ -86,50 +88,6 @@ class EvalConfig:
         ):
             raise InvalidInputError(f"scenes {sorted(unknown)} are not scenes of the splits {self.splits}")
         self.output_dir = Path(self.output_dir)
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95% Wilson score interval of a success rate (sensible at 0 and n successes, unlike the normal one)."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def difference_interval(a: dict, b: dict) -> tuple[float, float, float]:
-    """Success rate of cell `a` minus that of cell `b` (independent episodes), with its 95% interval by Newcombe's
-    hybrid score method (from the two Wilson intervals): (difference, low, high)."""
-    pa, pb = a["successes"] / a["episodes"], b["successes"] / b["episodes"]
-    (la, ua), (lb, ub) = wilson_interval(a["successes"], a["episodes"]), wilson_interval(b["successes"], b["episodes"])
-    d = pa - pb
-    return d, d - math.sqrt((pa - la) ** 2 + (ub - pb) ** 2), d + math.sqrt((ua - pa) ** 2 + (pb - lb) ** 2)
-
-
-def paired_difference_interval(a: list[bool], b: list[bool]) -> tuple[float, float, float]:
-    """Success rate of `a` minus that of `b` where episode i of each ran from the same initial state, with its 95%
-    interval by Newcombe's square-and-add method for paired proportions (his method 10, 1998: the two Wilson
-    intervals joined through the correlation of the pairs, which is what makes it narrower than the unpaired one
-    when both methods succeed and fail on the same starts): (difference, low, high)."""
-    if len(a) != len(b) or not a:
-        raise InvalidInputError(f"paired outcomes need the same episodes on both sides, got {len(a)} and {len(b)}")
-    n = len(a)
-    both = sum(x and y for x, y in zip(a, b, strict=True))
-    only_a = sum(x and not y for x, y in zip(a, b, strict=True))
-    only_b = sum(y and not x for x, y in zip(a, b, strict=True))
-    neither = n - both - only_a - only_b
-    pa, pb = (both + only_a) / n, (both + only_b) / n
-    (la, ua), (lb, ub) = wilson_interval(both + only_a, n), wilson_interval(both + only_b, n)
-    margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
-    cross = both * neither - only_a * only_b
-    # The correlation of the pairs with Newcombe's continuity correction (0 when a margin is empty).
-    corrected = cross - n / 2 if cross > n / 2 else min(cross, 0)
-    phi = corrected / math.sqrt(margins) if margins else 0.0
-    d = pa - pb
-    low = d - math.sqrt(max(0.0, (pa - la) ** 2 - 2 * phi * (pa - la) * (ub - pb) + (ub - pb) ** 2))
-    high = d + math.sqrt(max(0.0, (ua - pa) ** 2 - 2 * phi * (ua - pa) * (pb - lb) + (pb - lb) ** 2))
-    return d, low, high
 
 
 @torch.no_grad()
@@ -290,8 +248,8 @@ def evaluate_split(cfg: EvalConfig, env_cfg: RoboscapeManiSkillEnvConfig, slots,
                 ]
                 write_video(cfg.output_dir / "videos" / env_cfg.split / name, clip, env.metadata["render_fps"])
     env.close()
-    cells = {family: summarise(o) for family, o in outcomes.items()}
-    cells["all"] = summarise([x for o in outcomes.values() for x in o])
+    cells = {family: Cell.of(o).to_json() for family, o in outcomes.items()}
+    cells[ALL] = Cell.of([x for o in outcomes.values() for x in o]).to_json()
     return cells
 
 
@@ -317,20 +275,6 @@ def completed_splits(cfg: EvalConfig) -> dict[str, dict]:
         split: json.loads((cfg.output_dir / SPLITS / f"{split}.json").read_text())
         for split in cfg.splits
         if (cfg.output_dir / SPLITS / f"{split}.json").exists()
-    }
-
-
-def summarise(outcomes: list[bool]) -> dict:
-    n, successes = len(outcomes), int(sum(outcomes))
-    low, high = wilson_interval(successes, n)
-    return {
-        "success_rate": successes / n if n else 0.0,
-        "successes": successes,
-        "episodes": n,
-        "ci95": [round(low, 4), round(high, 4)],
-        # episode by episode, in the order of their initial states, so that two methods run on the same
-        # states can be compared pair by pair (paired_difference_interval)
-        "outcomes": [int(x) for x in outcomes],
     }
 
 

@@ -8,24 +8,14 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from lerobot_roboscape.evaluation.results import SCENE, Results
 from lerobot_roboscape.io.templates import render_report
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 TABLES_JSON = "tables.json"
-# A table's splits, in the order of its columns. "scene": the one scene the policy learned, with new initial states
-# (the paper's IND under its protocol, section 8.1); "ind": the training scenes with new initial states; "ood": the
-# held-out scenes.
-SCENE = "scene"
-SPLITS = (SCENE, "ind", "ood")
 SPLIT_NAMES = {SCENE: "Scene", "ind": "IND", "ood": "OOD"}
-
-
-def table_splits(results: dict) -> list[str]:
-    """The splits every method of `results` ({policy: {method: {split: cells}}}) was evaluated in, in column order."""
-    held = [set(splits) for methods in results.values() for splits in methods.values()]
-    return [split for split in SPLITS if all(split in h for h in held)]
 
 
 def paper_split(split: str, splits: list[str]) -> str | None:
@@ -36,9 +26,9 @@ def paper_split(split: str, splits: list[str]) -> str | None:
     return "ind" if split == SCENE else split
 
 
-def read_table(folder: Path) -> dict:
-    """The results `write_table` wrote into `folder`: {policy: {method: {split: {family: cell}}}}."""
-    return json.loads((Path(folder) / TABLES_JSON).read_text())
+def read_table(folder: Path) -> Results:
+    """The results `write_table` wrote into `folder`."""
+    return Results.of(json.loads((Path(folder) / TABLES_JSON).read_text()))
 
 
 SHORT = {"pick_place": "P.&P.", "push": "Push", "pull": "Pull", "move_to_aim": "M.A."}
@@ -76,34 +66,38 @@ PAPER_TABLE_1 = {
 PAPER_POLICY = {"roboscape_mlp": "MLP", "openvla": "OpenVLA"}
 
 
-def write_table(results: dict, families: list[str], output_dir: Path, title: str = "Table 1") -> None:
-    """results: {policy: {method: {split: {family: cell}}}}, cells as `success_rate.summarise` makes them.
-    Writes tables.md, tables.json and tables.png into output_dir."""
-    output_dir = Path(output_dir)
+def write_table(results: Results | dict, families: list[str], output_dir: Path, title: str = "Table 1") -> None:
+    """Writes tables.md, tables.json and tables.png of `results` into output_dir."""
+    results, output_dir = Results.of(results), Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / TABLES_JSON).write_text(json.dumps(results, indent=2))
+    (output_dir / TABLES_JSON).write_text(json.dumps(results.to_json(), indent=2))
     (output_dir / "tables.md").write_text(format_table(results, families, title))
     bar_chart(results, families, output_dir / "tables.png", title)
 
 
 def format_table(
-    results: dict, families: list[str], title: str, with_paper: bool = False, paper_methods: dict | None = None
+    results: Results | dict,
+    families: list[str],
+    title: str,
+    with_paper: bool = False,
+    paper_methods: dict | None = None,
 ) -> str:
     """The paper's layout: rows policy x method, columns each split's families (scene, IND, OOD, those evaluated):
     success % [95% CI]; `with_paper`: under each of our rows, the paper's number for the same policy kind and
     method (Table 1), "-" under a split the paper has none of. `paper_methods`: {our method: the paper's row
     beside it, or None for none}, where the two name them differently."""
-    splits = table_splits(results)
+    results = Results.of(results)
+    splits = results.splits()
     return render_report(
         "table1.md",
-        results=results,
+        results=results.cells,
         families=families,
         names=[SHORT.get(f, f) for f in families],
         splits=splits,
         split_names=SPLIT_NAMES,
         paper_splits={split: paper_split(split, splits) for split in splits},
         title=title,
-        episodes=_episodes(results),
+        episodes=", ".join(map(str, sorted({cell.episodes for cell in results.family_cells()}))),
         with_paper=with_paper,
         paper_table=PAPER_TABLE_1,
         paper_policy=PAPER_POLICY,
@@ -111,29 +105,17 @@ def format_table(
     )
 
 
-def _episodes(results: dict) -> str:
-    counts = {
-        cell["episodes"]
-        for methods in results.values()
-        for splits in methods.values()
-        for cells in splits.values()
-        for family, cell in cells.items()
-        if family != "all"
-    }
-    return ", ".join(map(str, sorted(counts)))
-
-
-def bar_chart(results: dict, families: list[str], path: Path, title: str) -> None:
+def bar_chart(results: Results, families: list[str], path: Path, title: str) -> None:
     """Success over all the families' episodes (each split's "all" cell), one bar per split and (policy, method),
     with the 95% Wilson intervals as error bars."""
-    splits = table_splits(results)
+    splits = results.splits()
     labels, bars = [], {split: [] for split in splits}
-    for policy, methods in results.items():
-        for method, cells in methods.items():
+    for policy in results.policies:
+        for method in results.methods(policy):
             labels.append(f"{policy}\n{method}")
             for split in bars:
-                cell = cells[split]["all"]
-                bars[split].append((100 * cell["success_rate"], 100 * np.array(cell["ci95"])))
+                cell = results.cell(policy, method, split)
+                bars[split].append((100 * cell.success_rate, 100 * np.array(cell.ci95)))
     x = np.arange(len(labels))
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(labels)), 3.5))
     width = 0.8 / len(splits)

@@ -13,13 +13,12 @@ import matplotlib
 import numpy as np
 
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
-from lerobot_roboscape.evaluation.success_rate import difference_interval
+from lerobot_roboscape.evaluation.results import ALL, Cell, Results, difference_interval
 from lerobot_roboscape.evaluation.tables import (
     SHORT,
     SPLIT_NAMES,
     TABLES_JSON,
     format_table,
-    table_splits,
     write_table,
 )
 from lerobot_roboscape.pipeline.config import changed_flags, settings_flags
@@ -56,17 +55,16 @@ UPSTREAM_REPORTS = {
 }
 
 
-def differences(table: dict, families: list[str]) -> list[dict]:
+def differences(table: Results | dict, families: list[str]) -> list[dict]:
     """PPO in the world model minus every other method, per policy, split and family, with 95% intervals."""
-    rows = []
-    for policy, methods in table.items():
-        wm = methods[RL_WORLD_MODEL]
+    rows, table = [], Results.of(table)
+    for policy in table.policies:
         for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
-            if other not in methods:
+            if not table.has(policy, other):
                 continue
-            for split in table_splits(table):
-                for family in [*families, "all"]:
-                    ours, theirs = wm[split][family], methods[other][split][family]
+            for split in table.splits():
+                for family in [*families, ALL]:
+                    ours, theirs = (table.cell(policy, m, split, family) for m in (RL_WORLD_MODEL, other))
                     d, low, high = difference_interval(ours, theirs)
                     paired = paired_interval(ours, theirs)
                     rows.append(
@@ -77,11 +75,12 @@ def differences(table: dict, families: list[str]) -> list[dict]:
     return rows
 
 
-def paper_methods(table: dict) -> dict:
+def paper_methods(table: Results | dict) -> dict:
     """{our method: the paper's row beside it}: the paper's RL w. ManiSkill "only initializes a single type of
     environment", so it sits beside our run in one scene when there is one; our run over every training scene is
     the baseline the paper lacks."""
-    if any(RL_MANISKILL_ONE_SCENE in methods for methods in table.values()):
+    table = Results.of(table)
+    if any(table.has(policy, RL_MANISKILL_ONE_SCENE) for policy in table.policies):
         return {RL_MANISKILL_ONE_SCENE: RL_MANISKILL, RL_MANISKILL: None}
     return {}
 
@@ -123,21 +122,18 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
 
 
 def write_experiment_report(
-    cfg, out: Path, results: dict, curve: list[dict], replays: list[dict], lever_curves: dict | None = None
+    cfg, out: Path, results: Results, curve: list[dict], replays: list[dict], lever_curves: dict | None = None
 ) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
     results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}."""
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
     lever_curves = lever_curves or {}
-    ood_only = {m for methods in results.values() for m in methods if Method.named(m).ood_only}
-    table = {policy: {m: s for m, s in methods.items() if m not in ood_only} for policy, methods in results.items()}
-    ablation = {
-        policy: {m: s for m, s in methods.items() if m in REWARD_ABLATION} for policy, methods in results.items()
-    }
-    levers = {policy: {m: s for m, s in methods.items() if m in lever_curves} for policy, methods in results.items()}
+    table = results.where(lambda m: not Method.named(m).ood_only)
+    ablation = results.where(lambda m: m in REWARD_ABLATION)
+    levers = results.where(lambda m: m in lever_curves)
     targets = claim_targets(table, p.data.families, curve)
-    policies = list(table)
+    policies = table.policies
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
     elsewhere = world_model_runs_record(cfg)
@@ -150,10 +146,10 @@ def write_experiment_report(
         "machine": machine(),
         "sft_checkpoint": cfg.sft_checkpoint,
         "targets": targets,
-        "table": table,
+        "table": table.to_json(),
         "differences": differences(table, p.data.families),
-        "reward_ablation": ablation,
-        "levers": levers,
+        "reward_ablation": ablation.to_json(),
+        "levers": levers.to_json(),
         "ppo_runs": runs,
         "curve": curve,
         "lever_curves": lever_curves,
@@ -168,7 +164,7 @@ def write_experiment_report(
         summary["other_protocol"] = other
     (folder / "results.json").write_text(json.dumps(summary, indent=2))
     # Table 1 beside this protocol's runs, where the other protocol's report finds it.
-    (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table}, indent=2))
+    (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table.to_json()}, indent=2))
     write_table(table, p.data.families, folder, f"{p.scale} scale")
     (folder / TABLES_JSON).unlink()  # results.json holds it
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
@@ -232,9 +228,11 @@ def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]
     return {k: round(v, 1) for k, v in times.items()}
 
 
-def cell(cell: dict) -> str:
-    low, high = (100 * v for v in cell["ci95"])
-    return f"{cell['successes']}/{cell['episodes']} ({100 * cell['success_rate']:.0f}% [{low:.0f}, {high:.0f}])"
+def cell(cell: Cell | dict) -> str:
+    """A cell (or a checkpoint curve's point, which holds one) as the report's tables show it."""
+    c = Cell.from_json(cell)
+    low, high = (100 * v for v in c.ci95)
+    return f"{c.successes}/{c.episodes} ({100 * c.success_rate:.0f}% [{low:.0f}, {high:.0f}])"
 
 
 def difference(d: dict) -> str:
@@ -326,20 +324,21 @@ def answer(summary: dict) -> list[str]:
     with the simulator on that policy's replayed rollouts."""
     lines = []
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
-    for policy, methods in summary["table"].items():
-        sft, wm = methods[SFT]["ood"]["all"], methods[RL_WORLD_MODEL]["ood"]["all"]
-        row = by[policy, SFT, "ood", "all"]
+    table = Results.of(summary["table"])
+    for policy in table.policies:
+        sft, wm = (table.cell(policy, m, "ood") for m in (SFT, RL_WORLD_MODEL))
+        row = by[policy, SFT, "ood", ALL]
         low, high = row["paired_ci95"] or row["ci95"]
         verdict = "**Yes**" if low > 0 else "**No, it made it worse**" if high < 0 else "**Not shown**"
         lines.append(
-            f"{verdict} ({policy}): PPO in the world model took the SFT policy from {sft['success_rate']:.0%} to "
-            f"{wm['success_rate']:.0%} success out of domain ({wm['episodes']} episodes, the same starts for each): "
+            f"{verdict} ({policy}): PPO in the world model took the SFT policy from {sft.success_rate:.0%} to "
+            f"{wm.success_rate:.0%} success out of domain ({wm.episodes} episodes, the same starts for each): "
             + _points(row)
         )
         for other in (RL_MANISKILL_ONE_SCENE, RL_MANISKILL):
-            if (policy, other, "ood", "all") in by:
-                rate = methods[other]["ood"]["all"]["success_rate"]
-                lines.append(f"Against {other} ({rate:.0%} OOD): " + _points(by[policy, other, "ood", "all"]))
+            if (policy, other, "ood", ALL) in by:
+                rate = table.cell(policy, other, "ood").success_rate
+                lines.append(f"Against {other} ({rate:.0%} OOD): " + _points(by[policy, other, "ood", ALL]))
     replays = summary["replays"]
     agree = sum(r["world_model_success"] == r["simulator_success"] for r in replays)
     lines.append(
@@ -357,33 +356,38 @@ def _points(row: dict) -> str:
 
 
 def markdown(cfg, summary: dict) -> str:
-    p, table = cfg.pipeline, summary["table"]
+    p, table = cfg.pipeline, Results.of(summary["table"])
+    families = [*p.data.families, ALL]
     by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
     difference_rows = [
-        (other, SPLIT_NAMES[split], [by[policy, other, split, f] for f in [*p.data.families, "all"]])
-        for policy in table
+        (other, SPLIT_NAMES[split], [by[policy, other, split, f] for f in families])
+        for policy in table.policies
         for other in (SFT, RL_MANISKILL_ONE_SCENE, RL_MANISKILL)
-        for split in table_splits(table)
-        if (policy, other, split, "all") in by
+        for split in table.splits()
+        if (policy, other, split, ALL) in by
     ]
-    ablation_rows = []
-    for policy, methods in summary["reward_ablation"].items():
-        if methods:
-            rows = {"both (alpha x sparse + beta x dense)": table[policy][RL_WORLD_MODEL]["ood"]} | {
-                Method.named(m).variant: s["ood"] for m, s in methods.items()
+    ablation, ablation_rows = Results.of(summary["reward_ablation"]), []
+    for policy in ablation.policies:
+        if methods := ablation.methods(policy):
+            rows = {"both (alpha x sparse + beta x dense)": RL_WORLD_MODEL} | {
+                Method.named(m).variant: m for m in methods
             }
-            ablation_rows += [(name, [cells[f] for f in [*p.data.families, "all"]]) for name, cells in rows.items()]
+            source = {RL_WORLD_MODEL: table} | dict.fromkeys(methods, ablation)
+            ablation_rows += [
+                (name, [source[m].cell(policy, m, "ood", f) for f in families]) for name, m in rows.items()
+            ]
     beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary["ppo_runs"]}
+    levers = Results.of(summary["levers"])
     lever_rows = [
         (
             method,
             summary.get("lever_settings", {}).get(method, ""),
-            [cells["ood"][f] for f in [*p.data.families, "all"]],
+            [levers.cell(policy, method, "ood", f) for f in families],
             summary["lever_curves"][method],
             beside.get((policy, method), 0),
         )
-        for policy, methods in summary["levers"].items()
-        for method, cells in methods.items()
+        for policy in levers.policies
+        for method in levers.methods(policy)
     ]
     replays = summary["replays"]
     return render_pipeline_report(

@@ -11,6 +11,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.maniskill_env import build_slots
+from lerobot_roboscape.evaluation.results import SCENE, SPLITS, Results
 from lerobot_roboscape.evaluation.success_rate import (
     EVAL_JSON,
     EvalConfig,
@@ -20,7 +21,6 @@ from lerobot_roboscape.evaluation.success_rate import (
     markdown,
     read_cells,
 )
-from lerobot_roboscape.evaluation.tables import SCENE, SPLITS
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.layout import (
@@ -254,10 +254,10 @@ def simulator_eval(
     demonstrations: DatasetConfig,
     checkpoints: dict[str, dict[str, Path]],
     scene: str | None = None,
-) -> dict:
+) -> Results:
     """Success of every checkpoint in the simulator, IND and OOD, and in `scene` (a training scene, new initial
     states: split "scene") when given (the reward ablation's and the levers' OOD only; 95% Wilson intervals), one
-    evaluation per (checkpoint, split). Returns {policy: {method: {split: {family: cell}}}}."""
+    evaluation per (checkpoint, split)."""
     jobs, splits = {}, [split for split in SPLITS if scene or split != SCENE]
     for name, methods in checkpoints.items():
         for method, checkpoint in methods.items():
@@ -271,12 +271,12 @@ def simulator_eval(
                     scenes=[scene] if split == SCENE else None,
                 )
     run_evaluations(cfg, list(jobs.values()))
-    results = {}
+    cells = {}
     for (name, method, split), job in jobs.items():
-        cells = read_cells(job.output_dir, job.splits[0])
-        results.setdefault(name, {}).setdefault(method, {})[split] = cells
-    for name, methods in results.items():  # both splits in one eval.json per checkpoint (its policy card's table)
-        for method, splits in methods.items():
+        cells.setdefault(name, {}).setdefault(method, {})[split] = read_cells(job.output_dir, job.splits[0])
+    results = Results(cells)
+    for name in results.policies:  # both splits in one eval.json per checkpoint (its policy card's table)
+        for method, splits in results.to_json()[name].items():
             length = jobs[name, method, next(iter(splits))].episode_length or "per family"
             merged = {"policy": str(checkpoints[name][method]), "episode_length": length, "splits": splits}
             folder = out / eval_dir(name, method)

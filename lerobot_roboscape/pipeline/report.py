@@ -12,6 +12,7 @@ import matplotlib
 import torch
 
 from lerobot_roboscape.envs.reward_report import read_reward_report
+from lerobot_roboscape.evaluation.results import Results
 from lerobot_roboscape.evaluation.tables import format_table, read_table
 from lerobot_roboscape.io.templates import number, render_report
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
@@ -98,7 +99,7 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "date": date.today().isoformat(),
         "machine": machine(),
         "targets": targets,
-        "table": table,
+        "table": table.to_json(),
         "stage_seconds": times,
         "tokenizer": tokenizer["views"],
         **world_model_results(fidelity, done, rewards),
@@ -113,7 +114,7 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     world_model_figure(
         out / FIDELITY_DIR / "side_by_side.mp4", fidelity["prompt_frames"], folder / "world_model_open_loop.png"
     )
-    ppo_curves(out, table, folder / "ppo_curves.png")
+    ppo_curves(out, table.policies, folder / "ppo_curves.png")
     for source, name in (
         (out / FIDELITY_DIR / "fidelity.png", "fidelity.png"),
         (out / REWARD_REPORT_DIR / "reward_curves.png", "reward_curves.png"),
@@ -176,16 +177,9 @@ def protocol(cfg: PipelineConfig) -> str:
     )
 
 
-def evaluation_summary(cfg: PipelineConfig, table: dict, seconds: dict) -> str:
+def evaluation_summary(cfg: PipelineConfig, table: Results | dict, seconds: dict) -> str:
     """Episodes per cell, each cell's 95% interval width, and the evaluation's time."""
-    widths = [
-        100 * (cell["ci95"][1] - cell["ci95"][0])
-        for methods in table.values()
-        for splits in methods.values()
-        for cells in splits.values()
-        for family, cell in cells.items()
-        if family != "all"
-    ]
+    widths = [100 * (cell.ci95[1] - cell.ci95[0]) for cell in Results.of(table).family_cells()]
     minutes = sum(v for k, v in seconds.items() if k.startswith("simulator evaluation")) / 60
     return (
         f"Each cell rests on {_episodes(cfg.eval.episodes)}; its 95% interval is {min(widths):.0f} to "
@@ -244,7 +238,7 @@ def machine() -> str:
     return f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()}), {gpu}"
 
 
-def markdown(cfg: PipelineConfig, results: dict, table: dict) -> str:
+def markdown(cfg: PipelineConfig, results: dict, table: Results | dict) -> str:
     return render_pipeline_report(
         "run_report.md",
         cfg=cfg,

@@ -116,7 +116,7 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     table = policy_stages.simulator_eval(cfg, out, data.train, checkpoints)
     # Table 1's methods; the reward ablation's OOD rows are roboscape-experiment's to report.
-    table = {n: {m: s for m, s in runs.items() if m not in methods.REWARD_ABLATION} for n, runs in table.items()}
+    table = table.where(lambda method: method not in methods.REWARD_ABLATION)
     tables = out / layout.TABLES_DIR
     write_table(table, cfg.data.families, tables)
     print((tables / "tables.md").read_text())

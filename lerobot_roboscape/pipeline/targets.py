@@ -4,8 +4,8 @@ simulator's, and the claim's Table 1). A target row is {"value", "goal", "met"} 
 
 import numpy as np
 
-from lerobot_roboscape.evaluation.success_rate import difference_interval, paired_difference_interval
-from lerobot_roboscape.evaluation.tables import SHORT, SPLIT_NAMES, table_splits
+from lerobot_roboscape.evaluation.results import ALL, Cell, Results, difference_interval, paired_difference_interval
+from lerobot_roboscape.evaluation.tables import SHORT, SPLIT_NAMES
 from lerobot_roboscape.io.templates import number
 from lerobot_roboscape.pipeline.methods import (
     REWARD_BASELINES,
@@ -268,7 +268,7 @@ def measure_targets(
     fidelity: dict,
     done: dict,
     rewards: dict,
-    table: dict,
+    table: Results | dict,
     families: list[str],
     action_curve: list[dict] | None = None,
     fidelity_ind: dict | None = None,
@@ -276,16 +276,16 @@ def measure_targets(
     """{target: {"value", "goal", "met"}} for each target of the bench experiment."""
     targets = world_model_targets(fidelity, done, rewards, action_curve, fidelity_ind)
     targets |= sft_targets(table, families)
-    for policy, methods in table.items():
-        wm = methods.get(RL_WORLD_MODEL)
-        if wm is None:
+    table = Results.of(table)
+    for policy in table.policies:
+        if not table.has(policy, RL_WORLD_MODEL):
             continue
         for split in ("ind", "ood"):
-            rate = wm[split]["all"]["success_rate"]
+            rate = table.cell(policy, RL_WORLD_MODEL, split).success_rate
             for other in (SFT, RL_MANISKILL, RL_MANISKILL_ONE_SCENE):
-                if other not in methods:
+                if not table.has(policy, other):
                     continue
-                theirs = methods[other][split]["all"]["success_rate"]
+                theirs = table.cell(policy, other, split).success_rate
                 better = rate > theirs if other == SFT else rate >= theirs
                 relation = ">" if other == SFT else ">="
                 targets[f"{policy} PPO in WM vs {other}, {split.upper()} (all families)"] = target_row(
@@ -294,26 +294,23 @@ def measure_targets(
     return targets
 
 
-def sft_targets(table: dict, families: list[str]) -> dict:
+def sft_targets(table: Results | dict, families: list[str]) -> dict:
     """The SFT targets, one row per policy and family: in-domain success, its episodes and interval, and the OOD
-    success beside it. table: {policy: {method: {split: {family: cell}}}}, as Table 1's."""
-    targets = {}
-    for policy, methods in table.items():
+    success beside it."""
+    targets, table = {}, Results.of(table)
+    for policy in table.policies:
         for family in families:
             if family not in SFT_IND_SUCCESS:
                 continue
-            cells, goal = methods[SFT], SFT_IND_SUCCESS[family]
-            detail = f"IND {_cell(cells['ind'][family])}"
-            if "ood" in cells:
-                detail += f"; OOD {cells['ood'][family]['success_rate']:.3f}, {_cell(cells['ood'][family])}"
-            rate = cells["ind"][family]["success_rate"]
-            targets[f"{policy} SFT IND success, {family}"] = target_row(rate, f">= {goal}", rate >= goal, detail)
+            ind, goal = table.cell(policy, SFT, "ind", family), SFT_IND_SUCCESS[family]
+            detail = f"IND {ind}"
+            if "ood" in table.cells[policy][SFT]:
+                ood = table.cell(policy, SFT, "ood", family)
+                detail += f"; OOD {ood.success_rate:.3f}, {ood}"
+            targets[f"{policy} SFT IND success, {family}"] = target_row(
+                ind.success_rate, f">= {goal}", ind.success_rate >= goal, detail
+            )
     return targets
-
-
-def _cell(cell: dict) -> str:
-    low, high = cell["ci95"]
-    return f"{cell['successes']}/{cell['episodes']}, 95% CI {low:.2f}-{high:.2f}"
 
 
 def target_row(value, goal: str, met: bool, detail: str | None = None) -> dict:
@@ -322,29 +319,32 @@ def target_row(value, goal: str, met: bool, detail: str | None = None) -> dict:
     return row | ({"detail": detail} if detail else {})
 
 
-def claim_targets(table: dict, families: list[str], curve: list[dict] | None = None) -> dict:
+def claim_targets(table: Results | dict, families: list[str], curve: list[dict] | None = None) -> dict:
     """The claim's targets, per policy and family: PPO in the world model against SFT out of domain (the 95%
     interval of the difference above 0), against PPO in ManiSkill in one scene out of domain (at least as well),
     and in domain within SFT's interval or above; with the checkpoint `curve` of the world-model run (OOD, from
     SFT at iteration 0), its last checkpoint within the first's interval or above. The paired interval decides
     where both cells hold their episodes (the same initial states for every method), the unpaired one where not."""
-    targets = {}
-    for policy, methods in table.items():
-        wm, sft, one_scene = methods[RL_WORLD_MODEL], methods[SFT], methods.get(RL_MANISKILL_ONE_SCENE)
-        trained_in = [split for split in table_splits(table) if split != "ood"]  # the scenes PPO in the WM met
-        for family in [*families, "all"]:
+    targets, table = {}, Results.of(table)
+    trained_in = [split for split in table.splits() if split != "ood"]  # the scenes PPO in the WM met
+    for policy in table.policies:
+        one_scene = table.has(policy, RL_MANISKILL_ONE_SCENE)
+        for family in [*families, ALL]:
             name = SHORT.get(family, family)
-            d, low, high = _deciding_interval(wm["ood"][family], sft["ood"][family])
+            wm, sft = (table.cell(policy, m, "ood", family) for m in (RL_WORLD_MODEL, SFT))
+            d, low, high = _deciding_interval(wm, sft)
             targets[f"{policy}, OOD {name}: PPO in WM minus SFT"] = target_row(
-                d, "95% interval above 0", low > 0, _intervals(wm["ood"][family], sft["ood"][family])
+                d, "95% interval above 0", low > 0, _intervals(wm, sft)
             )
-            if one_scene is not None:
-                d, low, high = _deciding_interval(wm["ood"][family], one_scene["ood"][family])
+            if one_scene:
+                theirs = table.cell(policy, RL_MANISKILL_ONE_SCENE, "ood", family)
+                d, low, high = _deciding_interval(wm, theirs)
                 targets[f"{policy}, OOD {name}: PPO in WM minus PPO in ManiSkill (one scene)"] = target_row(
-                    d, ">= 0", d >= 0, _intervals(wm["ood"][family], one_scene["ood"][family])
+                    d, ">= 0", d >= 0, _intervals(wm, theirs)
                 )
             for split in trained_in:
-                rate, floor = wm[split][family]["success_rate"], sft[split][family]["ci95"][0]
+                rate = table.cell(policy, RL_WORLD_MODEL, split, family).success_rate
+                floor = table.cell(policy, SFT, split, family).ci95[0]
                 targets[f"{policy}, {SPLIT_NAMES[split]} {name}: PPO in WM, within SFT's interval or above"] = (
                     target_row(rate, f">= {floor:.2f} (SFT's 95% lower bound)", rate >= floor)
                 )
@@ -361,20 +361,21 @@ def claim_targets(table: dict, families: list[str], curve: list[dict] | None = N
     return targets
 
 
-def _deciding_interval(ours: dict, theirs: dict) -> tuple[float, float, float]:
+def _deciding_interval(ours: Cell, theirs: Cell) -> tuple[float, float, float]:
     """The difference and the 95% interval that decides a target: paired where both cells kept their episodes."""
     return paired_interval(ours, theirs) or difference_interval(ours, theirs)
 
 
-def paired_interval(ours: dict, theirs: dict) -> tuple[float, float, float] | None:
+def paired_interval(ours: Cell | dict, theirs: Cell | dict) -> tuple[float, float, float] | None:
     """The paired difference of two cells run on the same initial states, from their episodes' outcomes; None
     for cells written before outcomes were kept."""
-    if "outcomes" not in ours or "outcomes" not in theirs:
+    ours, theirs = Cell.from_json(ours), Cell.from_json(theirs)
+    if ours.outcomes is None or theirs.outcomes is None:
         return None
-    return paired_difference_interval([bool(x) for x in ours["outcomes"]], [bool(x) for x in theirs["outcomes"]])
+    return paired_difference_interval([bool(x) for x in ours.outcomes], [bool(x) for x in theirs.outcomes])
 
 
-def _intervals(ours: dict, theirs: dict) -> str:
+def _intervals(ours: Cell, theirs: Cell) -> str:
     """Both 95% intervals of a difference: the unpaired one (Newcombe's hybrid score) and the paired one (where
     known)."""
     _, low, high = difference_interval(ours, theirs)

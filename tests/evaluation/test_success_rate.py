@@ -5,15 +5,14 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
-from lerobot_roboscape.evaluation.success_rate import (
-    EvalConfig,
+from lerobot_roboscape.evaluation.results import (
+    Cell,
+    Results,
     difference_interval,
-    eval_env_config,
     paired_difference_interval,
-    run_episodes,
-    summarise,
     wilson_interval,
 )
+from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, run_episodes
 from lerobot_roboscape.rl.policy_loading import PolicyIO
 from lerobot_roboscape.tasks import select_scenes
 from roboscape_core.errors import InvalidInputError
@@ -29,7 +28,7 @@ def test_wilson_interval_known_values():
 def test_difference_interval_matches_newcombe():
     # Newcombe (1998), "Interval estimation for the difference between independent proportions", example (a):
     # 56/70 against 48/80, method 10 (hybrid score): 0.0524 to 0.3339.
-    a, b = {"successes": 56, "episodes": 70}, {"successes": 48, "episodes": 80}
+    a, b = Cell.of([True] * 56 + [False] * 14), Cell.of([True] * 48 + [False] * 32)
     assert difference_interval(a, b) == pytest.approx((0.2, 0.0524, 0.3339), abs=1e-4)
     d, low, high = difference_interval(b, a)
     assert (d, low, high) == pytest.approx((-0.2, -0.3339, -0.0524), abs=1e-4)  # swapped sides mirror it
@@ -64,7 +63,7 @@ def test_paired_interval_is_narrower_when_the_methods_fail_on_the_same_starts():
     a = [True] * 35 + [False] * 15
     b = [True] * 30 + [False] * 20
     d, low, high = paired_difference_interval(a, b)
-    _, u_low, u_high = difference_interval(summarise(a), summarise(b))
+    _, u_low, u_high = difference_interval(Cell.of(a), Cell.of(b))
     assert d == pytest.approx(0.1)
     assert low > 0 > u_low  # paired: above 0; unpaired: straddles it
     assert high - low < u_high - u_low
@@ -82,9 +81,23 @@ def test_paired_interval_refuses_unpaired_episodes():
         paired_difference_interval([True] * 50, [True] * 49)
 
 
-def test_summarise_keeps_the_episodes_in_order():
-    cell = summarise([True, False, False, True])
-    assert cell["outcomes"] == [1, 0, 0, 1] and cell["successes"] == 2
+def test_a_cell_keeps_the_episodes_in_order_and_reads_back_as_it_was_written():
+    cell = Cell.of([True, False, False, True])
+    assert cell.outcomes == (1, 0, 0, 1) and cell.successes == 2 and cell.success_rate == 0.5
+    data = cell.to_json()
+    assert list(data) == ["success_rate", "successes", "episodes", "ci95", "outcomes"] and data["outcomes"] == [
+        1,
+        0,
+        0,
+        1,
+    ]
+    assert Cell.from_json(data) == cell and "outcomes" not in Cell.from_json(data | {"outcomes": None}).to_json()
+    table = {"mlp": {"Supervised finetune": {"ood": {"push": data, "all": data}, "ind": {"push": data, "all": data}}}}
+    results = Results.of(table)
+    assert results.to_json() == table and results.splits() == ["ind", "ood"]
+    assert results.cell("mlp", "Supervised finetune", "ood") == cell and len(list(results.family_cells())) == 2
+    with pytest.raises(InvalidInputError, match="no cell for policy 'mlp', method 'RL w. ManiSkill', split 'ood'"):
+        results.cell("mlp", "RL w. ManiSkill", "ood")
 
 
 @pytest.mark.parametrize(("constant_action", "expected"), [(TARGET, True), (-TARGET, False)])

@@ -3,8 +3,8 @@ interval that straddles 0, a method not run); the differences' intervals; the re
 
 import pytest
 
-from lerobot_roboscape.evaluation.success_rate import summarise
-from lerobot_roboscape.evaluation.tables import format_table, table_splits
+from lerobot_roboscape.evaluation.results import Cell, Results
+from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown, paper_methods
@@ -19,7 +19,7 @@ RL_WORLD_MODEL_KL, ENSEMBLE = LEVERS["kl"].method, LEVERS["ensemble"].method
 def cell(successes: int, episodes: int = 50, first: int = 0) -> dict:
     """`successes` of `episodes` on the same initial states, solved from state `first` on (wrapping round)."""
     outcomes = [(i - first) % episodes < successes for i in range(episodes)]
-    return summarise(outcomes)
+    return Cell.of(outcomes).to_json()
 
 
 def table(wm_ood: int, sft_ood: int, wm_ind: int, sft_ind: int, one_scene_ood: int | None) -> dict:
@@ -67,8 +67,8 @@ def test_without_ppo_in_one_scene_its_rows_are_absent_not_missed():
 
 def test_differences_give_the_paired_interval_beside_the_unpaired():
     # PPO in the WM solves the 30 starts SFT solves and 5 more: unpaired the difference straddles 0, paired not.
-    wm = summarise([True] * 35 + [False] * 15)
-    sft = summarise([True] * 30 + [False] * 20)
+    wm = Cell.of([True] * 35 + [False] * 15).to_json()
+    sft = Cell.of([True] * 30 + [False] * 20).to_json()
     cells = {"ood": {"push": wm, "all": wm}, "ind": {"push": wm, "all": wm}}
     theirs = {"ood": {"push": sft, "all": sft}, "ind": {"push": sft, "all": sft}}
     rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])
@@ -192,7 +192,7 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
     for method, first in ((RL_WORLD_MODEL, 0), (SFT, 25), (RL_MANISKILL_ONE_SCENE, 10)):
         scene = cell({RL_WORLD_MODEL: 45, SFT: 30, RL_MANISKILL_ONE_SCENE: 35}[method], first=first)
         results["mlp"][method]["scene"] = {"push": scene, "all": scene}
-    assert table_splits(results) == ["scene", "ind", "ood"]
+    assert Results.of(results).splits() == ["scene", "ind", "ood"]
     text = format_table({"roboscape_mlp": results["mlp"]}, ["push"], "t", with_paper=True)
     header, _, ours, paper = text.splitlines()[2:6]
     assert header == "| Policy | Training method | Scene Push | IND Push | OOD Push |"
@@ -213,5 +213,5 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
     assert row["difference"] == pytest.approx(0.3)
     # A method evaluated without the scene (a table of the all-scene protocol) leaves the column out.
     del results["mlp"][SFT]["scene"]
-    assert table_splits(results) == ["ind", "ood"]
+    assert Results.of(results).splits() == ["ind", "ood"]
     assert "Scene" not in format_table(results, ["push"], "t")

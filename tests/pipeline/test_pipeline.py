@@ -9,9 +9,9 @@ from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tok
 
 
 def cell(rate: float, n: int = 10) -> dict:
-    from lerobot_roboscape.evaluation.success_rate import summarise
+    from lerobot_roboscape.evaluation.results import Cell
 
-    return summarise([True] * round(rate * n) + [False] * (n - round(rate * n)))
+    return Cell.of([True] * round(rate * n) + [False] * (n - round(rate * n))).to_json()
 
 
 def test_targets_compare_the_measured_values_with_the_goals():
