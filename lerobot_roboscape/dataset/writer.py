@@ -31,9 +31,12 @@ VIDEO_FILE_MB = 4
 
 
 def _quiet_encoders() -> None:
-    # One progress bar per stage is ours; hide the per-episode bars of `datasets` and SVT-AV1's warnings.
+    # One progress bar per stage is ours; hide the per-episode bars of `datasets` and SVT-AV1's warnings. LeRobot
+    # hands libav's log back to its own printer (at INFO) after encoding, so its muxer would narrate every video it
+    # joins ("[mp4 @ 0x...] Starting second pass"): warnings and errors only.
     datasets.disable_progress_bars()
     os.environ.setdefault("SVT_LOG", "1")
+    av.logging.set_libav_level(av.logging.WARNING)
 
 
 def dataset_features(

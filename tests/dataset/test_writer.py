@@ -74,3 +74,9 @@ def test_episodes_spread_over_video_files_read_back_at_their_frames(tmp_path):
         first, last = read_frames(dataset, episode, [0, -1])["wrist"]
         assert int(first[..., 0].mean()) <= 6
         assert abs(int(last[..., 0].mean()) - 250) <= 6
+
+
+def test_joining_episodes_videos_leaves_the_console_to_the_progress_bars(tmp_path, capfd):
+    """LeRobot joins each new episode's video onto the camera's file; libav's muxer would say so on stderr."""
+    write_dataset([graded_episode(), graded_episode()], "local/writer", tmp_path / "ds", fps=20, state_names=["a", "b"])
+    assert "[mp4 @" not in capfd.readouterr().err
