@@ -268,11 +268,12 @@ def headline() -> list[str]:
     )
     low, high = (round(100 * x) for x in difference["paired_ci95"])
     points = round(100 * difference["difference"])
+    points = f"{points:+d} point" + ("" if abs(points) == 1 else "s")
     episodes = _measured("claim_paper/results.json", "table", "roboscape_mlp", "RL w. World Model", "ood", "all")
     methods = ("Supervised finetune", "RL w. World Model", "RL w. ManiSkill (one scene)", "RL w. ManiSkill")
     return [
         f"PPO in the world model took the one-scene SFT policy from {rate(methods[0])} to {rate(methods[1])} success "
-        f"out of domain ({points:+d} point{'' if abs(points) == 1 else 's'}, paired 95% interval [{low:+d}, {high:+d}], "
+        f"out of domain ({points}, paired 95% interval [{low:+d}, {high:+d}], "
         f"{episodes['episodes']} episodes each); PPO in the simulator in that scene reached {rate(methods[2])}.",
         "| roboscape_mlp, push and pick&place | " + " | ".join(rate(m) for m in methods) + " |",
     ]
