@@ -13,7 +13,7 @@ A process of `accelerate launch` steps its own share of the envs; Accelerate ave
 import logging
 import math
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
@@ -174,7 +174,6 @@ def update(
     if cfg.norm_adv and len(b_advantages) > 1:
         b_advantages = (b_advantages - b_advantages.mean()) / (b_advantages.std() + 1e-8)
     stats, n_samples, stopped = [], len(t_index), False
-    policy_group, value_group = optimizer.param_groups  # see make_optimizer
     for _ in range(cfg.update_epochs):
         if stopped:
             break
@@ -215,18 +214,7 @@ def update(
                 break
             accelerator.backward(loss / cfg.grad_accum_steps)
             if (k + 1) % cfg.grad_accum_steps == 0 or k + 1 == len(minibatches):
-                if critic_only:  # a shared trunk (OpenVLA's LLM) also got value gradients: drop them
-                    for p in policy_group["params"]:
-                        p.grad = None
-                # Clipped apart: the value head's early, large gradients must not shrink the policy's step.
-                grad_norms = {
-                    name: float(accelerator.clip_grad_norm_(group["params"], cfg.max_grad_norm))
-                    for name, group in (("policy", policy_group), ("value", value_group))
-                    if any(p.grad is not None for p in group["params"])
-                }
-                optimizer.step()
-                optimizer.zero_grad(set_to_none=True)
-                stats.append({f"grad_norm/{name}": norm for name, norm in grad_norms.items()})
+                stats.append(_step(cfg, accelerator, optimizer, critic_only))
     summary = {key: float(np.mean([s[key] for s in stats if key in s])) for key in {k for s in stats for k in s}}
     explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
     return {
@@ -237,6 +225,23 @@ def update(
         "charts/update_stopped_by_kl": float(stopped),
         "charts/return_std": math.sqrt(return_stats.var),
     }
+
+
+def _step(cfg: PPOConfig, accelerator: Accelerator, optimizer, critic_only: bool) -> dict[str, float]:
+    """One optimizer step on the accumulated gradients; returns the gradient norms of the policy and value groups."""
+    policy_group, value_group = optimizer.param_groups  # see make_optimizer
+    if critic_only:  # a shared trunk (OpenVLA's LLM) also got value gradients: drop them
+        for p in policy_group["params"]:
+            p.grad = None
+    # Clipped apart: the value head's early, large gradients must not shrink the policy's step.
+    grad_norms = {
+        name: float(accelerator.clip_grad_norm_(group["params"], cfg.max_grad_norm))
+        for name, group in (("policy", policy_group), ("value", value_group))
+        if any(p.grad is not None for p in group["params"])
+    }
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    return {f"grad_norm/{name}": norm for name, norm in grad_norms.items()}
 
 
 # Training loop with checkpoints (ppo_state.py).
@@ -251,6 +256,70 @@ def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
     )
 
 
+@dataclass
+class _Start:
+    """Where a run starts: the policy (from the SFT checkpoint, or the last checkpoint when resuming), its
+    processors, optimizer and frozen reference (the KL lever's), the iteration, return statistics and clock."""
+
+    policy: torch.nn.Module
+    io: PolicyIO
+    optimizer: torch.optim.Optimizer
+    reference: torch.nn.Module | None
+    path: str
+    iteration: int = 0
+    return_stats: RunningReturnStats = field(default_factory=RunningReturnStats)
+    elapsed: float = 0.0
+
+
+def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:
+    device = str(accelerator.device)
+    iteration, path, return_stats, elapsed = 0, cfg.policy_path, RunningReturnStats(), 0.0
+    checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
+    if checkpoint is not None:
+        iteration, return_stats, elapsed = load_checkpoint(checkpoint)
+        path = str(checkpoint / FINAL)
+    elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
+        raise OutputExistsError(
+            f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
+            f"or choose another --output_dir"
+        )
+    policy, preprocessor, postprocessor = load_policy(path, device)
+    check_actor_critic(policy, path)
+    check_policy_fits_env(policy, cfg.env, path)
+    cfg.with_policy_defaults(policy.name)
+    reference = None
+    if cfg.kl_coef > 0:  # always the starting policy, also when resuming from a later checkpoint
+        reference = load_policy(cfg.policy_path, device)[0].eval().requires_grad_(False)
+    optimizer = make_optimizer(policy, cfg)
+    if checkpoint is not None:
+        load_optimizer_state(optimizer, checkpoint / "training_state")
+        logger.info("resumed from %s (iteration %d)", checkpoint, iteration)
+    io = PolicyIO(preprocessor, postprocessor)
+    return _Start(policy, io, optimizer, reference, path, iteration, return_stats, elapsed)
+
+
+def _rollout_metrics(accelerator: Accelerator, rollout: Rollout, seconds: float, rollout_seconds: float) -> dict:
+    """The iteration's episodes over every process: return, success, length, speed and, where an ensemble guards
+    the run, its disagreement per decision and the share of episodes it halted."""
+    device = accelerator.device
+    episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
+    successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
+    metrics = {
+        "charts/episode_return": float(episodes.mean()),
+        "charts/success": float(successes.mean()),
+        "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
+        "charts/episodes_per_s": len(episodes) / seconds,
+        "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds,
+    }
+    if rollout.disagreement is not None:  # the guard's own reading: does the policy leave the data?
+        disagreement = accelerator.gather(torch.tensor(rollout.disagreement, device=device)).sum()
+        decisions = accelerator.gather(rollout.alive.sum(0).float()).sum().clamp_min(1)
+        halted = accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean()
+        metrics["charts/disagreement"] = float(disagreement / decisions)  # nats per decision
+        metrics["charts/halted"] = float(halted)
+    return metrics
+
+
 def train_ppo(cfg: PPOConfig) -> Path:
     """Run PPO; returns the final checkpoint's pretrained_model directory."""
     accelerator = Accelerator(
@@ -259,42 +328,19 @@ def train_ppo(cfg: PPOConfig) -> Path:
         log_with=["tensorboard"] + (["wandb"] if cfg.wandb else []),
         project_dir=cfg.output_dir,
     )
-    device = str(accelerator.device)
-    start_iteration, start_path, return_stats, elapsed = 0, cfg.policy_path, RunningReturnStats(), 0.0
-    checkpoint = last_checkpoint(cfg.output_dir) if cfg.resume else None
-    if checkpoint is not None:
-        start_iteration, return_stats, elapsed = load_checkpoint(checkpoint)
-        start_path = str(checkpoint / FINAL)
-    elif (cfg.output_dir / CHECKPOINTS).exists() and not cfg.resume:
-        raise OutputExistsError(
-            f"{cfg.output_dir} already holds PPO checkpoints: pass --resume=true to continue "
-            f"or choose another --output_dir"
-        )
-    policy, preprocessor, postprocessor = load_policy(start_path, device)
-    check_actor_critic(policy, start_path)
-    check_policy_fits_env(policy, cfg.env, start_path)
-    cfg.with_policy_defaults(policy.name)
-    io = PolicyIO(preprocessor, postprocessor)
-    reference = None
-    if cfg.kl_coef > 0:  # always the starting policy, also when resuming from a later checkpoint
-        reference = load_policy(cfg.policy_path, device)[0].eval().requires_grad_(False)
-    optimizer = make_optimizer(policy, cfg)
-    if checkpoint is not None:
-        load_optimizer_state(optimizer, checkpoint / "training_state")
-        logger.info("resumed from %s (iteration %d)", checkpoint, start_iteration)
-    scorer, optimizer = accelerator.prepare(ActionScorer(policy), optimizer)
-
+    run = _start(cfg, accelerator)
+    scorer, optimizer = accelerator.prepare(ActionScorer(run.policy), run.optimizer)
     envs_here = math.ceil(cfg.num_envs / accelerator.num_processes)
     torch.manual_seed(cfg.seed)  # whatever an env draws at construction, the same in every run
     env = cfg.env.create_envs(envs_here)[cfg.env.type][0]
-    check_policy_fits_frame_skip(policy, env, start_path)
+    check_policy_fits_frame_skip(run.policy, env, run.path)
     reward = getattr(env, "reward_description", "the env's own")
     logger.info("PPO reward: %s", reward)
     accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})
-    history = History(cfg.output_dir / HISTORY, start_iteration) if accelerator.is_main_process else None
+    history = History(cfg.output_dir / HISTORY, run.iteration) if accelerator.is_main_process else None
     progress = tqdm(
-        range(start_iteration, cfg.iterations),
-        initial=start_iteration,
+        range(run.iteration, cfg.iterations),
+        initial=run.iteration,
         total=cfg.iterations,
         desc="PPO",
         disable=not accelerator.is_main_process,
@@ -306,70 +352,46 @@ def train_ppo(cfg: PPOConfig) -> Path:
         torch.manual_seed(stream)
         record = cfg.video_freq > 0 and iteration % cfg.video_freq == 0 and accelerator.is_main_process
         started = time.perf_counter()
-        policy.eval()
-        rollout = collect_rollout(env, policy, io, seed=stream % 2**31, record=record)
+        run.policy.eval()
+        rollout = collect_rollout(env, run.policy, run.io, seed=stream % 2**31, record=record)
         rollout_seconds = time.perf_counter() - started
-        policy.train()  # dropout is 0 in both policies; train mode keeps OpenVLA's gradient checkpointing on
+        run.policy.train()  # dropout is 0 in both policies; train mode keeps OpenVLA's gradient checkpointing on
+        critic_only = iteration < cfg.critic_warmup_iterations
+        generator = torch.Generator().manual_seed(stream)
         metrics = update(
             cfg,
             accelerator,
             scorer,
             optimizer,
-            io,
+            run.io,
             rollout,
-            torch.Generator().manual_seed(stream),
-            return_stats,
-            critic_only=iteration < cfg.critic_warmup_iterations,
-            reference=reference,
+            generator,
+            run.return_stats,
+            critic_only,
+            run.reference,
         )
-        episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
-        successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
         seconds = time.perf_counter() - started
-        metrics |= {
-            "charts/episode_return": float(episodes.mean()),
-            "charts/success": float(successes.mean()),
-            "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
-            "charts/episodes_per_s": len(episodes) / seconds,
-            "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds,
-        }
-        elapsed += seconds
+        metrics |= _rollout_metrics(accelerator, rollout, seconds, rollout_seconds)
+        run.elapsed += seconds
         accelerator.log(metrics, step=iteration + 1)
-        if rollout.disagreement is not None:  # the guard's own reading: does the policy leave the data?
-            disagreement = accelerator.gather(torch.tensor(rollout.disagreement, device=device)).sum()
-            decisions = accelerator.gather(rollout.alive.sum(0).float()).sum().clamp_min(1)
-            halted = accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean()
-            metrics["charts/disagreement"] = float(disagreement / decisions)  # nats per decision
-            metrics["charts/halted"] = float(halted)
         if history is not None:
-            history.append({"iteration": iteration + 1, "seconds": elapsed} | metrics)
+            history.append({"iteration": iteration + 1, "seconds": run.elapsed} | metrics)
         progress.set_postfix(
-            ret=f"{episodes.mean():.2f}",
-            success=f"{successes.mean():.0%}",
-            episodes_per_s=f"{len(episodes) / seconds:.2f}",
+            ret=f"{metrics['charts/episode_return']:.2f}",
+            success=f"{metrics['charts/success']:.0%}",
+            episodes_per_s=f"{metrics['charts/episodes_per_s']:.2f}",
         )
         if record:
-            write_video(
-                cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4",
-                rollout.frames,
-                env.metadata.get("render_fps", CONTROL_FREQ),
-            )
-        out_of_time = cfg.time_budget_s is not None and elapsed >= cfg.time_budget_s
+            fps = env.metadata.get("render_fps", CONTROL_FREQ)
+            write_video(cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4", rollout.frames, fps)
+        out_of_time = cfg.time_budget_s is not None and run.elapsed >= cfg.time_budget_s
         done = iteration + 1 == cfg.iterations or out_of_time
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:
-            final = (
-                save_checkpoint(
-                    cfg.output_dir,
-                    iteration + 1,
-                    accelerator.unwrap_model(scorer).policy,
-                    io,
-                    optimizer,
-                    cfg,
-                    return_stats,
-                    reward,
-                    elapsed,
-                )
-                / FINAL
+            policy = accelerator.unwrap_model(scorer).policy
+            saved = save_checkpoint(
+                cfg.output_dir, iteration + 1, policy, run.io, optimizer, cfg, run.return_stats, reward, run.elapsed
             )
+            final = saved / FINAL
         accelerator.wait_for_everyone()
         if out_of_time:
             logger.info("time budget of %.0f s spent after %d iterations", cfg.time_budget_s, iteration + 1)
