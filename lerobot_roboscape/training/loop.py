@@ -6,6 +6,7 @@ the same step counter. Batches are a pure function of (step, process), so a resu
 uninterrupted run would have seen.
 """
 
+import contextlib
 import json
 import logging
 import math
@@ -30,6 +31,7 @@ from lerobot_roboscape.training.checkpoints import (
     last_checkpoint,
     publish_checkpoint,
 )
+from lerobot_roboscape.training.throughput import Throughput, peak_flops
 from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
@@ -38,8 +40,6 @@ HELDOUT_CURVE = "heldout_curve.jsonl"
 # One line per logging step: the losses, and the throughput since the previous one (samples/s, TFLOP/s, MFU).
 TRAIN_LOG = "train_log.jsonl"
 TRAIN_CONFIG = "train_config.json"  # the run's settings, beside its log
-# Dense bf16 peak of the GPUs MFU is read against (their data sheets), by a name nvidia-smi reports.
-PEAK_BF16_TFLOPS = {"H200": 989.0, "H100": 989.0, "A100": 312.0, "L40S": 362.0, "L4": 121.0, "4090": 165.0}
 
 
 @dataclass
@@ -62,7 +62,7 @@ class TrainingConfig:
         CPU its compilation outweighs a short run).
     tf32: on a GPU, TF32 tensor cores for the matmuls left in fp32.
     peak_tflops: the device's peak bf16 TFLOP/s that MFU is read against; null: looked up from the GPU's name
-        (PEAK_BF16_TFLOPS), none on a CPU (then only TFLOP/s are reported).
+        (training/throughput.py), none on a CPU (then only TFLOP/s are reported).
     time_budget_s: end the run after about this many seconds (evaluations and resumes included) instead of after
         `steps` (then its upper bound): at every logging step the run's last step is set from the pace so far, and
         the cosine decays over the steps it will take; at the deadline (with several processes, at the first logging
@@ -125,16 +125,6 @@ def native_bf16(device: str) -> bool:
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
-def peak_flops(config: TrainingConfig, device: torch.device) -> float | None:
-    """The device's peak bf16 FLOP/s: the config's, else the GPU's from PEAK_BF16_TFLOPS; None when unknown."""
-    if config.peak_tflops is not None:
-        return config.peak_tflops * 1e12
-    if device.type != "cuda":
-        return None
-    name = torch.cuda.get_device_name(device)
-    return next((tflops * 1e12 for key, tflops in PEAK_BF16_TFLOPS.items() if key in name), None)
-
-
 def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
     accelerator = Accelerator(
         mixed_precision=resolve_mixed_precision(config.mixed_precision), log_with="tensorboard", project_dir=output_dir
@@ -143,37 +133,6 @@ def make_accelerator(config: TrainingConfig, output_dir: Path) -> Accelerator:
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = config.tf32
     set_seed(config.seed)
     return accelerator
-
-
-class Throughput:
-    """Samples/s, TFLOP/s and MFU between two logging steps. Reading the clock waits for the device, once per
-    logging step, not once per step."""
-
-    def __init__(self, samples_per_step: int, flops_per_sample: float | None, peak: float | None, device):
-        self.samples_per_step, self.flops_per_sample, self.peak = samples_per_step, flops_per_sample, peak
-        self.device = device
-        self.step, self.time = 0, time.perf_counter()
-
-    def _sync(self):
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-
-    def mark(self, step: int) -> None:
-        self._sync()
-        self.step, self.time = step, time.perf_counter()
-
-    def read(self, step: int) -> dict[str, float]:
-        """The figures since the last mark, which moves here."""
-        self._sync()
-        seconds = time.perf_counter() - self.time
-        samples_per_s = (step - self.step) * self.samples_per_step / max(seconds, 1e-9)
-        self.step, self.time = step, time.perf_counter()
-        figures = {"samples_per_s": samples_per_s}
-        if self.flops_per_sample:
-            figures["tflops"] = samples_per_s * self.flops_per_sample / 1e12
-            if self.peak:
-                figures["mfu"] = samples_per_s * self.flops_per_sample / self.peak
-        return figures
 
 
 def _save_checkpoint(
@@ -235,54 +194,29 @@ def fit(
     flops_per_sample: float | None = None,
 ) -> nn.Module:
     """Train `model` for config.steps steps on `batches(step, process_index)`; returns the unwrapped model, also
-    saved (save_pretrained) to output_dir/pretrained_model with the run's config. `evaluate(model)`, when given, is
-    called every config.eval_freq steps and at the end, on the main process, in eval mode and without gradients.
-
-    `loss_fn` may return its logs as tensors: they are read (which waits for the device) on logging steps only, as
-    is the check that the loss is finite, so the host queues steps ahead of the device. With `flops_per_sample` (the
-    model's FLOPs per training sample), the log reads TFLOP/s and MFU beside samples/s (output_dir/train_log.jsonl,
-    TensorBoard and the progress bar)."""
+    saved to output_dir/pretrained_model. `evaluate(model)` runs every config.eval_freq steps and at the end (main
+    process, eval mode, no gradients). `loss_fn`'s logs may be tensors: read (a wait for the device) on logging
+    steps only, so the host queues steps ahead. `flops_per_sample` adds TFLOP/s and MFU to the logs."""
     output_dir = Path(output_dir)
-    resume_from = last_checkpoint(output_dir) if config.resume else None
-    if not config.resume and (output_dir / CHECKPOINTS).exists():
-        raise OutputExistsError(
-            f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
-            "or choose a new --output_dir"
-        )
-    output_dir.mkdir(parents=True, exist_ok=True)
+    resume_from = _checkpoint_to_resume(output_dir, config)
     accelerator = make_accelerator(config, output_dir)
     params = [p for p in model.parameters() if p.requires_grad]
-    # As nanoGPT's configure_optimizers: weight matrices and embeddings decay; biases and norms' gains (1-D) do not.
-    groups = [
-        {"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
-        {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
-    ]
-    # Fused AdamW: one kernel for every parameter's update (CUDA only).
-    fused = accelerator.device.type == "cuda"
-    optimizer = torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95), fused=fused)
+    optimizer = adamw(params, config, accelerator.device)
     schedule = CosineWithWarmup(config.warmup_steps, config.steps)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
     if config.compile if config.compile is not None else accelerator.device.type == "cuda":
         accelerator.unwrap_model(model).compile()  # in place: the state dict's keys stay as they are
     accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
-    start, before = 0, 0.0  # the step and the seconds a resumed run had
-    if resume_from is not None:
-        accelerator.load_state(resume_from)
-        record = json.loads((resume_from / "training_step.json").read_text())
-        start, before = record["step"], record.get("seconds", 0.0)
-        logger.info("resumed from %s at step %d", resume_from, start)
-    if accelerator.is_main_process:
-        (output_dir / TRAIN_CONFIG).write_text(json.dumps(run_config, indent=2, default=str))
-        _truncate_curve(output_dir / HELDOUT_CURVE, start)
-        _truncate_curve(output_dir / TRAIN_LOG, start)
-    began, evaluating = time.time(), 0.0  # the curve's clock counts training, not evaluating
-    elapsed = lambda: before + time.time() - began  # noqa: E731 (the run's seconds, over resumes)
-    paced = None  # (step, seconds) after the first step: the time budget's pace is read from there
+    start, before = _resume(accelerator, resume_from, output_dir, run_config)
+    clock = _Clock(before)
     batch_size = config.batch_size * accelerator.num_processes
-    throughput = Throughput(batch_size, flops_per_sample, peak_flops(config, accelerator.device), accelerator.device)
+    throughput = Throughput(
+        batch_size, flops_per_sample, peak_flops(accelerator.device, config.peak_tflops), accelerator.device
+    )
 
     model.train()
+    rank = accelerator.process_index
     progress = tqdm(
         range(start, config.steps),
         desc=desc,
@@ -292,10 +226,7 @@ def fit(
         dynamic_ncols=True,
     )
     for step in progress:
-        batch = {
-            k: v.to(accelerator.device) if torch.is_tensor(v) else v
-            for k, v in batches(step, accelerator.process_index).items()
-        }
+        batch = {k: v.to(accelerator.device) if torch.is_tensor(v) else v for k, v in batches(step, rank).items()}
         with accelerator.autocast():
             loss, logs = loss_fn(model, batch)
         accelerator.backward(loss)
@@ -305,40 +236,27 @@ def fit(
         optimizer.zero_grad(set_to_none=True)
         logging = (step + 1) % config.log_freq == 0 or step == start
         if logging:
-            logs = {name: float(value) for name, value in logs.items()}  # waits for the device
-            if not math.isfinite(logs["loss"] if "loss" in logs else loss.item()):
-                raise FloatingPointError(
-                    f"loss is {loss.item()} at step {step + 1}; lower --train.lr or check the data"
-                )
+            logs = _read_logs(logs, loss, step)
             if step == start:
                 throughput.mark(step + 1)  # the first step (compilation, warm-up) is not throughput
-                paced = (step + 1, elapsed())
+                clock.paced = (step + 1, clock.elapsed())
             else:
                 logs |= throughput.read(step + 1)
             if config.time_budget_s is not None and step > start:
-                planned = planned_last_step(config, step + 1, elapsed(), paced)
+                planned = planned_last_step(config, step + 1, clock.elapsed(), clock.paced)
                 schedule.steps = progress.total = from_main_process(accelerator, planned)
             logs["lr"] = scheduler.get_last_lr()[0]
             accelerator.log(logs, step=step + 1)
             _log_line(output_dir, accelerator, step + 1, logs)
             progress.set_postfix({k: f"{v:.3g}" for k, v in logs.items() if k in PROGRESS_KEYS})
-        # The deadline: between logging steps too on one process (the host's clock, no wait on the device); with
-        # several, at logging steps only, where they wait anyway (agreeing on it every step would cost a collective).
-        if (
-            config.time_budget_s is not None
-            and step + 1 < schedule.steps
-            and (accelerator.num_processes == 1 or logging)
-            and from_main_process(accelerator, elapsed() >= config.time_budget_s)
-        ):
+        if step + 1 < schedule.steps and _past_deadline(config, accelerator, clock, logging):
             schedule.steps = progress.total = step + 1
         last = step + 1 == schedule.steps
         if evaluate is not None and accelerator.is_main_process and (last or _every(step, config.eval_freq)):
-            tic = time.time()
-            seconds = tic - began - evaluating
-            _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, seconds)
-            evaluating += time.time() - tic
+            with clock.evaluation() as seconds:
+                _evaluate(accelerator.unwrap_model(model), evaluate, accelerator, step + 1, output_dir, seconds)
         if (step + 1) % config.save_freq == 0 or last:
-            _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints, elapsed())
+            _save_checkpoint(accelerator, model, step + 1, output_dir, config.keep_checkpoints, clock.elapsed())
         if last:
             break
     accelerator.end_training()
@@ -346,6 +264,80 @@ def fit(
     if accelerator.is_main_process:
         save_atomically(unwrapped, output_dir / FINAL)
     return unwrapped
+
+
+def _checkpoint_to_resume(output_dir: Path, config: TrainingConfig) -> Path | None:
+    """The checkpoint a resumed run continues from (None: a new run, in a folder without checkpoints)."""
+    if not config.resume and (output_dir / CHECKPOINTS).exists():
+        raise OutputExistsError(
+            f"{output_dir} already holds checkpoints; pass --resume=true to continue that run "
+            "or choose a new --output_dir"
+        )
+    output_dir.mkdir(parents=True, exist_ok=True)
+    return last_checkpoint(output_dir) if config.resume else None
+
+
+def adamw(params: list[nn.Parameter], config: TrainingConfig, device: torch.device) -> torch.optim.Optimizer:
+    """AdamW as nanoGPT's configure_optimizers makes it: weight matrices and embeddings decay; biases and norms'
+    gains (1-D) do not; fused (one kernel for every parameter's update) on CUDA."""
+    groups = [
+        {"params": [p for p in params if p.dim() >= 2], "weight_decay": config.weight_decay},
+        {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
+    ]
+    return torch.optim.AdamW(groups, lr=config.lr, betas=(0.9, 0.95), fused=device.type == "cuda")
+
+
+def _resume(accelerator, resume_from: Path | None, output_dir: Path, run_config: dict) -> tuple[int, float]:
+    """The step and the seconds a resumed run had (0, 0 for a new one), its state loaded; the run's config written
+    and its curves cut back to that step."""
+    start, before = 0, 0.0
+    if resume_from is not None:
+        accelerator.load_state(resume_from)
+        record = json.loads((resume_from / "training_step.json").read_text())
+        start, before = record["step"], record.get("seconds", 0.0)
+        logger.info("resumed from %s at step %d", resume_from, start)
+    if accelerator.is_main_process:
+        (output_dir / TRAIN_CONFIG).write_text(json.dumps(run_config, indent=2, default=str))
+        _truncate_curve(output_dir / HELDOUT_CURVE, start)
+        _truncate_curve(output_dir / TRAIN_LOG, start)
+    return start, before
+
+
+class _Clock:
+    """A run's clocks: its seconds over resumes (`elapsed`, what the time budget spends), this session's training
+    seconds without its evaluations (the held-out curve's), and the pace since the first step (`paced`: the step and
+    the seconds then, once read)."""
+
+    def __init__(self, before: float):
+        self.before, self.began, self.evaluating = before, time.time(), 0.0
+        self.paced: tuple[int, float] | None = None
+
+    def elapsed(self) -> float:
+        return self.before + time.time() - self.began
+
+    @contextlib.contextmanager
+    def evaluation(self):
+        """Time an evaluation apart; yields the training seconds before it."""
+        tic = time.time()
+        yield tic - self.began - self.evaluating
+        self.evaluating += time.time() - tic
+
+
+def _past_deadline(config: TrainingConfig, accelerator: Accelerator, clock: _Clock, logging: bool) -> bool:
+    """Whether the time budget is spent: read between logging steps too on one process (the host's clock, no wait on
+    the device); with several, at logging steps only, where they wait anyway (agreeing on it every step would cost a
+    collective)."""
+    if config.time_budget_s is None or not (accelerator.num_processes == 1 or logging):
+        return False
+    return from_main_process(accelerator, clock.elapsed() >= config.time_budget_s)
+
+
+def _read_logs(logs: dict, loss: torch.Tensor, step: int) -> dict[str, float]:
+    """The step's logs as numbers (a wait for the device); a loss that is not finite stops the run."""
+    logs = {name: float(value) for name, value in logs.items()}
+    if not math.isfinite(logs["loss"] if "loss" in logs else loss.item()):
+        raise FloatingPointError(f"loss is {loss.item()} at step {step + 1}; lower --train.lr or check the data")
+    return logs
 
 
 PROGRESS_KEYS = ("loss", "token_acc", "l1", "samples_per_s", "mfu")

@@ -10,7 +10,7 @@ layout: two 16x16 views, 1024 codes, 7-D actions, episodes of 80 control steps),
 Fused AdamW runs on both sides on a GPU.
 
 Clips/s are read from the run's own training log (output_dir/train_log.jsonl) between the first step (compilation)
-and the last; MFU against the card's dense bf16 peak (training/loop.py: PEAK_BF16_TFLOPS), with the model's FLOPs per
+and the last; MFU against the card's dense bf16 peak (training/throughput.py), with the model's FLOPs per
 clip (STWorldModel.training_flops_per_clip: matmuls, attention included, the backward pass twice the forward).
 
     # on the 2 CPU cores: a smoke figure of the bench preset, a code or 2x2 codes per position
@@ -30,7 +30,8 @@ import torch
 from accelerate.state import AcceleratorState
 
 from lerobot_roboscape.tokenizer.token_cache import TokenCache
-from lerobot_roboscape.training.loop import TRAIN_LOG, fit, peak_flops
+from lerobot_roboscape.training.loop import TRAIN_LOG, fit
+from lerobot_roboscape.training.throughput import peak_flops
 from lerobot_roboscape.world_model.clips import ClipSampler, ResidentClips
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -102,7 +103,7 @@ def run(preset: str, patch: int, batch: int, path: str, steps: int, cache: Token
     clips_per_s = sum(n for n, _ in timed) * batch / seconds
     flops = clips_per_s * model.training_flops_per_clip()
     figures = {"clips_per_s": clips_per_s, "tflops": flops / 1e12}
-    if peak := peak_flops(train, device):
+    if peak := peak_flops(device, train.peak_tflops):
         figures["mfu"] = flops / peak
     if device.type == "cuda":
         figures["peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
