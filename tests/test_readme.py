@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
+from lerobot_roboscape.pipeline.claim_markdown import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.run import STAGES
 
 ROOT = Path(__file__).resolve().parents[1]

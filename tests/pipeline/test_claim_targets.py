@@ -5,9 +5,10 @@ import pytest
 
 from lerobot_roboscape.evaluation.results import Cell, Results
 from lerobot_roboscape.evaluation.tables import format_table
+from lerobot_roboscape.pipeline.claim_markdown import command, markdown, paper_methods
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import command, differences, markdown, paper_methods
+from lerobot_roboscape.pipeline.experiment_report import differences
 from lerobot_roboscape.pipeline.levers import LEVERS, KLSettings, LeverSettings, lever_descriptions
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
 from lerobot_roboscape.pipeline.targets import claim_targets

@@ -13,10 +13,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
+from lerobot_roboscape.pipeline.claim_markdown import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.clock import header
 from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
 from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment, run_or_pack
-from lerobot_roboscape.pipeline.experiment_report import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.pipeline.run import STAGES, run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy

@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 
 from lerobot_roboscape.evaluation.tables import format_table
+from lerobot_roboscape.pipeline.claim_markdown import markdown
 from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import differences, markdown
+from lerobot_roboscape.pipeline.experiment_report import differences
 from lerobot_roboscape.pipeline.targets import claim_targets
 
 RESULTS = Path(__file__).parents[2] / "docs" / "results"
