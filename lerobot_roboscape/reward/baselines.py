@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lerobot_roboscape.io.weights import CheckedHubMixin
-from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
+from lerobot_roboscape.training.losses import balanced_bce
 from roboscape_core.errors import InvalidInputError
 
 REWARD_KINDS = ("embedding", "proxy", "success")

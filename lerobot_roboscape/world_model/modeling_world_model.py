@@ -9,7 +9,6 @@ actions one per control step, k per frame, and states one per frame.
 """
 
 import json
-import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -21,8 +20,11 @@ from torch import nn
 
 from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.training.loop import TRAIN_CONFIG
+from lerobot_roboscape.training.losses import balanced_bce
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.control_encoders import ACTION_TOKENS, ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
+from lerobot_roboscape.world_model.flops import forward_flops_per_clip
+from lerobot_roboscape.world_model.objective import masked_inputs, masked_token_loss
 from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
@@ -35,20 +37,6 @@ class Generated(NamedTuple):
     tokens: torch.Tensor  # (B, n_frames, S)
     done: torch.Tensor  # (B, n_frames) probabilities
     state: torch.Tensor | None  # (B, n_frames, state_dim) the predicted raw states; None without a state channel
-
-
-def balanced_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Binary cross-entropy with each class averaged on its own, then the two averaged: a rare positive class
-    weighs as much as the common negative one (a class absent from the batch drops out). Written with weights, not
-    boolean indexing, so that it never waits on the device (no data-dependent shapes)."""
-    per_item = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
-    positive = (labels > 0.5).to(per_item.dtype)
-    means, present = [], []
-    for weight in (positive, 1 - positive):
-        count = weight.sum()
-        means.append((per_item * weight).sum() / count.clamp(min=1))
-        present.append((count > 0).to(per_item.dtype))
-    return (means[0] * present[0] + means[1] * present[1]) / (present[0] + present[1]).clamp(min=1)
 
 
 def retrain_command(model_dir: Path, control: str) -> str:
@@ -234,51 +222,20 @@ class STWorldModel(
         up to corrupt_max, is replaced by random codes; controls are replaced by the null control with
         control_dropout. Masked tokens that changed since the previous frame weigh changed_weight in the token
         loss; each frame's predicted next state is scored against the clip's next frame."""
-        tokens, done = batch["tokens"], batch["done"]
-        B, T, S = tokens.shape
-        c = self.config
+        tokens, done, c = batch["tokens"], batch["done"], self.config
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
         if c.control_dropout > 0:
             dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < c.control_dropout
             control = control.where(dropped, self.null_control(control))
-        ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=tokens.device))  # MaskGIT cosine schedule
-        ratio = ratio * (torch.rand(B, T, 1, device=tokens.device) >= c.clean_frame_prob)
-        ratio[:, 0] = 0.0  # the first frame is the prompt
-        masked_BTN = torch.rand(B, T, c.positions_per_frame, device=tokens.device) < ratio
-        mask = self.ungroup(masked_BTN[..., None].expand(-1, -1, -1, c.codes_per_position))
-        inputs = tokens
-        if c.corrupt_max > 0:
-            rate = c.corrupt_max * torch.rand(B, 1, 1, device=tokens.device)
-            corrupt = (torch.rand(B, T, S, device=tokens.device) < rate) & ~mask
-            inputs = torch.where(corrupt, torch.randint_like(tokens, c.vocab_size), tokens)
-        inputs = inputs.masked_fill(mask, c.mask_token_id)
+        inputs, mask = masked_inputs(tokens, c, self.ungroup)
 
         states = batch.get("state")
         hidden, _ = self.compute_hidden(inputs, control, states=states)
         logits, done_logits = self.token_logits(hidden), self.done_logits(hidden)
-        # Every token's loss, weighted: 0 where not masked, changed_weight where masked and changed since the previous
-        # frame. No boolean indexing, so a training step never waits on the device.
-        changed = torch.zeros_like(mask)
-        changed[:, 1:] = tokens[:, 1:] != tokens[:, :-1]
-        masked, masked_changed = mask.float(), (mask & changed).float()
-        weight = masked + (c.changed_weight - 1) * masked_changed
-        token_ce = F.cross_entropy(logits.flatten(0, 2).float(), tokens.flatten(), reduction="none").view_as(weight)
-        token_loss = (weight * token_ce).sum() / weight.sum().clamp(min=1e-6)
+        token_loss, token_logs = masked_token_loss(logits, tokens, mask, c.changed_weight)
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + c.done_weight * done_loss
-        hits = (logits.argmax(-1) == tokens).float()
-        n_masked, n_changed = masked.sum(), masked_changed.sum()
-        accuracy = (hits * masked).sum() / n_masked.clamp(min=1)
-        # the accuracy on the changed tokens: copying the previous frame scores 0 there
-        changed_accuracy = torch.where(n_changed > 0, (hits * masked_changed).sum() / n_changed.clamp(min=1), accuracy)
-        # Detached tensors: the training loop reads them on its logging steps only.
-        logs = {
-            "loss": loss,
-            "token_ce": token_loss,
-            "token_acc": accuracy,
-            "changed_acc": changed_accuracy,
-            "done_loss": done_loss,
-        }
+        logs = {"loss": loss, **token_logs, "done_loss": done_loss}  # tensors: the loop reads them when it logs
         if self.robot_state is not None:
             state_loss = self.robot_state.loss(hidden.mean(2), states, self._pooled(control).pooled)
             loss = loss + state_loss
@@ -300,26 +257,8 @@ class STWorldModel(
         self._compiled_blocks = [torch.compile(block, **kwargs) for block in self.blocks]
 
     def forward_flops_per_clip(self) -> float:
-        """Matmul FLOPs (2 per multiply-add) of the forward pass over one training clip of `window` frames, attention
-        included, as nanoGPT's estimate_mfu counts them; a training step costs 3x (the backward pass twice the
-        forward's). The frozen T5 is left out: its states are computed once per instruction."""
-        c = self.config
-        T, S, C, V = c.window, c.positions_per_frame, c.d_model, c.vocab_size
-        L = ACTION_TOKENS if c.control == "action" else c.text_max_length
-        per_token = 8 * C * C + 8 * C * C + 4 * C * C + 4 * c.mlp_ratio * C * C  # spatial, temporal, cross, MLP
-        attention = T * 4 * S * S * C + S * 4 * T * T * C + T * 4 * S * L * C  # spatial, temporal, cross
-        modulated = T if c.control == "action" else 1  # the text's pooled control is one per clip
-        modulation = modulated * 24 * C * C if c.adaln != "none" else 0
-        blocks = c.n_layer * (T * S * per_token + attention + T * 4 * C * C * L + modulation)  # + cross keys/values
-        head = T * S * 2 * C * V * c.codes_per_position + T * 2 * (C * c.done_hidden + c.done_hidden)
-        if c.state:  # the state's embedding in every frame, its head on every frame but the last (nothing follows)
-            head += T * 2 * (c.state_dim * C + C * C)
-            head += (T - 1) * 2 * ((2 * C + c.state_dim) * c.done_hidden + c.done_hidden * c.state_dim)
-        if c.control == "action":
-            control = T * 2 * (c.frame_skip * c.action_dim * C + C * ACTION_TOKENS * C)
-        else:
-            control = 2 * L * self.control_encoder.t5.config.d_model * C  # the projection of the T5 states
-        return float(blocks + head + control)
+        text_width = self.control_encoder.t5.config.d_model if self.config.control == "text" else None
+        return forward_flops_per_clip(self.config, text_width)
 
     def training_flops_per_clip(self) -> float:
         return 3 * self.forward_flops_per_clip()

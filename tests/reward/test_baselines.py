@@ -72,7 +72,7 @@ def test_success_classifier_learns_the_rare_done_frames(reward_models, token_cac
 
 
 def test_balanced_loss_weighs_the_rare_class_as_much_as_the_common_one():
-    from lerobot_roboscape.world_model.modeling_world_model import balanced_bce
+    from lerobot_roboscape.training.losses import balanced_bce
 
     labels = torch.tensor([1.0] + [0.0] * 19)
     never_done = torch.full((20,), -4.0)  # what an RMSE-trained head drifts to when done frames are rare
