@@ -1,10 +1,12 @@
 """What `roboscape_wm` loads: the tokenizer and the world models (local directories or Hub repo ids, or one world
 models repo that names them all), the baseline reward models and the goal similarity, each once per process."""
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 from lerobot_roboscape.hub.pull import pull_world_models, snapshot
 from lerobot_roboscape.reward.baselines import RewardModel
+from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import load_similarity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -93,3 +95,45 @@ def load_reward_model(ref: str | None, device: str) -> RewardModel:
 @lru_cache(maxsize=4)
 def load_reward_distance(kind: str, tokenizer: VisualTokenizer, weights: str | None, allow_random: bool, device: str):
     return load_similarity(kind, tokenizer, tokenizer.config.lpips_net, weights, allow_random).to(device)
+
+
+@dataclass(frozen=True)
+class EnvRewards:
+    """What pays roboscape_wm's episodes and what calls them done: the world models' own reward (`paid`, with its
+    description), or a baseline reward model; the done head, or a success classifier."""
+
+    paid: WorldModelReward
+    description: str
+    model: RewardModel | None
+    classifier: RewardModel | None
+
+
+def load_rewards(config, tokenizer: VisualTokenizer, device: str) -> EnvRewards:
+    """The rewards a `RoboscapeWorldModelEnvConfig` asks for, each checked to be the kind it is used as."""
+    c = config
+    distance = load_reward_distance(
+        config.similarity, tokenizer, config.lpips_weights, config.allow_random_lpips, device
+    )
+    paid = WorldModelReward(
+        distance, alpha=config.alpha, beta=config.beta, theta_sps=config.theta_sps, sparse_value=config.sparse_reward
+    )
+    description = (
+        f"world models: {config.alpha} x {config.sparse_reward} while done >= {config.theta_sps} + {config.beta} "
+        f"x (1 - {distance.name} distance to the goal frame)"
+    ) + (f" - {config.disagreement_penalty} x the ensemble's disagreement" if config.disagreement_penalty else "")
+    model = None
+    if config.reward_type != "world_model":
+        model = load_reward_model(config.reward_model, device)
+        if model.config.kind != config.reward_type:
+            raise InvalidInputError(
+                f"{c.reward_model} is a {model.config.kind} reward model, but reward_type is {c.reward_type!r}"
+            )
+    classifier = None
+    if config.done_source == "classifier":
+        classifier = load_reward_model(config.success_classifier, device)
+        if classifier.config.kind != "success":
+            raise InvalidInputError(
+                f"{config.success_classifier} is a {classifier.config.kind} reward model, not a success classifier "
+                "(roboscape-train-reward --reward.kind=success)"
+            )
+    return EnvRewards(paid, description, model, classifier)

@@ -32,15 +32,8 @@ import torch
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.ensemble import Ensemble
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
-from lerobot_roboscape.envs.loading import (
-    load_ensemble,
-    load_models,
-    load_reward_distance,
-    load_reward_model,
-    model_refs,
-)
+from lerobot_roboscape.envs.loading import load_ensemble, load_models, load_rewards, model_refs
 from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts, file_starts
-from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
 
@@ -96,37 +89,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"the action world model {action_model} every {self.frame_skip}: train both with the same "
                 "--wm.frame_skip"
             )
-        self.reward_fn = WorldModelReward(
-            load_reward_distance(
-                config.similarity, self.tokenizer, config.lpips_weights, config.allow_random_lpips, self.device
-            ),
-            alpha=config.alpha,
-            beta=config.beta,
-            theta_sps=config.theta_sps,
-            sparse_value=config.sparse_reward,
-        )
-        self.similarity = self.reward_fn.distance.name
-        self.reward_description = (
-            f"world models: {config.alpha} x {config.sparse_reward} while done >= {config.theta_sps} + {config.beta} "
-            f"x (1 - {self.similarity} distance to the goal frame)"
-        ) + (f" - {config.disagreement_penalty} x the ensemble's disagreement" if config.disagreement_penalty else "")
+        rewards = load_rewards(config, self.tokenizer, self.device)
+        self.reward_fn, self.reward_model, self.success_classifier = rewards.paid, rewards.model, rewards.classifier
+        self.similarity, self.reward_description = self.reward_fn.distance.name, rewards.description
         logger.info("roboscape_wm reward: %s", self.reward_description)
-        self.reward_model = None
-        if config.reward_type != "world_model":
-            self.reward_model = load_reward_model(config.reward_model, self.device)
-            if self.reward_model.config.kind != config.reward_type:
-                raise InvalidInputError(
-                    f"{config.reward_model} is a {self.reward_model.config.kind} reward model, but "
-                    f"reward_type is {config.reward_type!r}"
-                )
-        self.success_classifier = None
-        if config.done_source == "classifier":
-            self.success_classifier = load_reward_model(config.success_classifier, self.device)
-            if self.success_classifier.config.kind != "success":
-                raise InvalidInputError(
-                    f"{config.success_classifier} is a {self.success_classifier.config.kind} reward model, not a "
-                    "success classifier (roboscape-train-reward --reward.kind=success)"
-                )
         n_cameras = self.action_model.config.n_cameras
         if config.starts_file:
             self.starts, self.cameras, self.action_range, self.starts_source = file_starts(config, n_cameras)
@@ -141,7 +107,17 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if config.goal_file and config.goal_source == "text_model":
             self.goal_bank.use_file(Path(config.goal_file), self.starts)
 
-        size, n = self.tokenizer.config.image_size, len(self.cameras)
+        self._make_spaces()
+        self.render_mode = "rgb_array"
+        self._max_episode_steps = max(s.horizon for s in self.starts)
+        self._n_cameras = len(self.cameras)
+        self._rng = np.random.default_rng(config.seed)
+        self._generator = torch.Generator(self.device).manual_seed(config.seed)
+        self._rollout = None
+
+    def _make_spaces(self) -> None:
+        """Each camera's pixels (and the robot's state as `agent_pos` with include_state); actions in [-1, 1]."""
+        size, config = self.tokenizer.config.image_size, self.config
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
         observation = {"pixels": gym.spaces.Dict(pixels)}
         if config.include_state:
@@ -153,16 +129,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             state_dim = self.action_model.config.state_dim
             observation["agent_pos"] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
         self.single_observation_space = gym.spaces.Dict(observation)
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         action_dim = self.action_model.config.action_dim
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
-        self.render_mode = "rgb_array"
-        self._max_episode_steps = max(s.horizon for s in self.starts)
-        self._n_cameras = n
-        self._rng = np.random.default_rng(config.seed)
-        self._generator = torch.Generator(self.device).manual_seed(config.seed)
-        self._rollout = None
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
 
     # ---- starts and goals ----------------------------------------------------------------------------------
 
