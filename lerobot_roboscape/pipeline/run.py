@@ -46,6 +46,14 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
 
 def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Artifact]) -> None:
     out = Path(cfg.output_dir).resolve()
+    data, tokenizer, models, wm_env = _data_and_world_models(cfg, out, clock, artifacts)
+    checkpoints = _policies(cfg, out, clock, artifacts, data, wm_env)
+    _push_and_report(cfg, out, clock, artifacts, data, tokenizer, models, checkpoints)
+
+
+def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict[str, Artifact]):
+    """The stages up to the world-model env: the data, the tokenizer, the world models, their reports, the done
+    signal, the rewards and a rollout in the env. Returns (data, tokenizer, world models, the env's config)."""
 
     clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = data_stages.demonstrations(cfg.data, out, cfg.fresh)
@@ -94,7 +102,12 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     print(f"{rollout.steps} steps of {rollout.episodes} episodes, return {rollout.returns}")
     artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout.video)
     artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout.plot)
+    return data, tokenizer, models, wm_env
 
+
+def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict[str, Artifact], data, wm_env) -> dict:
+    """SFT, LeRobot's evaluation in the world model, PPO in both envs and Table 1; returns {policy: {method:
+    checkpoint}}."""
     clock("SFT", "SFT with lerobot-train: " + " and ".join(policy_stages.policy_specs(cfg)))
     sft = policy_stages.sft(cfg, out, data.train)
     artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
@@ -122,7 +135,11 @@ def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Art
     print((tables / "tables.md").read_text())
     artifacts["Table 1"] = Artifact(ArtifactKind.MARKDOWN, tables / "tables.md")
     artifacts["Table 1 bar chart"] = Artifact(ArtifactKind.IMAGE, tables / "tables.png")
+    return checkpoints
 
+
+def _push_and_report(cfg, out: Path, clock: StageClock, artifacts: dict, data, tokenizer, models, checkpoints) -> None:
+    """Every artifact to the Hub (or a folder shaped like it), the run's report, and the table of what was made."""
     hub = out / "hub"
     clock("push", "push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({hub})")
     local_dir = None if cfg.push_to_hub else hub
