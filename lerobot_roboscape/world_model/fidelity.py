@@ -182,18 +182,12 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         target = real[prompt : prompt + horizon]
         pred = tokenizer.decode_views(pred_tokens[0], n_cameras)
         recon = tokenizer.decode_views(tokens[prompt : prompt + horizon], n_cameras)
+        labels = None
         if masks:
             labels = read_masks(dataset.root, index, camera_names(dataset), len(episode.action))
             labels = np.stack(list(labels.values()), 1)[frames]
             labels = torch.from_numpy(labels[prompt : prompt + horizon]).to(device)
-        for kind, images in (("prediction", pred), ("reconstruction", recon)):
-            values = _image_metrics(images, target, lpips_metric)
-            if masks:
-                values |= _object_metrics(images, target, labels)
-            for metric, per_frame in values.items():
-                for step, value in enumerate(per_frame):
-                    if not np.isnan(value):
-                        per_step[f"{kind}_{metric}"][step].append(float(value))
+        _measure({"prediction": pred, "reconstruction": recon}, target, lpips_metric, labels, per_step)
         # both from the tokenizer's picture of the last prompt frame: its own error is not motion
         last = tokenizer.decode_views(tokens[prompt - 1 : prompt], n_cameras)
         ratio = motion(torch.cat([last, pred])) / max(motion(torch.cat([last, recon])), 1e-6)
@@ -222,17 +216,37 @@ def evaluate_fidelity(cfg: FidelityConfig) -> dict:
         "motion_ratio": float(np.mean([e["motion_ratio"] for e in episodes_out])),
     }
     if cfg.controllability is not None:
-        readings = {"controllability": (cfg.horizon, cfg.output_dir)}
-        if cfg.long_horizon:
-            readings["controllability_long"] = (cfg.long_horizon, Path(cfg.output_dir) / "long_horizon")
-        for name, (horizon, folder) in readings.items():
-            report[name] = evaluate_controllability(
-                ControllabilityReportConfig(
-                    cfg.controllability, cfg.tokenizer, cfg.world_model, folder, horizon, device=cfg.device
-                )
-            )["summary"]
+        report |= _controllability(cfg)
     write_report(report, videos, Path(cfg.output_dir), fps=dataset.fps)
     return report
+
+
+def _measure(decoded: dict, target, lpips_metric, labels, per_step: dict) -> None:
+    """Each decoding's ({kind: frames}) image measures against the real frames, and the object's where the frames
+    have masks (`labels`), added to `per_step` ({kind_measure: [values of each step]}); NaN (no object) is left out."""
+    for kind, images in decoded.items():
+        values = _image_metrics(images, target, lpips_metric)
+        if labels is not None:
+            values |= _object_metrics(images, target, labels)
+        for metric, per_frame in values.items():
+            for step, value in enumerate(per_frame):
+                if not np.isnan(value):
+                    per_step[f"{kind}_{metric}"][step].append(float(value))
+
+
+def _controllability(cfg: FidelityConfig) -> dict:
+    """The controllability report's summary at the fidelity horizon (and at `long_horizon` where asked)."""
+    readings = {"controllability": (cfg.horizon, cfg.output_dir)}
+    if cfg.long_horizon:
+        readings["controllability_long"] = (cfg.long_horizon, Path(cfg.output_dir) / "long_horizon")
+    return {
+        name: evaluate_controllability(
+            ControllabilityReportConfig(
+                cfg.controllability, cfg.tokenizer, cfg.world_model, folder, horizon, device=cfg.device
+            )
+        )["summary"]
+        for name, (horizon, folder) in readings.items()
+    }
 
 
 def write_report(report: dict, videos: list[np.ndarray], output_dir: Path, fps: int) -> None:
