@@ -240,34 +240,7 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
         if success and len(grid) < cfg.grid_episodes:
             grid.append(images)
     success = np.array([e["success"] for e in episodes])
-    summary = {}
-    for kind in episodes[0]["rewards"]:
-        returns = np.array([e["rewards"][kind].sum() for e in episodes])
-        auc = None
-        if 0 < success.sum() < len(success):
-            # binary_auroc squashes scores outside [0, 1] with a sigmoid, which ties every return above ~17 at 1.0
-            # (an AUC of 0.5): hand it the returns' ranks scaled into [0, 1], which keeps their order.
-            ranks = torch.from_numpy(returns).argsort().argsort().float() / max(len(returns) - 1, 1)
-            auc = float(binary_auroc(ranks, torch.from_numpy(success.astype(np.int64))))
-        summary[kind] = {
-            "roc_auc_of_return": auc,
-            "mean_return_success": _mean(returns[success]),
-            "mean_return_failure": _mean(returns[~success]),
-        }
-    successful = [e["goal"] for e in episodes if e["success"]]
-    goals = {
-        "starts": len(episodes),
-        "reached_within_horizon": float(np.mean([e["goal"]["reached_within_horizon"] for e in episodes])),
-        "successful_starts": len(successful),
-        "nearer_final_than_start": float(np.mean([g["nearer_final_than_start"] for g in successful]))
-        if successful
-        else None,
-        "final_nearer_own_goal_than_other_instructions": _mean(
-            np.array([g["final_nearer_own_goal_than_other_instructions"] for g in successful], dtype=float)
-        )
-        if successful and all(g["final_nearer_own_goal_than_other_instructions"] is not None for g in successful)
-        else None,
-    }
+    summary, goals = _separation(episodes, success), _goal_summary(episodes)
     report = {
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "summary": summary,
@@ -288,6 +261,44 @@ def write_reward_report(cfg: RewardReportConfig) -> dict:
     if grid:
         _plot_goals(torch.stack(grid), out / "goal_grid.png")
     return report
+
+
+def _separation(episodes: list[dict], success: np.ndarray) -> dict:
+    """Per reward: how well its return separates successful episodes from failed ones (ROC-AUC; None with one
+    class only) and its mean return on each."""
+    summary = {}
+    for kind in episodes[0]["rewards"]:
+        returns = np.array([e["rewards"][kind].sum() for e in episodes])
+        auc = None
+        if 0 < success.sum() < len(success):
+            # binary_auroc squashes scores outside [0, 1] with a sigmoid, which ties every return above ~17 at 1.0
+            # (an AUC of 0.5): hand it the returns' ranks scaled into [0, 1], which keeps their order.
+            ranks = torch.from_numpy(returns).argsort().argsort().float() / max(len(returns) - 1, 1)
+            auc = float(binary_auroc(ranks, torch.from_numpy(success.astype(np.int64))))
+        summary[kind] = {
+            "roc_auc_of_return": auc,
+            "mean_return_success": _mean(returns[success]),
+            "mean_return_failure": _mean(returns[~success]),
+        }
+    return summary
+
+
+def _goal_summary(episodes: list[dict]) -> dict:
+    """How the text model's goals did: reached within the horizon, nearer the real success than the start, nearer
+    the episode's own goal than other instructions' (on the successful episodes)."""
+    successful = [e["goal"] for e in episodes if e["success"]]
+    own = [g["final_nearer_own_goal_than_other_instructions"] for g in successful]
+    return {
+        "starts": len(episodes),
+        "reached_within_horizon": float(np.mean([e["goal"]["reached_within_horizon"] for e in episodes])),
+        "successful_starts": len(successful),
+        "nearer_final_than_start": float(np.mean([g["nearer_final_than_start"] for g in successful]))
+        if successful
+        else None,
+        "final_nearer_own_goal_than_other_instructions": _mean(np.array(own, dtype=float))
+        if successful and all(value is not None for value in own)
+        else None,
+    }
 
 
 def _plot_goals(images: torch.Tensor, path: Path) -> None:

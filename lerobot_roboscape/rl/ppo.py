@@ -13,7 +13,7 @@ A process of `accelerate launch` steps its own share of the envs; Accelerate ave
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -258,17 +258,16 @@ def make_optimizer(policy, cfg: PPOConfig) -> torch.optim.Optimizer:
 
 @dataclass
 class _Start:
-    """Where a run starts: the policy (from the SFT checkpoint, or the last checkpoint when resuming), its
-    processors, optimizer and frozen reference (the KL lever's), the iteration, return statistics and clock."""
+    """Where a run starts (the SFT checkpoint, or its last when resuming); `reference`: the KL lever's, frozen."""
 
     policy: torch.nn.Module
     io: PolicyIO
     optimizer: torch.optim.Optimizer
     reference: torch.nn.Module | None
     path: str
-    iteration: int = 0
-    return_stats: RunningReturnStats = field(default_factory=RunningReturnStats)
-    elapsed: float = 0.0
+    iteration: int
+    return_stats: RunningReturnStats
+    elapsed: float
 
 
 def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:

@@ -210,11 +210,9 @@ def fit(
     accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
     start, before = _resume(accelerator, resume_from, output_dir, run_config)
     clock = _Clock(before)
-    batch_size = config.batch_size * accelerator.num_processes
-    throughput = Throughput(
-        batch_size, flops_per_sample, peak_flops(accelerator.device, config.peak_tflops), accelerator.device
-    )
-
+    samples = config.batch_size * accelerator.num_processes
+    peak = peak_flops(accelerator.device, config.peak_tflops)
+    throughput = Throughput(samples, flops_per_sample, peak, accelerator.device)
     model.train()
     rank = accelerator.process_index
     progress = tqdm(
