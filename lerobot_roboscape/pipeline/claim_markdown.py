@@ -132,12 +132,22 @@ def protocol(cfg, elsewhere: dict | None = None) -> str:
     )
 
 
+def _by_comparison(differences: list[dict]) -> dict[tuple[str, str, str, str], dict]:
+    """The differences by (policy, against, split, family)."""
+    return {(d["policy"], d["against"], d["split"], d["family"]): d for d in differences}
+
+
+def agreed(replays: list[dict]) -> int:
+    """The replayed rollouts whose outcome the world model and the simulator agree on."""
+    return sum(r["world_model_success"] == r["simulator_success"] for r in replays)
+
+
 def answer(summary: dict) -> list[str]:
     """The report's first lines: did PPO in the world model lift SFT out of domain (all families), by how much
     against SFT and each PPO in the simulator (paired intervals where kept), and how often the world model agreed
     with the simulator on that policy's replayed rollouts."""
     lines = []
-    by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
+    by = _by_comparison(summary["differences"])
     table = Results.of(summary["table"])
     for policy in table.policies:
         sft, wm = (table.cell(policy, m, "ood") for m in (SFT, RL_WORLD_MODEL))
@@ -154,7 +164,7 @@ def answer(summary: dict) -> list[str]:
                 rate = table.cell(policy, other, "ood").success_rate
                 lines.append(f"Against {other} ({rate:.0%} OOD): " + _points(by[policy, other, "ood", ALL]))
     replays = summary["replays"]
-    agree = sum(r["world_model_success"] == r["simulator_success"] for r in replays)
+    agree = agreed(replays)
     lines.append(
         f"The world model agreed with the simulator on the outcome of {agree} of {len(replays)} of this policy's "
         f"rollouts replayed there (successes: {sum(r['world_model_success'] for r in replays)} in the world model, "
@@ -172,7 +182,7 @@ def _points(row: dict) -> str:
 def markdown(cfg, summary: dict) -> str:
     p, table = cfg.pipeline, Results.of(summary["table"])
     families = [*p.data.families, ALL]
-    by = {(d["policy"], d["against"], d["split"], d["family"]): d for d in summary["differences"]}
+    by = _by_comparison(summary["differences"])
     difference_rows = [
         (other, SPLIT_NAMES[split], [by[policy, other, split, f] for f in families])
         for policy in table.policies
@@ -225,7 +235,7 @@ def markdown(cfg, summary: dict) -> str:
         ablation_rows=ablation_rows,
         lever_rows=lever_rows,
         replays=replays,
-        agree=sum(r["world_model_success"] == r["simulator_success"] for r in replays),
+        agree=agreed(replays),
     )
 
 

@@ -325,7 +325,7 @@ def pack_experiment(cfg: ExperimentConfig) -> Packed:
     clock("PPO", "PPO in roboscape_maniskill (those in roboscape_wm run where its models are)")
     rl = policy_stages.rl(p, e.out, e.trained.demonstrations, None, sft)
     clock("Table 1", f"success in the simulator of SFT and of PPO in the simulator, {e.splits()}")
-    checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
+    checkpoints = policy_stages.every_checkpoint(sft, rl)
     policy_stages.simulator_eval(p, e.out, e.trained.demonstrations, checkpoints, e.scene)
     clock.done()
     print(packed)
@@ -371,7 +371,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
         levers = {m: None for m in taken["runs"] if Method.named(m) in BY_METHOD}
         if replayed := taken["results"].get("replay"):
             rollouts = e.runs_back / replayed["file"]
-    checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
+    checkpoints = policy_stages.every_checkpoint(sft, rl)
     clock("Table 1", f"success in the simulator, {e.splits()} (Table 1)")
     results = policy_stages.simulator_eval(p, e.out, trained.demonstrations, checkpoints, e.scene)
     clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")

@@ -37,6 +37,7 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     RL_WORLD_MODEL_DENSE,
     RL_WORLD_MODEL_SPARSE,
+    SFT,
     Method,
     initial_scene,
 )
@@ -193,6 +194,11 @@ def rl(
         }
         for name, sft_checkpoint in checkpoints.items()
     }
+
+
+def every_checkpoint(sft: dict[str, Path], rl: dict[str, dict[str, Path]]) -> dict[str, dict[str, Path]]:
+    """{policy: {method: checkpoint}}: each policy's SFT checkpoint, then its PPO runs' (Table 1's rows)."""
+    return {name: {SFT: sft[name]} | runs for name, runs in rl.items()}
 
 
 # ---- evaluation in the simulator ---------------------------------------------------------------------------------

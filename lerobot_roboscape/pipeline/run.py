@@ -122,7 +122,7 @@ def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict
         + (f" (each {cfg.ppo.time_budget_s / 60:g} min)" if cfg.ppo.time_budget_s else ""),
     )
     rl = policy_stages.rl(cfg, out, data.train, wm_env, sft)
-    checkpoints = {name: {methods.SFT: sft[name]} | runs for name, runs in rl.items()}
+    checkpoints = policy_stages.every_checkpoint(sft, rl)
     for name, runs in rl.items():
         artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
 

@@ -34,6 +34,12 @@ WARMUP_FRAMES = 2  # eager passes before a capture, on a side stream, so lazy in
 
 
 @dataclass
+def readout(model, hidden_BTNC: torch.Tensor, B: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The latest frame's done probability (B,) and pooled features (B, C), from the first B rows (a guided
+    rollout's second half is its unconditional twin)."""
+    return torch.sigmoid(model.done_logits(hidden_BTNC[:B, -1:])[:, 0].float()), hidden_BTNC[:B, -1].mean(dim=1)
+
+
 class Rollout:
     """What a running generation remembers: the last `window - 1` frames as tokens, their controls and states, and
     (with the cache) every layer's keys and values of those frames. When guided, tokens, controls, states and cache
@@ -88,8 +94,7 @@ class Rollout:
             reusable = reuse is not None and reuse.cache is not None and reuse.model is model
             cache = reuse.cache if reusable else KVCache(model.config.n_layer, model.config.window)
         hidden_BTNC, _ = model.compute_hidden(prompt_BPS, control, fill=cache, states=states)
-        done = torch.sigmoid(model.done_logits(hidden_BTNC[:B, -1:])[:, 0].float())
-        features = hidden_BTNC[:B, -1].mean(dim=1)
+        done, features = readout(model, hidden_BTNC, B)
         rollout = cls(model, prompt_BPS, control, cache, done, features, states, prompt_BPS.shape[1], guided, capture)
         rollout.slide()
         return rollout
@@ -219,8 +224,7 @@ class Rollout:
             hidden_BTNC, _ = model.compute_hidden(
                 tokens, self._concat_controls(self.control, control), states=self._concat_states(state)
             )
-        done = torch.sigmoid(model.done_logits(hidden_BTNC[:B, -1:])[:, 0].float())
-        return done, hidden_BTNC[:B, -1].mean(dim=1)
+        return readout(model, hidden_BTNC, B)
 
     def _remember(self, frame_B1S, control: Control, done: torch.Tensor, features: torch.Tensor, state) -> None:
         """Keep the new frame, its control, state, done and features, and slide the window."""
