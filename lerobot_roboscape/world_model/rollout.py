@@ -33,13 +33,13 @@ from lerobot_roboscape.world_model.st_transformer import KVCache
 WARMUP_FRAMES = 2  # eager passes before a capture, on a side stream, so lazy initialisation is not recorded
 
 
-@dataclass
 def readout(model, hidden_BTNC: torch.Tensor, B: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The latest frame's done probability (B,) and pooled features (B, C), from the first B rows (a guided
     rollout's second half is its unconditional twin)."""
     return torch.sigmoid(model.done_logits(hidden_BTNC[:B, -1:])[:, 0].float()), hidden_BTNC[:B, -1].mean(dim=1)
 
 
+@dataclass
 class Rollout:
     """What a running generation remembers: the last `window - 1` frames as tokens, their controls and states, and
     (with the cache) every layer's keys and values of those frames. When guided, tokens, controls, states and cache
