@@ -89,10 +89,10 @@ class SFTConfig:
 
 @dataclass
 class LeRobotEvalConfig:
-    """`lerobot-eval` in `roboscape_wm` (`--eval.n_episodes`, `--env.episode_length`)."""
+    """`lerobot-eval` in `roboscape_wm` (`--eval.n_episodes`, `--env.episode_length`; null: as env.episode_length)."""
 
     n_episodes: int = 2
-    episode_length: int = 60
+    episode_length: int | None = None
 
 
 @dataclass
@@ -138,7 +138,7 @@ class EvalSettings:
     """
 
     episodes: int = 1
-    episode_length: int | None = 60
+    episode_length: int | None = None
 
 
 def _training(config_class: type, steps: int, batch_size: int):

@@ -94,10 +94,11 @@ def lerobot_eval_in_world_model(
     cfg: PipelineConfig, out: Path, checkpoints: dict[str, Path], env: RoboscapeWorldModelEnvConfig
 ) -> dict[str, Path]:
     """LeRobot's own evaluation (`lerobot-eval`) of each policy in `roboscape_wm`; returns {name: eval_info.json}."""
+    length = cfg.lerobot_eval.episode_length or cfg.env.episode_length  # null: each family's horizon
     env_args = [
         "--env.type=roboscape_wm",
         f"--env.families=[{','.join(cfg.data.families)}]",
-        f"--env.episode_length={cfg.lerobot_eval.episode_length}",
+        *([f"--env.episode_length={length}"] if length else []),
         *(f"--env.{key}={value}" for key, value in asdict(env).items() if key in _LEROBOT_EVAL_ENV_KEYS),
     ]
     results = {}
