@@ -2,8 +2,8 @@
 model (no state channel, a code per position, clean context), the robot's state as a channel, 2x2 codes per
 position, corrupted context, and all three; each from several seeds. Two runs go at a time, each on one core (one
 torch thread), so that every run gets the same CPU; each reads retrieval, action gain, the state's error and the
-arm region's PSNR on IND and OOD controllability starts as it trains (`--train.eval_freq`; their clock stops while
-it does). Then `wm_curves.py` draws them.
+arm region's PSNR on IND and OOD controllability starts as it trains (`--train.eval_freq`). A run's budget is wall
+clock, its readings included; the curves' minutes are its training alone. Then `wm_curves.py` draws them.
 
     python scripts/experiments/wm_levers.py outputs/screen --out outputs/screen/levers --minutes 10
     python scripts/experiments/wm_curves.py outputs/screen/levers/* --out docs/results/world_model/levers70
