@@ -56,8 +56,8 @@ class ExperimentConfig:
     sft_dataset_root: their local root (null: the run's demonstrations, or under the paper's protocol those
         collected in the initial scene when `pipeline.data.initial_scene_episodes`).
     levers: guards against a policy that games the world model, each its own PPO run in the world model beside the
-        plain one, judged by the simulator success of its checkpoints (OOD): "kl", "ensemble", "branched", "refresh"
-        (pipeline/levers.py says what each does).
+        plain one, judged by the simulator success of its checkpoints (OOD); pipeline/levers.py lists them and says
+        what each does.
     lever: each lever's settings (`--lever.kl.coef`, `--lever.ensemble.members`, ...): starting points; what each
         measured goes in the report.
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
