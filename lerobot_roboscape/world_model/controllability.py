@@ -178,11 +178,13 @@ def load_control_starts(path: str | Path, frame_skip: int, device="cpu") -> list
 
 
 @torch.no_grad()
-def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other: ControlStart, null: bool) -> dict:
+def measure_start(
+    model, tokenizer: VisualTokenizer, start: ControlStart, other: ControlStart, null: bool, temperature: float = 0.0
+) -> dict:
     """Rollouts of one start under its K sequences (and, for the action gain, under `other` start's sequences;
-    with `null`, under the null action), in one batch. Returns for "world_model" (and "ignoring_actions") the (K, K)
-    PSNR per region and the decoded rollouts, the action gain (dB, mean over the K sequences) and the measures that
-    see the arm (`arm_measures`)."""
+    with `null`, under the null action), in one batch, decoded at `temperature` (0: MaskGIT's argmax). Returns for
+    "world_model" (and "ignoring_actions") the (K, K) PSNR per region and the decoded rollouts, the action gain (dB,
+    mean over the K sequences) and the measures that see the arm (`arm_measures`)."""
     K, T = start.real.shape[:2]
     kinds = {"world_model": start.actions, "other_actions": other.actions[:K]}
     if null:
@@ -193,7 +195,7 @@ def measure_start(model, tokenizer: VisualTokenizer, start: ControlStart, other:
         no_action[-K:] = True
     prompt = start.first[None].expand(len(actions), -1, -1)
     states = start.first_state[None].expand(len(actions), -1, -1) if model.config.state else None
-    generated = model.generate(prompt, T, actions=actions, no_action=no_action, states=states)
+    generated = model.generate(prompt, T, actions=actions, no_action=no_action, states=states, temperature=temperature)
     pred = tokenizer.decode_views(generated.tokens.flatten(0, 1), model.config.n_cameras)
     pred = pred.unflatten(0, (len(actions), T))
     real = start.real.float() / 255
@@ -235,12 +237,15 @@ def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart)
     return retrieval_accuracy(-nll.view(K, K).T.cpu().numpy())  # row j: future j under each sequence
 
 
-def control_summary(model, tokenizer: VisualTokenizer, starts: list[ControlStart]) -> dict[str, float]:
+def control_summary(
+    model, tokenizer: VisualTokenizer, starts: list[ControlStart], temperature: float = 0.0
+) -> dict[str, float]:
     """Retrieval (whole frame, object) and action gain over a controllability set: the held-out measures that
-    size the action model's training."""
+    size the action model's training (rollouts decoded at `temperature`)."""
     retrieval, gain, likelihood, arm = defaultdict(list), [], [], []
     for i, start in enumerate(starts):
-        measured = measure_start(model, tokenizer, start, starts[(i + 1) % len(starts)], null=False)
+        other = starts[(i + 1) % len(starts)]
+        measured = measure_start(model, tokenizer, start, other, null=False, temperature=temperature)
         for region, sims in measured["world_model"]["similarity"].items():
             if not np.isnan(sims).any():
                 retrieval[region].append(retrieval_accuracy(sims))
