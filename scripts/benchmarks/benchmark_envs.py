@@ -11,7 +11,7 @@ steps are control steps, and the model makes a frame every k of them.
     python scripts/benchmarks/benchmark_envs.py --batch-sizes 1 16 --steps 20
     python scripts/benchmarks/benchmark_envs.py --demo-dir outputs/bench [--done-source classifier]
     python scripts/benchmarks/benchmark_envs.py --random-preset bench --frame-skips 1 4 --batch-sizes 1 16 --steps 40 \
-        --precisions float32 bfloat16
+        --precisions float32 bfloat16 [--patches 1 2]
     # the world model alone (no simulator) from batch 1 up to the largest that fits, with peak GPU memory
     python scripts/benchmarks/benchmark_envs.py --random-preset paper --no-simulator --batch-sizes 1 16 64 128 256 \
         --precisions bfloat16
@@ -86,6 +86,9 @@ def main():
     parser.add_argument("--random-preset", choices=["tiny", "bench", "paper"], help="untrained models of a preset")
     parser.add_argument("--frame-skips", type=int, nargs="+", default=[4], help="with --random-preset")
     parser.add_argument(
+        "--patches", type=int, nargs="+", default=[1], help="with --random-preset: codes per position side (--wm.patch)"
+    )
+    parser.add_argument(
         "--precisions", nargs="+", default=["auto"], choices=PRECISIONS, help="roboscape_wm's precision"
     )
     parser.add_argument("--no-simulator", action="store_true", help="roboscape_wm alone, with its peak GPU memory")
@@ -93,10 +96,10 @@ def main():
     demo = args.demo_dir
     torch.manual_seed(0)
     if args.random_preset:
-        for k in args.frame_skips:
+        for k, patch in itertools.product(args.frame_skips, args.patches):
             with tempfile.TemporaryDirectory() as tmp:
-                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}")
-                measure(args, random_models_config(demo, args.random_preset, k, Path(tmp)))
+                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}, {patch}x{patch} codes per position")
+                measure(args, random_models_config(demo, args.random_preset, k, Path(tmp), patch))
         return
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
         raise SystemExit(f"no demo models under {demo}: run `roboscape-demo` first (or pass --demo-dir)")
@@ -118,12 +121,16 @@ def main():
     measure(args, wm_config)
 
 
-def random_models_config(demo: Path, preset: str, frame_skip: int, out: Path) -> RoboscapeWorldModelEnvConfig:
-    """An env config on untrained models of `preset` at `frame_skip`, saved under `out`, and the run's dataset."""
+def random_models_config(
+    demo: Path, preset: str, frame_skip: int, out: Path, patch: int = 1
+) -> RoboscapeWorldModelEnvConfig:
+    """An env config on untrained models of `preset` at `frame_skip` (with patch x patch codes per position), saved
+    under `out`, and the run's dataset."""
     tokenizer = VisualTokenizer(TokenizerConfig.get_choice_class(preset)())
     tokenizer.save_pretrained(out / "tokenizer")
     wm = WorldModelConfig.get_choice_class(preset)(
         frame_skip=frame_skip,
+        patch=patch,
         tokens_per_side=tokenizer.config.tokens_per_side,
         vocab_size=tokenizer.config.codebook_size,
         action_mean=[0.0] * 7,
