@@ -98,7 +98,7 @@ def main():
     if args.random_preset:
         for k, patch in itertools.product(args.frame_skips, args.patches):
             with tempfile.TemporaryDirectory() as tmp:
-                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}, {patch}x{patch} codes per position")
+                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}, {patch}x{patch} codes a position")
                 measure(args, random_models_config(demo, args.random_preset, k, Path(tmp), patch))
         return
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
