@@ -104,6 +104,28 @@ class Cell:
         return f"{self.successes}/{self.episodes}, 95% CI {low:.2f}-{high:.2f}"
 
 
+@dataclass(frozen=True)
+class CurvePoint:
+    """One checkpoint of a PPO run judged in the simulator: its iteration (0: the SFT checkpoint), PPO's clock when
+    it was saved (s) and its cell. Written as one JSON object (the cell's fields beside the two)."""
+
+    iteration: int
+    seconds: float
+    cell: Cell
+
+    @classmethod
+    def from_json(cls, data: "dict | CurvePoint") -> "CurvePoint":
+        return data if isinstance(data, CurvePoint) else cls(data["iteration"], data["seconds"], Cell.from_json(data))
+
+    def to_json(self) -> dict:
+        return {"iteration": self.iteration, "seconds": self.seconds, **self.cell.to_json()}
+
+
+def curve_of(points: list) -> list[CurvePoint]:
+    """A checkpoint curve as points, from its JSON form or as it is."""
+    return [CurvePoint.from_json(point) for point in points]
+
+
 class Results:
     """Table 1's cells: {policy: {method: {split: {family (and "all"): Cell}}}}, in the order they were run."""
 

@@ -17,7 +17,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.evaluation.results import ALL
+from lerobot_roboscape.evaluation.results import ALL, CurvePoint
 from lerobot_roboscape.evaluation.success_rate import read_cells
 from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages, world_model_runs
 from lerobot_roboscape.pipeline.clock import StageClock
@@ -238,11 +238,7 @@ def checkpoint_curve(
     ]
     policy_stages.run_evaluations(cfg.pipeline, jobs)
     return [
-        {
-            "iteration": iteration,
-            "seconds": seconds,
-            **read_cells(job.output_dir, "ood")[ALL].to_json(),
-        }
+        CurvePoint(iteration, seconds, read_cells(job.output_dir, "ood")[ALL]).to_json()
         for (iteration, seconds, _), job in zip(points, jobs, strict=True)
     ]
 

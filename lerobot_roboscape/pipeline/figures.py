@@ -7,6 +7,7 @@ import imageio.v3 as iio
 import matplotlib
 import numpy as np
 
+from lerobot_roboscape.evaluation.results import curve_of
 from lerobot_roboscape.pipeline.layout import rl_dir
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, Method
 from lerobot_roboscape.rl.history import read_ppo_history
@@ -60,11 +61,12 @@ def curve_figure(out: Path, policy: str, curve: list[dict], path: Path) -> None:
     left.set_xlabel("PPO iteration (0: the SFT checkpoint)")
     left.set_ylabel("world-model return", color="tab:blue")
     right = left.twinx()
-    x = [point["iteration"] for point in curve]
-    rate = np.array([100 * point["success_rate"] for point in curve])
-    ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
+    points = curve_of(curve)
+    x = [point.iteration for point in points]
+    rate = np.array([100 * point.cell.success_rate for point in points])
+    ci = 100 * np.array([point.cell.ci95 for point in points])
     right.errorbar(x, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color="tab:red", capsize=3)
-    right.set_ylabel(f"simulator success, OOD (%, {curve[0]['episodes']} episodes)", color="tab:red")
+    right.set_ylabel(f"simulator success, OOD (%, {points[0].cell.episodes} episodes)", color="tab:red")
     right.set_ylim(0, 100)
     left.legend(loc="upper left", fontsize=7)
     fig.tight_layout()
@@ -78,9 +80,10 @@ def gaming_figure(out: Path, policy: str, curves: dict[str, list[dict]], path: P
     gives its training episodes (dashed, same colour). A run that games the world model climbs dashed, falls solid."""
     fig, ax = plt.subplots(figsize=(8, 3.8))
     for (method, curve), colour in zip(curves.items(), plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False):
-        minutes = np.array([point["seconds"] / 60 for point in curve])
-        rate = np.array([100 * point["success_rate"] for point in curve])
-        ci = np.array([[100 * point["ci95"][0], 100 * point["ci95"][1]] for point in curve])
+        points = curve_of(curve)
+        minutes = np.array([point.seconds / 60 for point in points])
+        rate = np.array([100 * point.cell.success_rate for point in points])
+        ci = 100 * np.array([point.cell.ci95 for point in points])
         ax.errorbar(minutes, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], fmt="o-", color=colour, capsize=3)
         ax.plot([], [], "-", color=colour, label=Method.named(method).variant or "no lever")
         history = read_ppo_history(out / rl_dir(policy, method))

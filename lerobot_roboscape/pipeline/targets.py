@@ -4,7 +4,14 @@ simulator's, and the claim's Table 1). A target row is {"value", "goal", "met"} 
 
 import numpy as np
 
-from lerobot_roboscape.evaluation.results import ALL, Cell, Results, difference_interval, paired_difference_interval
+from lerobot_roboscape.evaluation.results import (
+    ALL,
+    Cell,
+    Results,
+    curve_of,
+    difference_interval,
+    paired_difference_interval,
+)
 from lerobot_roboscape.evaluation.tables import SHORT, SPLIT_NAMES
 from lerobot_roboscape.io.templates import number
 from lerobot_roboscape.pipeline.methods import (
@@ -349,13 +356,13 @@ def claim_targets(table: Results | dict, families: list[str], curve: list[dict] 
                     target_row(rate, f">= {floor:.2f} (SFT's 95% lower bound)", rate >= floor)
                 )
     if curve:
-        first, last = curve[0], curve[-1]
+        first, last = curve_of([curve[0], curve[-1]])
         targets["OOD all: PPO in WM's last checkpoint, within its first's interval or above (checkpoint curve)"] = (
             target_row(
-                last["success_rate"],
-                f">= {first['ci95'][0]:.2f} (iteration {first['iteration']}'s 95% lower bound)",
-                last["success_rate"] >= first["ci95"][0],
-                f"iteration {last['iteration']}, {last['episodes']} episodes",
+                last.cell.success_rate,
+                f">= {first.cell.ci95[0]:.2f} (iteration {first.iteration}'s 95% lower bound)",
+                last.cell.success_rate >= first.cell.ci95[0],
+                f"iteration {last.iteration}, {last.cell.episodes} episodes",
             )
         )
     return targets

@@ -97,7 +97,7 @@ def test_differences_give_the_paired_interval_beside_the_unpaired():
 @pytest.mark.parametrize(("first", "last", "met"), [(20, 20, True), (20, 14, True), (20, 13, False), (5, 30, True)])
 def test_the_checkpoint_curve_target_holds_the_last_checkpoint_within_the_firsts_interval(first, last, met):
     # 20/50 has the 95% lower bound 0.276: 14/50 (0.28) is within it, 13/50 (0.26) below.
-    curve = [{"iteration": 0, **cell(first)}, {"iteration": 5, **cell(25)}, {"iteration": 10, **cell(last)}]
+    curve = [{"iteration": i, "seconds": 60.0 * i, **cell(n)} for i, n in ((0, first), (5, 25), (10, last))]
     targets = claim_targets(table(40, 10, 30, 25, None), ["push"], curve)
     (name,) = [n for n in targets if "checkpoint curve" in n]
     assert targets[name]["met"] == met and targets[name]["value"] == pytest.approx(last / 50)
