@@ -86,7 +86,7 @@ def main():
     parser.add_argument("--random-preset", choices=["tiny", "bench", "paper"], help="untrained models of a preset")
     parser.add_argument("--frame-skips", type=int, nargs="+", default=[4], help="with --random-preset")
     parser.add_argument(
-        "--patches", type=int, nargs="+", default=[1], help="with --random-preset: codes per position side (--wm.patch)"
+        "--patches", type=int, nargs="+", default=[None], help="with --random-preset: codes per position side"
     )
     parser.add_argument(
         "--precisions", nargs="+", default=["auto"], choices=PRECISIONS, help="roboscape_wm's precision"
@@ -98,7 +98,8 @@ def main():
     if args.random_preset:
         for k, patch in itertools.product(args.frame_skips, args.patches):
             with tempfile.TemporaryDirectory() as tmp:
-                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}, {patch}x{patch} codes a position")
+                codes = "the preset's" if patch is None else f"{patch}x{patch}"
+                print(f"\n{args.random_preset} preset, untrained, frame_skip k = {k}, codes a position: {codes}")
                 measure(args, random_models_config(demo, args.random_preset, k, Path(tmp), patch))
         return
     if not (demo / "world_model_action" / "pretrained_model").is_dir():
@@ -122,7 +123,7 @@ def main():
 
 
 def random_models_config(
-    demo: Path, preset: str, frame_skip: int, out: Path, patch: int = 1
+    demo: Path, preset: str, frame_skip: int, out: Path, patch: int | None = None
 ) -> RoboscapeWorldModelEnvConfig:
     """An env config on untrained models of `preset` at `frame_skip` (with patch x patch codes per position), saved
     under `out`, and the run's dataset."""
@@ -130,7 +131,7 @@ def random_models_config(
     tokenizer.save_pretrained(out / "tokenizer")
     wm = WorldModelConfig.get_choice_class(preset)(
         frame_skip=frame_skip,
-        patch=patch,
+        **({} if patch is None else {"patch": patch}),
         tokens_per_side=tokenizer.config.tokens_per_side,
         vocab_size=tokenizer.config.codebook_size,
         action_mean=[0.0] * 7,

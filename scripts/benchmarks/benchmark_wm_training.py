@@ -64,11 +64,14 @@ def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int =
     )
 
 
-def run(preset: str, patch: int, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device) -> dict:
+def run(
+    preset: str, patch: int | None, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device
+) -> dict:
     settings = PATHS[path]
     config = WorldModelConfig.get_choice_class(preset)(
-        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, patch=patch, **UNIT_STATE_STATS
+        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS
     )
+    config.patch = config.patch if patch is None else patch
     torch.manual_seed(0)
     model = STWorldModel(config)
     batches = ClipSampler(cache, cache.episodes, config.window, batch, seed=0, frame_skip=config.frame_skip)
@@ -113,7 +116,9 @@ def run(preset: str, patch: int, batch: int, path: str, steps: int, cache: Token
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--presets", nargs="+", default=["bench"])
-    parser.add_argument("--patches", nargs="+", type=int, default=[1], help="codes per position side (--wm.patch)")
+    parser.add_argument(
+        "--patches", nargs="+", type=int, default=[None], help="codes per position side (default: the preset's)"
+    )
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[4])
     parser.add_argument("--steps", type=int, default=6, help="steps per run; the first (compilation) is not timed")
     parser.add_argument("--episodes", type=int, default=64, help="episodes of the random token cache")
