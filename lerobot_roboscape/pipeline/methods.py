@@ -22,6 +22,9 @@ class Method(str):
         cls._known[label] = method
         return method
 
+    def __reduce__(self):  # a copy or an unpickled method is the one made here, with its tag and variant
+        return Method.named, (str(self),)
+
     @property
     def ood_only(self) -> bool:
         return bool(self.variant)

@@ -2,6 +2,9 @@
 method (its tag, whether it runs OOD only); each lever makes its run from its own settings (env, PPO's settings,
 runner) and describes it; the experiment's config takes them from the command line."""
 
+import copy
+import dataclasses
+import pickle
 from functools import partial
 from pathlib import Path
 
@@ -27,6 +30,11 @@ from lerobot_roboscape.pipeline.ppo_run import ppo
 from roboscape_core.errors import InvalidInputError
 
 
+@dataclasses.dataclass
+class PickleBox:
+    method: Method
+
+
 def test_a_method_read_back_by_its_name_is_the_same_method():
     kl = LEVERS["kl"].method
     assert Method.named(str(kl)) is kl and Method.named("RL w. World Model, KL to SFT").tag == "ppo_world_model_kl"
@@ -42,6 +50,9 @@ def test_a_method_read_back_by_its_name_is_the_same_method():
     with pytest.raises(ValueError, match="two methods are named 'Supervised finetune'"):
         Method("Supervised finetune", "sft_again")
     assert len({m.tag for m in Method._known.values()}) == len(Method._known)  # one folder per method
+    # settings that hold a method are copied (dataclasses.asdict) and pickled (worker processes) whole
+    assert copy.deepcopy(kl) is kl and pickle.loads(pickle.dumps(kl)) is kl and kl.tag == "ppo_world_model_kl"
+    assert dataclasses.asdict(PickleBox(kl))["method"] is kl
 
 
 @pytest.fixture
