@@ -15,15 +15,17 @@ class Method(str):
     _known: dict[str, "Method"] = {}
 
     def __new__(cls, label: str, tag: str, variant: str = "") -> "Method":
-        if label in cls._known:
-            raise ValueError(f"two methods are named {label!r}")
+        if (known := cls._known.get(label)) is not None:
+            if (known.tag, known.variant) != (tag, variant):
+                raise ValueError(f"two methods are named {label!r}")
+            return known  # the same method made again (unpickled): one object per method
         method = super().__new__(cls, label)
         method.tag, method.variant = tag, variant
         cls._known[label] = method
         return method
 
-    def __reduce__(self):  # a copy or an unpickled method is the one made here, with its tag and variant
-        return Method.named, (str(self),)
+    def __reduce__(self):  # copied or unpickled (also in a process that never made it): the same method
+        return Method, (str(self), self.tag, self.variant)
 
     @property
     def ood_only(self) -> bool:
