@@ -351,8 +351,9 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     sft = e.sft(clock)
     policy = next(iter(sft))
     clock("levers", f"the guards against gaming the world model: {', '.join(cfg.levers) or 'none'}")
-    if wm_env is not None:
-        levers = lever_runs(cfg.levers, lever_context(cfg, e.run, e.out, trained, wm_env), cfg.lever)
+    context = None if wm_env is None else lever_context(cfg, e.run, e.out, trained, wm_env)
+    if context is not None:
+        levers = lever_runs(cfg.levers, context, cfg.lever)
     clock(
         "PPO",
         "PPO in roboscape_wm and in roboscape_maniskill"
@@ -374,7 +375,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     curve = checkpoint_curve(cfg, e.out, trained.demonstrations, policy, sft[policy])
     lever_curves = {m: checkpoint_curve(cfg, e.out, trained.demonstrations, policy, sft[policy], m) for m in levers}
     clock("replay", "world-model rollouts replayed in the simulator")
-    ppo_env = None if wm_env is None else lever_context(cfg, e.run, e.out, trained, wm_env).world_model
+    ppo_env = None if context is None else context.world_model
     replays = replay_in_simulator(p, cfg.replay_episodes, e.out, ppo_env, rl[policy][methods.RL_WORLD_MODEL], rollouts)
     clock("report", "the claim's report")
     report = write_experiment_report(cfg, e.out, results, curve, replays, lever_curves)
