@@ -8,7 +8,6 @@ codes (N positions of G codes each: `group`), while everything outside reads and
 actions one per control step, k per frame, and states one per frame.
 """
 
-import json
 from pathlib import Path
 from typing import NamedTuple
 
@@ -19,14 +18,14 @@ from huggingface_hub import snapshot_download
 from torch import nn
 
 from lerobot_roboscape.io.weights import CheckedHubMixin
-from lerobot_roboscape.training.loop import TRAIN_CONFIG
 from lerobot_roboscape.training.losses import balanced_bce
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.flops import forward_flops_per_clip
-from lerobot_roboscape.world_model.objective import masked_inputs, masked_token_loss
+from lerobot_roboscape.world_model.objective import copy_prior, masked_token_loss, training_inputs
 from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
+from lerobot_roboscape.world_model.saved import refuse_unusable
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 from roboscape_core.errors import InvalidInputError
 
@@ -37,19 +36,6 @@ class Generated(NamedTuple):
     tokens: torch.Tensor  # (B, n_frames, S)
     done: torch.Tensor  # (B, n_frames) probabilities
     state: torch.Tensor | None  # (B, n_frames, state_dim) the predicted raw states; None without a state channel
-
-
-def retrain_command(model_dir: Path, control: str) -> str:
-    """The roboscape-train-wm command that trains a model again, from its run's record (the folder above the saved
-    model) where there is one."""
-    record = model_dir.parent / TRAIN_CONFIG
-    run = json.loads(record.read_text()) if record.is_file() else {}
-    dataset = run.get("dataset") or {}
-    return (
-        f"roboscape-train-wm --dataset.repo_id={dataset.get('repo_id', '<repo id>')} "
-        f"--dataset.root={dataset.get('root', '<dataset folder>')} --tokenizer={run.get('tokenizer', '<tokenizer>')} "
-        f"--wm.type=<preset> --wm.control={control} --output_dir={model_dir.parent}"
-    )
 
 
 class STWorldModel(
@@ -73,6 +59,7 @@ class STWorldModel(
         self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
         self.ln_f = nn.LayerNorm(C)
         self.head = nn.Linear(C, G * config.vocab_size)  # a code's logits per place in the patch
+        self.copy_gain = nn.Parameter(torch.tensor(config.copy_logit)) if config.copy_logit > 0 else None
         self.done_head = nn.Sequential(nn.Linear(C, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, 1))
         for name, module in self.named_modules():
             if not name.startswith("control_encoder.t5"):
@@ -193,15 +180,25 @@ class STWorldModel(
         itemsize = torch.finfo(dtype).bits // 8
         return KVCache.nbytes(self.config.n_layer, rows, self.config.d_model, self.config.window, itemsize)
 
-    def token_logits(self, hidden_BTNC) -> torch.Tensor:
-        """Logits (B, T, S, V) of every code, in code order."""
+    def token_logits(self, hidden_BTNC, previous_BTS=None) -> torch.Tensor:
+        """Logits (B, T, S, V) of every code, in code order; with the copy prior, each frame's previous frame's codes
+        `previous_BTS` (the mask token where there is none) get the learned gain."""
         B, T, N, _ = hidden_BTNC.shape
-        return self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
+        logits = self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
+        if self.copy_gain is None:
+            return logits
+        return copy_prior(logits, previous_BTS, self.copy_gain.to(logits.dtype))
 
-    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None, states=None):
-        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
+    def previous_frames(self, tokens_BTS) -> torch.Tensor:
+        """Each frame's previous frame (B, T, S), the mask token before the first."""
+        return torch.cat([torch.full_like(tokens_BTS[:, :1], self.config.mask_token_id), tokens_BTS[:, :-1]], 1)
+
+    def compute_logits(self, tokens_BTS, control: Control, cache=None, states=None, previous_BTS=None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`. The
+        frames' previous frames are the tokens' own, except with a cache (T = 1), where the caller gives them."""
         hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states)
-        return self.token_logits(hidden_BTNC), self.done_logits(hidden_BTNC), kvs
+        previous_BTS = self.previous_frames(tokens_BTS) if previous_BTS is None else previous_BTS
+        return self.token_logits(hidden_BTNC, previous_BTS), self.done_logits(hidden_BTNC), kvs
 
     def done_logits(self, hidden_BTNC) -> torch.Tensor:
         """The done head reads the whole current frame: (B, T, N, C) -> (B, T)."""
@@ -227,11 +224,11 @@ class STWorldModel(
         if c.control_dropout > 0:
             dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < c.control_dropout
             control = control.where(dropped, self.null_control(control))
-        inputs, mask = masked_inputs(tokens, c, self.ungroup)
-
+        codes, mask = training_inputs(tokens, c, self.ungroup)
         states = batch.get("state")
-        hidden, _ = self.compute_hidden(inputs, control, states=states)
-        logits, done_logits = self.token_logits(hidden), self.done_logits(hidden)
+        hidden, _ = self.compute_hidden(codes.masked_fill(mask, c.mask_token_id), control, states=states)
+        # the copy prior reads the previous frame whole, as a rollout's is, with its corruption
+        logits, done_logits = self.token_logits(hidden, self.previous_frames(codes)), self.done_logits(hidden)
         token_loss, token_logs = masked_token_loss(logits, tokens, mask, c.changed_weight)
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + c.done_weight * done_loss
@@ -385,16 +382,5 @@ class STWorldModel(
             token=token,
             **kwargs,
         )
-        if model.config.state and model.config.state_mean is None:
-            raise InvalidInputError(
-                f"{model_id}: a world model saved without the robot's state statistics (before the state was a "
-                f"channel of every frame); retrain it: {retrain_command(root, model.config.control)}"
-            )
-        if model.config.control == "action" and model.config.action_mean is None:
-            zeros, ones = [0.0] * model.config.action_dim, [1.0] * model.config.action_dim
-            raise InvalidInputError(
-                f"{model_id}: an action world model saved without action statistics (before actions were "
-                "normalised); retrain it with roboscape-train-wm, or keep its raw-action behaviour by adding "
-                f'"action_mean": {zeros}, "action_std": {ones} to its config.json'
-            )
+        refuse_unusable(model, model_id, root)
         return model

@@ -42,6 +42,8 @@ LEVERS = {
     "patch2": {"state": "false", "patch": "2"},
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},
+    # all three, each code starting from a copy of the previous frame's
+    "copy": {"patch": "2", "corrupt_max": "0.2", "copy_logit": "6"},
 }
 
 
