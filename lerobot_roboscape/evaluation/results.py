@@ -196,3 +196,57 @@ class Results:
 
     def __bool__(self) -> bool:
         return any(self.cells.values())
+
+
+@dataclass(frozen=True)
+class Difference:
+    """One method's success minus another's (`against`) in a (policy, split, family) cell, with Newcombe's 95%
+    interval for independent proportions and, where every episode pairs with one from the same initial state, his
+    interval for paired proportions, which then decides."""
+
+    policy: str
+    against: str
+    split: str
+    family: str
+    difference: float
+    ci95: tuple[float, float]
+    paired_ci95: tuple[float, float] | None = None
+
+    @property
+    def key(self) -> tuple[str, str, str, str]:
+        return self.policy, self.against, self.split, self.family
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        """The interval that decides: the paired one where kept."""
+        return self.paired_ci95 or self.ci95
+
+    @property
+    def kind(self) -> str:
+        return "paired" if self.paired_ci95 else "unpaired"
+
+    @classmethod
+    def from_json(cls, data: "dict | Difference") -> "Difference":
+        if isinstance(data, Difference):
+            return data
+        paired = data.get("paired_ci95")  # absent from results written before paired intervals
+        return cls(
+            data["policy"],
+            data["against"],
+            data["split"],
+            data["family"],
+            data["difference"],
+            tuple(data["ci95"]),
+            tuple(paired) if paired else None,
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "policy": self.policy,
+            "against": self.against,
+            "split": self.split,
+            "family": self.family,
+            "difference": self.difference,
+            "ci95": list(self.ci95),
+            "paired_ci95": list(self.paired_ci95) if self.paired_ci95 else None,
+        }

@@ -5,12 +5,13 @@ ablation, the levers' rows and the command that regenerates it."""
 import re
 from pathlib import Path
 
-from lerobot_roboscape.evaluation.results import ALL, Cell, Results
+from lerobot_roboscape.evaluation.results import ALL, Cell, Difference, Results
 from lerobot_roboscape.evaluation.tables import (
     SHORT,
     SPLIT_NAMES,
     format_table,
 )
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.config import changed_flags, settings_flags
 from lerobot_roboscape.pipeline.methods import (
     PAPER_PROTOCOL,
@@ -21,6 +22,7 @@ from lerobot_roboscape.pipeline.methods import (
     Method,
     initial_scene,
 )
+from lerobot_roboscape.pipeline.replay import agreed
 from lerobot_roboscape.pipeline.report import render_pipeline_report
 
 README_BEGIN, README_END = "<!-- bench-results:begin -->", "<!-- bench-results:end -->"
@@ -49,11 +51,11 @@ def cell(cell: Cell | dict) -> str:
     return f"{c.successes}/{c.episodes} ({100 * c.success_rate:.0f}% [{low:.0f}, {high:.0f}])"
 
 
-def difference(d: dict) -> str:
-    low, high = d["ci95"]
-    text = f"{100 * d['difference']:+.0f} [{100 * low:+.0f}, {100 * high:+.0f}]"
-    if d.get("paired_ci95"):
-        low, high = d["paired_ci95"]
+def difference(d: Difference) -> str:
+    low, high = d.ci95
+    text = f"{100 * d.difference:+.0f} [{100 * low:+.0f}, {100 * high:+.0f}]"
+    if d.paired_ci95:
+        low, high = d.paired_ci95
         text += f" paired [{100 * low:+.0f}, {100 * high:+.0f}]"
     return text
 
@@ -132,27 +134,15 @@ def protocol(cfg, elsewhere: dict | None = None) -> str:
     )
 
 
-def _by_comparison(differences: list[dict]) -> dict[tuple[str, str, str, str], dict]:
-    """The differences by (policy, against, split, family)."""
-    return {(d["policy"], d["against"], d["split"], d["family"]): d for d in differences}
-
-
-def agreed(replays: list[dict]) -> int:
-    """The replayed rollouts whose outcome the world model and the simulator agree on."""
-    return sum(r["world_model_success"] == r["simulator_success"] for r in replays)
-
-
-def answer(summary: dict) -> list[str]:
+def answer(summary: ClaimSummary) -> list[str]:
     """The report's first lines: did PPO in the world model lift SFT out of domain (all families), by how much
     against SFT and each PPO in the simulator (paired intervals where kept), and how often the world model agreed
     with the simulator on that policy's replayed rollouts."""
-    lines = []
-    by = _by_comparison(summary["differences"])
-    table = Results.of(summary["table"])
+    lines, by, table = [], summary.by_comparison(), summary.table
     for policy in table.policies:
         sft, wm = (table.cell(policy, m, "ood") for m in (SFT, RL_WORLD_MODEL))
         row = by[policy, SFT, "ood", ALL]
-        low, high = row["paired_ci95"] or row["ci95"]
+        low, high = row.interval
         verdict = "**Yes**" if low > 0 else "**No, it made it worse**" if high < 0 else "**Not shown**"
         lines.append(
             f"{verdict} ({policy}): PPO in the world model took the SFT policy from {sft.success_rate:.0%} to "
@@ -163,26 +153,25 @@ def answer(summary: dict) -> list[str]:
             if (policy, other, "ood", ALL) in by:
                 rate = table.cell(policy, other, "ood").success_rate
                 lines.append(f"Against {other} ({rate:.0%} OOD): " + _points(by[policy, other, "ood", ALL]))
-    replays = summary["replays"]
-    agree = agreed(replays)
+    replays = summary.replays
     lines.append(
-        f"The world model agreed with the simulator on the outcome of {agree} of {len(replays)} of this policy's "
-        f"rollouts replayed there (successes: {sum(r['world_model_success'] for r in replays)} in the world model, "
-        f"{sum(r['simulator_success'] for r in replays)} in the simulator)."
+        f"The world model agreed with the simulator on the outcome of {agreed(replays)} of {len(replays)} of this "
+        f"policy's rollouts replayed there (successes: {sum(r.world_model_success for r in replays)} in the world "
+        f"model, {sum(r.simulator_success for r in replays)} in the simulator)."
     )
     return lines
 
 
-def _points(row: dict) -> str:
-    low, high = row["paired_ci95"] or row["ci95"]
-    kind = "paired" if row["paired_ci95"] else "unpaired"
-    return f"{100 * row['difference']:+.0f} points, {kind} 95% interval [{100 * low:+.0f}, {100 * high:+.0f}]."
+def _points(row: Difference) -> str:
+    low, high = row.interval
+    return f"{100 * row.difference:+.0f} points, {row.kind} 95% interval [{100 * low:+.0f}, {100 * high:+.0f}]."
 
 
-def markdown(cfg, summary: dict) -> str:
-    p, table = cfg.pipeline, Results.of(summary["table"])
+def markdown(cfg, summary: "ClaimSummary | dict") -> str:
+    summary = ClaimSummary.from_json(summary)
+    p, table = cfg.pipeline, summary.table
     families = [*p.data.families, ALL]
-    by = _by_comparison(summary["differences"])
+    by = summary.by_comparison()
     difference_rows = [
         (other, SPLIT_NAMES[split], [by[policy, other, split, f] for f in families])
         for policy in table.policies
@@ -190,7 +179,7 @@ def markdown(cfg, summary: dict) -> str:
         for split in table.splits()
         if (policy, other, split, ALL) in by
     ]
-    ablation, ablation_rows = Results.of(summary["reward_ablation"]), []
+    ablation, ablation_rows = summary.reward_ablation, []
     for policy in ablation.policies:
         if methods := ablation.methods(policy):
             rows = {"both (alpha x sparse + beta x dense)": RL_WORLD_MODEL} | {
@@ -200,43 +189,47 @@ def markdown(cfg, summary: dict) -> str:
             ablation_rows += [
                 (name, [source[m].cell(policy, m, "ood", f) for f in families]) for name, m in rows.items()
             ]
-    beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary["ppo_runs"]}
-    levers = Results.of(summary["levers"])
-    lever_rows = [
-        (
-            method,
-            summary.get("lever_settings", {}).get(method, ""),
-            [levers.cell(policy, method, "ood", f) for f in families],
-            summary["lever_curves"][method],
-            beside.get((policy, method), 0),
-        )
-        for policy in levers.policies
-        for method in levers.methods(policy)
-    ]
-    replays = summary["replays"]
     return render_pipeline_report(
         "claim_report.md",
         FILTERS,
         p=p,
         summary=summary,
-        targets=summary["targets"],
+        targets=summary.targets,
         command=command(cfg),
         upstream={name: _relative(path, cfg.report_dir) for name, path in UPSTREAM_REPORTS.items()},
-        protocol=protocol(cfg, summary.get("world_model_runs")),
+        protocol=protocol(cfg, summary.world_model_runs),
         answer=answer(summary),
         table=format_table(table, p.data.families, f"{p.scale} scale", True, paper_methods(table)),
-        other=summary.get("other_protocol")
+        other=summary.other_protocol
         and (
-            summary["other_protocol"]["protocol"],
-            format_table(summary["other_protocol"]["table"], p.data.families, f"{p.scale} scale"),
+            summary.other_protocol["protocol"],
+            format_table(summary.other_protocol["table"], p.data.families, f"{p.scale} scale"),
         ),
         short=SHORT,
         difference_rows=difference_rows,
         ablation_rows=ablation_rows,
-        lever_rows=lever_rows,
-        replays=replays,
-        agree=agreed(replays),
+        lever_rows=lever_rows(summary, families),
+        replays=summary.replays,
+        agree=agreed(summary.replays),
     )
+
+
+def lever_rows(summary: ClaimSummary, families: list[str]) -> list[tuple]:
+    """Each lever's row: its method, its description, its OOD cells, its checkpoint curve and the simulator steps
+    that ran beside its PPO (the done refresh's)."""
+    beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary.ppo_runs}
+    levers = summary.levers
+    return [
+        (
+            method,
+            summary.lever_settings.get(method, ""),
+            [levers.cell(policy, method, "ood", f) for f in families],
+            summary.lever_curves[method],
+            beside.get((policy, method), 0),
+        )
+        for policy in levers.policies
+        for method in levers.methods(policy)
+    ]
 
 
 def command(cfg) -> str:
@@ -256,22 +249,14 @@ def _relative(path: str, report_dir: str) -> str:
     return str(Path("../" * len(Path(report_dir).parts)) / path)
 
 
-def readme_block(cfg, summary: dict) -> str:
+def readme_block(cfg, summary: "ClaimSummary | dict") -> str:
     """The README's results: the claim's targets and Table 1, with the machine and the command."""
-    p = cfg.pipeline
-    return (
-        render_pipeline_report(
-            "readme_results.md",
-            cfg=cfg,
-            summary=summary,
-            targets=summary["targets"],
-            command=command(cfg),
-            table=format_table(
-                summary["table"], p.data.families, f"{p.scale} scale", True, paper_methods(summary["table"])
-            ),
-        ).rstrip("\n")
-        + "\n"
-    )  # one final newline, whatever the template's file ends with
+    p, summary = cfg.pipeline, ClaimSummary.from_json(summary)
+    table = format_table(summary.table, p.data.families, f"{p.scale} scale", True, paper_methods(summary.table))
+    text = render_pipeline_report(
+        "readme_results.md", cfg=cfg, summary=summary, targets=summary.targets, command=command(cfg), table=table
+    )
+    return text.rstrip("\n") + "\n"  # one final newline, whatever the template's file ends with
 
 
 def update_readme(readme: Path, block: str) -> None:

@@ -12,12 +12,13 @@ import matplotlib
 import numpy as np
 
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
-from lerobot_roboscape.evaluation.results import ALL, Results, difference_interval
+from lerobot_roboscape.evaluation.results import ALL, Difference, Results, difference_interval
 from lerobot_roboscape.evaluation.tables import (
     TABLES_JSON,
     write_table,
 )
 from lerobot_roboscape.pipeline.claim_markdown import markdown, readme_block, update_readme
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import CURVE_DIR, EVAL_DIR, GOAL_FILE, REPLAY_DIR, protocol_dir, rl_dir
@@ -31,7 +32,7 @@ from lerobot_roboscape.pipeline.methods import (
     SFT,
     Method,
 )
-from lerobot_roboscape.pipeline.replay import REPLAY_PNG
+from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
 from lerobot_roboscape.pipeline.report import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
@@ -41,7 +42,7 @@ from lerobot_roboscape.rl.history import read_ppo_history
 matplotlib.use("Agg")
 
 
-def differences(table: Results | dict, families: list[str]) -> list[dict]:
+def differences(table: Results | dict, families: list[str]) -> list[Difference]:
     """PPO in the world model minus every other method, per policy, split and family, with 95% intervals."""
     rows, table = [], Results.of(table)
     for policy in table.policies:
@@ -53,10 +54,9 @@ def differences(table: Results | dict, families: list[str]) -> list[dict]:
                     ours, theirs = (table.cell(policy, m, split, family) for m in (RL_WORLD_MODEL, other))
                     d, low, high = difference_interval(ours, theirs)
                     paired = paired_interval(ours, theirs)
+                    paired = paired and (round(paired[1], 4), round(paired[2], 4))
                     rows.append(
-                        {"policy": policy, "against": other, "split": split, "family": family}
-                        | {"difference": round(d, 4), "ci95": [round(low, 4), round(high, 4)]}
-                        | {"paired_ci95": paired and [round(paired[1], 4), round(paired[2], 4)]}
+                        Difference(policy, other, split, family, round(d, 4), (round(low, 4), round(high, 4)), paired)
                     )
     return rows
 
@@ -98,7 +98,7 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
 
 
 def write_experiment_report(
-    cfg, out: Path, results: Results, curve: list[dict], replays: list[dict], lever_curves: dict | None = None
+    cfg, out: Path, results: Results, curve: list[dict], replays: list[Replay], lever_curves: dict | None = None
 ) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
     results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}."""
@@ -114,31 +114,28 @@ def write_experiment_report(
     runs = ppo_runs(out, policies, methods)
     elsewhere = world_model_runs_record(cfg)
     times = step_times(out, runs, Path(elsewhere["goals"]) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
-    summary = {
-        "protocol": cfg.protocol,
-        "scale": p.scale,
-        "families": p.data.families,
-        "date": date.today().isoformat(),
-        "machine": machine(),
-        "sft_checkpoint": cfg.sft_checkpoint,
-        "targets": targets,
-        "table": table.to_json(),
-        "differences": differences(table, p.data.families),
-        "reward_ablation": ablation.to_json(),
-        "levers": levers.to_json(),
-        "ppo_runs": runs,
-        "curve": curve,
-        "lever_curves": lever_curves,
-        "lever_settings": lever_descriptions(lever_curves, cfg.lever),
-        "replays": replays,
-        "seconds": times,
-    }
-    if elsewhere:
-        summary["world_model_runs"] = elsewhere
-    other = other_protocol(cfg, out)
-    if other:
-        summary["other_protocol"] = other
-    (folder / "results.json").write_text(json.dumps(summary, indent=2))
+    summary = ClaimSummary(
+        protocol=cfg.protocol,
+        scale=p.scale,
+        families=p.data.families,
+        date=date.today().isoformat(),
+        machine=machine(),
+        sft_checkpoint=cfg.sft_checkpoint,
+        targets=targets,
+        table=table,
+        differences=differences(table, p.data.families),
+        reward_ablation=ablation,
+        levers=levers,
+        ppo_runs=runs,
+        curve=curve,
+        lever_curves=lever_curves,
+        lever_settings=lever_descriptions(lever_curves, cfg.lever),
+        replays=replays,
+        seconds=times,
+        world_model_runs=elsewhere,
+        other_protocol=other_protocol(cfg, out),
+    )
+    (folder / "results.json").write_text(json.dumps(summary.to_json(), indent=2))
     # Table 1 beside this protocol's runs, where the other protocol's report finds it.
     (out / PROTOCOL_TABLE).write_text(json.dumps({"protocol": cfg.protocol, "table": table.to_json()}, indent=2))
     write_table(table, p.data.families, folder, f"{p.scale} scale")
@@ -150,7 +147,7 @@ def write_experiment_report(
     shutil.rmtree(videos, ignore_errors=True)
     videos.mkdir()
     for row in replays:
-        shutil.copy2(out / REPLAY_DIR / row["video"], videos / row["video"])
+        shutil.copy2(out / REPLAY_DIR / row.video, videos / row.video)
     shutil.copy2(out / REPLAY_DIR / REPLAY_PNG, folder / REPLAY_PNG)
     text = markdown(cfg, summary)
     (folder / "report.md").write_text(text)

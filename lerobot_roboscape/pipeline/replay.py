@@ -1,7 +1,9 @@
 """The policy after PPO in the world model, rolled out there and its actions replayed open loop in the simulator
 from the same scene and initial state: what each world said of the same actions (the claim's replay step)."""
 
+import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -20,6 +22,29 @@ REPLAY_JSON, REPLAY_PNG = "replay.json", "replay.png"
 REPLAY_STRIPS = 4  # replays drawn in replay.png
 
 
+@dataclass(frozen=True)
+class Replay:
+    """One start: the return and success the world model gave the policy's rollout, whether its actions replayed
+    in the simulator succeeded, and the side-by-side video (under the replay's folder)."""
+
+    episode_index: int
+    family: str
+    scene: str
+    world_model_return: float
+    world_model_success: bool
+    simulator_success: bool
+    video: str
+
+    @classmethod
+    def from_json(cls, data: "dict | Replay") -> "Replay":
+        return data if isinstance(data, Replay) else cls(**data)
+
+
+def agreed(replays: list[Replay]) -> int:
+    """The replayed rollouts whose outcome the world model and the simulator agree on."""
+    return sum(r.world_model_success == r.simulator_success for r in replays)
+
+
 def replay_in_simulator(
     p: PipelineConfig,
     episodes: int,
@@ -27,7 +52,7 @@ def replay_in_simulator(
     env_cfg: RoboscapeWorldModelEnvConfig | None,
     checkpoint: Path,
     rollouts_file: Path | None = None,
-) -> list[dict]:
+) -> list[Replay]:
     """The policy after PPO in the world model, rolled out in `roboscape_wm` from `episodes` starts (spread
     over the starts, so over families and scenes), or its rollouts made where the world models are
     (`rollouts_file`), and its actions replayed open loop in the simulator from the same scene and initial state.
@@ -51,7 +76,7 @@ def replay_in_simulator(
         _replay(folder, rollouts, p.data.image_size)
 
     resume.run_once(folder, settings, p.fresh, replay)
-    return json.loads((folder / REPLAY_JSON).read_text())
+    return [Replay.from_json(row) for row in json.loads((folder / REPLAY_JSON).read_text())]
 
 
 def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) -> None:
@@ -63,23 +88,22 @@ def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) 
         replayed = replay_actions(worker_env(job), job, rollouts.actions[:, i], {})
         simulator = np.concatenate([replayed.images[camera] for camera in rollouts.cameras], axis=1)  # (T, 2H, W, 3)
         clip = [np.concatenate([rollouts.frames[t, i], simulator[t]], axis=1) for t in range(len(simulator))]
-        row = {
-            "episode_index": start["episode_index"],
-            "family": family,
-            "scene": scene,
-            "world_model_return": round(float(rollouts.returns[i]), 3),
-            "world_model_success": bool(rollouts.success[i]),
-            "simulator_success": bool(replayed.success.any()),
-        }
-        outcome = f"wm-{'success' if row['world_model_success'] else 'failure'}_sim-" + (
-            "success" if row["simulator_success"] else "failure"
+        wm_success, sim_success = bool(rollouts.success[i]), bool(replayed.success.any())
+        outcome = f"wm-{'success' if wm_success else 'failure'}_sim-{'success' if sim_success else 'failure'}"
+        row = Replay(
+            start["episode_index"],
+            family,
+            scene,
+            round(float(rollouts.returns[i]), 3),
+            wm_success,
+            sim_success,
+            f"{i:02d}_{family}_{outcome}.mp4",
         )
-        row["video"] = f"{i:02d}_{family}_{outcome}.mp4"
-        write_video(folder / row["video"], clip, CONTROL_FREQ)
+        write_video(folder / row.video, clip, CONTROL_FREQ)
         rows.append(row)
         strips.append(_strip(clip))
     iio.imwrite(folder / REPLAY_PNG, np.concatenate(strips[:REPLAY_STRIPS], axis=0))
-    write_text_atomically(folder / REPLAY_JSON, json.dumps(rows, indent=2))
+    write_text_atomically(folder / REPLAY_JSON, json.dumps([dataclasses.asdict(row) for row in rows], indent=2))
 
 
 def _strip(clip: list[np.ndarray], columns: int = 5) -> np.ndarray:

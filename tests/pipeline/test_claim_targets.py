@@ -75,9 +75,9 @@ def test_differences_give_the_paired_interval_beside_the_unpaired():
     cells = {"ood": {"push": wm, "all": wm}, "ind": {"push": wm, "all": wm}}
     theirs = {"ood": {"push": sft, "all": sft}, "ind": {"push": sft, "all": sft}}
     rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])
-    row = next(r for r in rows if (r["split"], r["family"]) == ("ood", "push"))
-    assert row["difference"] == pytest.approx(0.1)
-    assert row["ci95"][0] < 0 < row["paired_ci95"][0]
+    row = next(r for r in rows if (r.split, r.family) == ("ood", "push"))
+    assert row.difference == pytest.approx(0.1)
+    assert row.ci95[0] < 0 < row.paired_ci95[0] and row.interval == row.paired_ci95
     # The paired interval decides the target: the same initial states for every method.
     target = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: theirs}}, ["push"])[
         "mlp, OOD Push: PPO in WM minus SFT"
@@ -87,7 +87,7 @@ def test_differences_give_the_paired_interval_beside_the_unpaired():
     old = {k: v for k, v in sft.items() if k != "outcomes"}
     unpaired = {s: {"push": old, "all": old} for s in theirs}
     rows = differences({"mlp": {RL_WORLD_MODEL: cells, SFT: unpaired}}, ["push"])
-    assert all(r["paired_ci95"] is None for r in rows)
+    assert all(r.paired_ci95 is None and r.kind == "unpaired" for r in rows)
     target = claim_targets({"mlp": {RL_WORLD_MODEL: cells, SFT: unpaired}}, ["push"])[
         "mlp, OOD Push: PPO in WM minus SFT"
     ]
@@ -140,6 +140,9 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     results = table(40, 10, 30, 25, 30)
     curve = [{"iteration": i, "seconds": 60.0 * i, **cell(n, 20)} for i, n in ((0, 4), (5, 6), (10, 9))]
     summary = {
+        "scale": "smoke",
+        "families": ["push"],
+        "sft_checkpoint": None,
         "machine": "a test",
         "date": "2026-11-26",
         "table": results,
@@ -212,8 +215,8 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
     assert targets["mlp, Scene Push: PPO in WM, within SFT's interval or above"]["met"]
     assert targets["mlp, IND Push: PPO in WM, within SFT's interval or above"]["met"]
     rows = differences(results, ["push"])
-    row = next(r for r in rows if (r["against"], r["split"], r["family"]) == (SFT, "scene", "all"))
-    assert row["difference"] == pytest.approx(0.3)
+    row = next(r for r in rows if r.key == ("mlp", SFT, "scene", "all"))
+    assert row.difference == pytest.approx(0.3)
     # A method evaluated without the scene (a table of the all-scene protocol) leaves the column out.
     del results["mlp"][SFT]["scene"]
     assert Results.of(results).splits() == ["ind", "ood"]

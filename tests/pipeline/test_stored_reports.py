@@ -11,6 +11,7 @@ import pytest
 
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.claim_markdown import markdown
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import differences
@@ -32,5 +33,6 @@ def test_the_claim_report_renders_again_from_its_json():
     command = re.search(r"`(roboscape-experiment [^`]*)`", text).group(1)
     cfg = parse_config(ExperimentConfig, shlex.split(command)[1:], "pipeline.")
     assert claim_targets(summary["table"], summary["families"], summary["curve"]) == summary["targets"]
-    assert differences(summary["table"], summary["families"]) == summary["differences"]
+    assert [d.to_json() for d in differences(summary["table"], summary["families"])] == summary["differences"]
     assert markdown(cfg, summary) == text
+    assert ClaimSummary.from_json(summary).to_json() == summary  # read and written back, field for field
