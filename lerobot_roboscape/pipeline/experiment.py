@@ -25,6 +25,7 @@ from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.pipeline.levers import BY_METHOD, LEVERS, LeverContext, LeverSettings, lever_runs
 from lerobot_roboscape.pipeline.methods import Method
+from lerobot_roboscape.pipeline.pack_format import RESULTS, PackResults, read_results
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from lerobot_roboscape.pipeline.replay import replay_in_simulator
 from lerobot_roboscape.pipeline.trained import TrainedStages, trained_stages
@@ -147,7 +148,7 @@ def pack_world_model_runs(
         raise InvalidInputError(f"--world_model_runs packs one policy's runs; this run has SFT checkpoints {list(sft)}")
     (policy, checkpoint), placeholder = next(iter(sft.items())), Path(world_model_runs.ON_DEVICE)
     wm_env = stages.world_model_env(
-        p, trained.demonstrations, trained.tokenizer, dict.fromkeys(("action", "text"), placeholder)
+        p, trained.demonstrations, trained.tokenizer, layout.WorldModelPaths(placeholder, placeholder)
     )
     runs = {
         method: RLRun(env)
@@ -190,22 +191,31 @@ def pack_world_model_runs(
     return dest
 
 
-def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy: str) -> dict:
+@dataclass(frozen=True)
+class TakenRuns:
+    """The world-model runs taken back: the final checkpoint of each method's run here, what the device reported,
+    and the replay's rollouts."""
+
+    runs: dict[str, Path]
+    results: PackResults
+    rollouts: Path
+
+
+def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy: str) -> TakenRuns:
     """The runs `run_pack` made, brought back into `folder`, taken as this protocol's own (each into the folder its
-    method's run would have here, its seconds kept): {"runs": {method: final checkpoint}, "results": what the
-    device reported}."""
-    results = world_model_runs.read_results(folder)
-    record = hashlib.sha256((folder / world_model_runs.RESULTS).read_bytes()).hexdigest()[:16]
+    method's run would have here, its seconds kept)."""
+    results = read_results(folder)
+    record = hashlib.sha256((folder / RESULTS).read_bytes()).hexdigest()[:16]
     runs = {}
-    for run in results["runs"].values():
-        dest = out / layout.rl_dir(policy, run["method"])
-        settings = {"world_model_run": str(run["folder"]), "results": record}
+    for run in results.runs.values():
+        dest = out / layout.rl_dir(policy, run.method)
+        settings = {"world_model_run": str(run.folder), "results": record}
         if not resume.is_done(dest, settings, cfg.pipeline.fresh):
             resume.start(dest)
-            world_model_runs.copy_run(run["folder"], dest)
-            resume.mark_done(dest, settings, seconds=run["seconds"])
-        runs[run["method"]] = dest / run["final"].relative_to(run["folder"])
-    return {"runs": runs, "results": results}
+            world_model_runs.copy_run(run.folder, dest)
+            resume.mark_done(dest, settings, seconds=run.seconds)
+        runs[run.method] = dest / run.final.relative_to(run.folder)
+    return TakenRuns(runs, results, folder / results.replay_rollouts)
 
 
 def checkpoint_curve(
@@ -274,7 +284,7 @@ class Experiment:
     def runs_back(self) -> Path | None:
         """The folder the runs in the world model were brought back into, once they are."""
         folder = self.elsewhere and self.elsewhere / world_model_runs.RUNS_DIR
-        return folder if folder and (folder / world_model_runs.RESULTS).is_file() else None
+        return folder if folder and (folder / RESULTS).is_file() else None
 
     @property
     def scene(self) -> str | None:
@@ -364,10 +374,9 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     rl = policy_stages.rl(p, e.out, trained.demonstrations, wm_env, sft, levers)
     if e.runs_back:
         taken = take_world_model_runs(cfg, e.out, e.runs_back, policy)
-        rl[policy] |= taken["runs"]
-        levers = {m: None for m in taken["runs"] if Method.named(m) in BY_METHOD}
-        if replayed := taken["results"].get("replay"):
-            rollouts = e.runs_back / replayed["file"]
+        rl[policy] |= taken.runs
+        levers = {m: None for m in taken.runs if Method.named(m) in BY_METHOD}
+        rollouts = taken.rollouts
     checkpoints = policy_stages.every_checkpoint(sft, rl)
     clock("Table 1", f"success in the simulator, {e.splits()} (Table 1)")
     results = policy_stages.simulator_eval(p, e.out, trained.demonstrations, checkpoints, e.scene)

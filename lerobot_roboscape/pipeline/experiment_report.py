@@ -32,11 +32,12 @@ from lerobot_roboscape.pipeline.methods import (
     SFT,
     Method,
 )
+from lerobot_roboscape.pipeline.pack_format import read_results
 from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
 from lerobot_roboscape.pipeline.report import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
-from lerobot_roboscape.pipeline.world_model_runs import GOALS, RESULTS, RUNS_DIR
+from lerobot_roboscape.pipeline.world_model_runs import GOALS, RUNS_DIR
 from lerobot_roboscape.rl.history import read_ppo_history
 
 matplotlib.use("Agg")
@@ -162,8 +163,8 @@ def world_model_runs_record(cfg) -> dict | None:
     if not cfg.world_model_runs:
         return None
     folder = Path(cfg.world_model_runs).resolve() / RUNS_DIR
-    results = json.loads((folder / RESULTS).read_text())
-    record = {k: results[k] for k in ("gpu", "done", "time_budget_s")}
+    results = read_results(folder)
+    record = {"gpu": results.gpu, "done": results.done, "time_budget_s": results.time_budget_s}
     return {"folder": str(folder), **record, "goals": str(folder / GOALS)}
 
 

@@ -2,6 +2,7 @@
 there)."""
 
 from pathlib import Path
+from typing import NamedTuple
 
 from lerobot_roboscape.pipeline.methods import ALL_SCENES_PROTOCOL, PROTOCOLS, Method
 
@@ -48,6 +49,17 @@ def protocol_dir(protocol: str) -> str:
 
 def world_model_dir(control: str) -> str:
     return f"world_model_{control}"
+
+
+class WorldModelPaths(NamedTuple):
+    """A run's two world models (pretrained_model folders)."""
+
+    action: Path
+    text: Path
+
+    def items(self):
+        """(control, folder) of each: the control is the one the model was trained with (`--wm.control`)."""
+        return self._asdict().items()
 
 
 def reward_model_dir(kind: str) -> str:

@@ -152,8 +152,8 @@ def _push_and_report(cfg, out: Path, clock: StageClock, artifacts: dict, data, t
             labels[f"{name} {tag} repo"] = ArtifactKind.POLICY
     world_models = dict(
         tokenizer=tokenizer,
-        action_world_model=models["action"],
-        text_world_model=models["text"],
+        action_world_model=models.action,
+        text_world_model=models.text,
         fidelity_dir=out / layout.FIDELITY_DIR,
     )
     pushed = push_run(cfg.hub_namespace, local_dir, Path(data.train.root), world_models, policies)

@@ -30,6 +30,7 @@ from lerobot_roboscape.pipeline.layout import (
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
+    WorldModelPaths,
     fidelity_dir,
     reward_model_dir,
     world_model_dir,
@@ -87,16 +88,18 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
     return read_tokenizer_report(folder)
 
 
-def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> dict[str, Path]:
-    """Train the action and the text world models (each with its done head); returns {control: directory}. The
+def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> WorldModelPaths:
+    """Train the action and the text world models (each with its done head); returns their folders. The
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
     controllability set as it trains. With --world_models, the models trained elsewhere are taken instead."""
     if cfg.world_models is not None:
-        return {control: _given_world_model(cfg, out, tokenizer_path, control) for control in ("action", "text")}
-    return {
-        control: _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
-        for control, training in (("action", cfg.wm_train), ("text", cfg.text_wm_train))
-    }
+        return WorldModelPaths(*(_given_world_model(cfg, out, tokenizer_path, c) for c in WorldModelPaths._fields))
+    return WorldModelPaths(
+        *(
+            _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
+            for control, training in zip(WorldModelPaths._fields, (cfg.wm_train, cfg.text_wm_train), strict=True)
+        )
+    )
 
 
 def ensemble_members(
@@ -194,7 +197,7 @@ def _train(folder: Path, train, trainer, fresh: bool) -> Path:
 
 
 def reward_models(
-    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path]
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: WorldModelPaths
 ) -> dict[str, Path]:
     """Train the paper's baseline rewards (embedding-based and proxy-based) and the success classifier; {} when
     the run trains no reward models."""
@@ -205,7 +208,7 @@ def reward_models(
             reward=RewardModelConfig(kind=kind),
             dataset=data.train,
             tokenizer=str(tokenizer_path),
-            action_world_model=str(models["action"]),
+            action_world_model=str(models.action),
             # The embedding head reads clips of the action model's window; the image networks single frames.
             train=replace(cfg.reward_train, batch_size=8 if kind == "embedding" else 32),
             output_dir=folder,
@@ -218,7 +221,7 @@ def reward_models(
 
 
 def done_report(
-    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path], trained: dict
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: WorldModelPaths, trained: dict
 ) -> DoneChoice:
     """Which done signal the env trusts (the action model's head or the success classifier) and its threshold,
     chosen on the validation episodes and measured on the held-out ones (the report, in its folder)."""
@@ -228,7 +231,7 @@ def done_report(
         dataset=spread(data.heldout, cfg.data.report_episodes),
         validation=data.validation,
         tokenizer=str(tokenizer_path),
-        world_model=str(models["action"]),
+        world_model=str(models.action),
         success_classifier=_str(classifier),
         output_dir=folder,
         device=cfg.device,
@@ -241,7 +244,7 @@ def world_model_env(
     cfg: PipelineConfig,
     demonstrations: DatasetConfig,
     tokenizer_path: Path,
-    models: dict[str, Path],
+    models: WorldModelPaths,
     done: DoneChoice | None = None,
     trained: dict | None = None,
 ) -> RoboscapeWorldModelEnvConfig:
@@ -257,8 +260,8 @@ def world_model_env(
         dataset_repo_id=demonstrations.repo_id,
         dataset_root=demonstrations.root,
         tokenizer=str(tokenizer_path),
-        action_world_model=str(models["action"]),
-        text_world_model=str(models["text"]),
+        action_world_model=str(models.action),
+        text_world_model=str(models.text),
         families=cfg.data.families,
         image_size=cfg.data.image_size,
         max_goal_steps=cfg.env.max_goal_steps,
@@ -280,7 +283,7 @@ def spread(dataset: DatasetConfig, k: int) -> DatasetConfig:
 
 
 def fidelity(
-    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: dict[str, Path], domain: str = "ood"
+    cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: WorldModelPaths, domain: str = "ood"
 ) -> dict | None:
     """The action world model's fidelity report (PSNR per open-loop step against the tokenizer's own reconstruction,
     with the controllability reading) on held-out OOD episodes or, `domain="ind"`, on the validation episodes and
@@ -296,7 +299,7 @@ def fidelity(
     report_cfg = FidelityConfig(
         dataset=spread(episodes, cfg.data.report_episodes),
         tokenizer=str(tokenizer_path),
-        world_model=str(models["action"]),
+        world_model=str(models.action),
         output_dir=folder,
         max_episodes=cfg.data.report_episodes,
         controllability=control,

@@ -19,7 +19,7 @@ class TrainedStages:
 
     demonstrations: DatasetConfig
     tokenizer: Path
-    models: dict[str, Path]
+    models: layout.WorldModelPaths | None
     done: DoneChoice | None
     reward_models: dict[str, Path]
 
@@ -29,7 +29,7 @@ def trained_stages(cfg: PipelineConfig, out: Path, world_models: bool = True) ->
     `world_models`: the demonstrations and the tokenizer alone, for runs in world models trained elsewhere)."""
     train = DatasetConfig(repo_id=layout.DEMOS_REPO_ID, root=str(out / layout.DEMOS_DIR))
     tokenizer = out / layout.TOKENIZER_DIR / FINAL
-    models = {control: out / layout.world_model_dir(control) / FINAL for control in ("action", "text")}
+    models = layout.WorldModelPaths(*(out / layout.world_model_dir(c) / FINAL for c in layout.WorldModelPaths._fields))
     done = out / layout.DONE_REPORT_DIR / REPORT_JSON
     needed = [Path(train.root) / "meta" / "info.json", tokenizer] + ([*models.values(), done] if world_models else [])
     for path in needed:
@@ -40,7 +40,7 @@ def trained_stages(cfg: PipelineConfig, out: Path, world_models: bool = True) ->
                 f"--scale={cfg.scale} --output_dir={out}{stop} first"
             )
     if not world_models:
-        return TrainedStages(train, tokenizer, {}, None, {})
+        return TrainedStages(train, tokenizer, None, None, {})
     reward_models = {
         kind: out / layout.reward_model_dir(kind) / FINAL
         for kind in (*methods.REWARD_BASELINES, methods.SUCCESS_CLASSIFIER)

@@ -30,6 +30,17 @@ from lerobot_roboscape.envs.starts import SELECTION, export_starts
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
+from lerobot_roboscape.pipeline.pack_format import (
+    PLAN,
+    RESULTS,
+    ROLLOUTS,
+    PackResults,
+    Plan,
+    PlannedRun,
+    ReplayPlan,
+    RunRecord,
+    read_plan,
+)
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.reward.done_report import (
@@ -43,13 +54,10 @@ from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST, spread_checkpoints
 from lerobot_roboscape.training.loop import resolve_device
-from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 PACK_DIR, RUNS_DIR = "pack", "runs"  # in the experiment's --world_model_runs folder: what goes, what came back
-PLAN, RESULTS, GOALS = "plan.json", "results.json", "goals.safetensors"
-PLAN_FORMAT = 1
-ROLLOUTS = "replay_rollouts.safetensors"
+GOALS = "goals.safetensors"
 ON_DEVICE = "(set where the runs go)"  # the models' paths in the packed settings: the device sets its own
 # The env's settings that name files of this machine: the device sets its own.
 _MACHINE_FIELDS = (
@@ -89,12 +97,14 @@ def pack(
     tokenizer: Path,
     done_sets: dict[str, list[TokenEpisode]],
     frame_skip: int,
-    **extra,
+    curve_checkpoints: int,
+    replay: dict | None = None,
+    ensemble: dict | None = None,
 ) -> Path:
     """Write into `dest` what `run_pack` needs: the SFT checkpoint, the tokenizer, each distinct start selection of
     the jobs' envs (read from their dataset), the done report's episodes as tokens at the world model's frame skip
-    (`done_sets`: validation, heldout) and the plan (`extra` goes in it as given: the replay's episodes, the
-    ensemble's members, the checkpoints the curve reads); returns `dest`."""
+    (`done_sets`: validation, heldout) and the plan: each job's settings, the checkpoints the curve reads, the
+    replay's run and episodes ({tag, episodes}) and the ensemble members' settings; returns `dest`."""
     dest = Path(dest)
     partial = dest.with_name(dest.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
@@ -111,28 +121,18 @@ def pack(
             starts[selection] = f"starts_{len(starts)}.safetensors"
             export_starts(env, partial / starts[selection])
         settings = {f.name: getattr(job.ppo, f.name) for f in fields(job.ppo) if f.name not in ("env", "policy_path")}
-        runs[tag] = {
-            "method": job.method,
-            "ensemble": job.ensemble,
-            "starts": starts[selection],
-            "env": {k: v for k, v in asdict(env).items() if k not in _MACHINE_FIELDS},
-            "ppo": json.loads(json.dumps(settings, default=str)),
-        }
-    plan = {"format": PLAN_FORMAT, "runs": runs, **extra}
-    write_text_atomically(partial / PLAN, json.dumps(plan, indent=2))
+        runs[tag] = PlannedRun(
+            job.method,
+            job.ensemble,
+            starts[selection],
+            {k: v for k, v in asdict(env).items() if k not in _MACHINE_FIELDS},
+            json.loads(json.dumps(settings, default=str)),
+        )
+    plan = Plan(runs, curve_checkpoints, replay and ReplayPlan(**replay), ensemble or {})
+    write_text_atomically(partial / PLAN, json.dumps(plan.to_json(), indent=2))
     shutil.rmtree(dest, ignore_errors=True)
     partial.replace(dest)
     return dest
-
-
-def read_plan(folder: Path) -> dict:
-    path = Path(folder) / PLAN
-    if not path.is_file():
-        raise MissingInputError(f"{path} is missing: `roboscape-experiment --world_model_runs=...` writes the pack")
-    plan = json.loads(path.read_text())
-    if plan.get("format") != PLAN_FORMAT:
-        raise InvalidInputError(f"{path} has format {plan.get('format')}; this version reads {PLAN_FORMAT}")
-    return plan
 
 
 # ---- there: the runs ---------------------------------------------------------------------------------------------
@@ -159,7 +159,7 @@ class RunPackConfig:
     device: str = "auto"
 
 
-def run_pack(cfg: RunPackConfig) -> dict:
+def run_pack(cfg: RunPackConfig) -> PackResults:
     """Run the pack's PPO runs in the world models into `output_dir`: the done report first (its threshold is every
     env's), then every start's goal, then the runs, all at once, one process each, then the plain run's rollouts for
     the replay. Returns the results (also `output_dir/results.json`)."""
@@ -179,26 +179,26 @@ def run_pack(cfg: RunPackConfig) -> dict:
     done = DoneChoice.read(report.output_dir)
     # Without members (none was given, or none saved in its budget) the ensemble's runs fail alone, as a failed run.
     runs = {
-        tag: {"method": run["method"], "folder": f"rl/{tag}", "error": "no ensemble member was given"}
-        for tag, run in plan["runs"].items()
-        if run["ensemble"] and not members
+        tag: RunRecord(run.method, Path("rl", tag), error="no ensemble member was given")
+        for tag, run in plan.runs.items()
+        if run.ensemble and not members
     }
     jobs = {}
-    for tag, run in plan["runs"].items():
+    for tag, run in plan.runs.items():
         if tag in runs:
             continue
         env = RoboscapeWorldModelEnvConfig(
-            **run["env"],
+            **run.env,
             tokenizer=str(pack_dir / "tokenizer"),
             action_world_model=str(action),
             text_world_model=str(text),
-            starts_file=str(pack_dir / run["starts"]),
+            starts_file=str(pack_dir / run.starts),
             goal_file=str(out / GOALS),
-            ensemble=[str(m) for m in members] if run["ensemble"] else [],
+            ensemble=[str(m) for m in members] if run.ensemble else [],
             device=device,
         )
         env = replace(env, done_source=done.source, theta=done.theta, theta_sps=done.theta)
-        settings = {k: v for k, v in run["ppo"].items() if k != "output_dir"} | {"device": device}
+        settings = {k: v for k, v in run.ppo.items() if k != "output_dir"} | {"device": device}
         if cfg.time_budget_s is not None:
             settings["time_budget_s"] = cfg.time_budget_s
         jobs[tag] = PPOConfig(policy_path=str(pack_dir / "sft"), env=env, output_dir=out / "rl" / tag, **settings)
@@ -209,27 +209,23 @@ def run_pack(cfg: RunPackConfig) -> dict:
     with ProcessPoolExecutor(max_workers=max(len(jobs), 1), mp_context=get_context("spawn")) as pool:
         futures = {tag: pool.submit(ppo, config) for tag, config in jobs.items()}
         for tag, future in futures.items():
-            runs[tag] = {"method": plan["runs"][tag]["method"], "folder": f"rl/{tag}"}
+            method, folder = plan.runs[tag].method, Path("rl", tag)
             try:
                 finals[tag] = future.result()
             except Exception as error:  # noqa: BLE001 (any failure of one run: recorded, the others kept)
                 logger.exception("PPO run %s failed", tag)
-                runs[tag]["error"] = f"{type(error).__name__}: {error}"
+                runs[tag] = RunRecord(method, folder, error=f"{type(error).__name__}: {error}")
                 continue
-            runs[tag] |= {"seconds": stage_seconds(out / "rl" / tag), "final": str(finals[tag].relative_to(out))}
-    results = {
-        "done": chosen,
-        "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-        "time_budget_s": next(iter(jobs.values())).time_budget_s if jobs else None,
-        "runs": runs,
-    }
-    replay = plan.get("replay")
-    if replay and replay["tag"] in finals:
-        rollouts = roll_out(jobs[replay["tag"]].env, finals[replay["tag"]], replay["episodes"], device)
-        save_rollouts(rollouts, out / ROLLOUTS)
-        results["replay"] = {"tag": replay["tag"], "file": ROLLOUTS}
-    slim([out / "rl" / tag for tag in finals], plan["curve_checkpoints"])
-    write_text_atomically(out / RESULTS, json.dumps(results, indent=2))
+            runs[tag] = RunRecord(method, folder, finals[tag].relative_to(out), stage_seconds(out / folder))
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
+    budget = next(iter(jobs.values())).time_budget_s if jobs else None
+    results = PackResults(chosen, gpu, budget, runs)
+    if plan.replay and plan.replay.tag in finals:
+        tag = plan.replay.tag
+        save_rollouts(roll_out(jobs[tag].env, finals[tag], plan.replay.episodes, device), out / ROLLOUTS)
+        results.replay_rollouts, results.replay_tag = ROLLOUTS, tag
+    slim([out / "rl" / tag for tag in finals], plan.curve_checkpoints)
+    write_text_atomically(out / RESULTS, json.dumps(results.to_json(), indent=2))
     return results
 
 
@@ -261,30 +257,6 @@ def copy_run(source: Path, dest: Path) -> None:
 def _cast(path: Path, dtype: torch.dtype) -> None:
     metadata, tensors = load_tensors(path, "save_pretrained")
     save_tensors(path, {k: v.to(dtype) if v.is_floating_point() else v for k, v in tensors.items()}, metadata)
-
-
-def read_results(folder: Path) -> dict:
-    """What `run_pack` wrote into `folder` (brought back here): the runs that completed, their folders made
-    absolute (a failed one is left out, with a warning naming its error); the plain run and its rollouts must be
-    there."""
-    path = Path(folder) / RESULTS
-    if not path.is_file():
-        raise MissingInputError(f"{path} is missing: the world-model runs have not been brought back into {folder}")
-    results = json.loads(path.read_text())
-    for tag, run in list(results["runs"].items()):
-        if "error" in run:
-            logger.warning("%s: the run %r failed where it ran (%s); it is left out", path, run["method"], run["error"])
-            del results["runs"][tag]
-            continue
-        run["folder"], run["final"] = Path(folder) / run["folder"], Path(folder) / run["final"]
-        if not run["final"].is_dir():
-            raise MissingInputError(f"{path}: the final checkpoint {run['final']} of {run['method']!r} is missing")
-    if "replay" not in results or not (Path(folder) / results["replay"]["file"]).is_file():
-        raise MissingInputError(
-            f"{path}: the plain run in the world model or the rollouts of its replay ({ROLLOUTS}) did not come back "
-            f"into {folder}"
-        )
-    return results
 
 
 # ---- rollouts of a policy in the world model (the replay's first half) --------------------------------------------

@@ -8,6 +8,7 @@ codes (N positions of G codes each: `group`), while everything outside reads and
 actions one per control step, k per frame, and states one per frame.
 """
 
+import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -59,7 +60,7 @@ class STWorldModel(
         self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
         self.ln_f = nn.LayerNorm(C)
         self.head = nn.Linear(C, G * config.vocab_size)  # a code's logits per place in the patch
-        self.copy_gain = nn.Parameter(torch.tensor(config.copy_logit)) if config.copy_logit > 0 else None
+        self.copy_gate = nn.Linear(C, G) if config.copy_logit > 0 else None  # each code's copy gain
         self.done_head = nn.Sequential(nn.Linear(C, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, 1))
         for name, module in self.named_modules():
             if not name.startswith("control_encoder.t5"):
@@ -69,6 +70,7 @@ class STWorldModel(
             block.zero_init_modulation()
         if self.robot_state is not None:
             self.robot_state.zero_init_head()
+        self._init_copy_gate()
         self._compiled_blocks: list | None = None  # see compile()
 
     @staticmethod
@@ -77,6 +79,12 @@ class STWorldModel(
             nn.init.normal_(module.weight, std=0.02)
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
+
+    def _init_copy_gate(self) -> None:
+        """Every code's copy gain starts at copy_logit, whatever the hidden state (softplus of a zero projection)."""
+        if self.copy_gate is not None:
+            nn.init.zeros_(self.copy_gate.weight)
+            nn.init.constant_(self.copy_gate.bias, math.log(math.expm1(self.config.copy_logit)))
 
     def redraw_top(self, n_blocks: int) -> nn.ModuleList:
         """Draw the last `n_blocks` blocks and everything that reads them (the final norm, the token and done heads)
@@ -87,6 +95,8 @@ class STWorldModel(
         top = nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
         if self.robot_state is not None:
             top.append(self.robot_state.head)
+        if self.copy_gate is not None:
+            top.append(self.copy_gate)
         for module in top.modules():
             self._init_weights(module)
             if isinstance(module, nn.LayerNorm):
@@ -96,6 +106,7 @@ class STWorldModel(
                 module.zero_init_modulation()
         if self.robot_state is not None:
             self.robot_state.zero_init_head()
+        self._init_copy_gate()
         self.requires_grad_(False)
         return top.requires_grad_(True)
 
@@ -182,12 +193,13 @@ class STWorldModel(
 
     def token_logits(self, hidden_BTNC, previous_BTS=None) -> torch.Tensor:
         """Logits (B, T, S, V) of every code, in code order; with the copy prior, each frame's previous frame's codes
-        `previous_BTS` (the mask token where there is none) get the learned gain."""
+        `previous_BTS` (the mask token where there is none) get the gain the copy gate reads from the hidden state."""
         B, T, N, _ = hidden_BTNC.shape
         logits = self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
-        if self.copy_gain is None:
+        if self.copy_gate is None:
             return logits
-        return copy_prior(logits, previous_BTS, self.copy_gain.to(logits.dtype))
+        gain_BTS = self.ungroup(F.softplus(self.copy_gate(hidden_BTNC).float()))
+        return copy_prior(logits, previous_BTS, gain_BTS.to(logits.dtype))
 
     def previous_frames(self, tokens_BTS) -> torch.Tensor:
         """Each frame's previous frame (B, T, S), the mask token before the first."""

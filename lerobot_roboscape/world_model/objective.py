@@ -33,11 +33,11 @@ def training_inputs(
     return inputs, mask
 
 
-def copy_prior(logits_BTSV: torch.Tensor, previous_BTS: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """The logits with `gain` added to the previous frame's code at each place (none where `previous` holds the
-    mask): copying the last frame is where the model starts, and what it learns is what changes."""
+def copy_prior(logits_BTSV: torch.Tensor, previous_BTS: torch.Tensor, gain_BTS: torch.Tensor) -> torch.Tensor:
+    """The logits with each place's gain added to the previous frame's code there (none where `previous` holds the
+    mask): copying the last frame is where the model starts, and what it learns is where, and what, changes."""
     V = logits_BTSV.shape[-1]
-    bonus = gain * (previous_BTS < V).unsqueeze(-1).to(logits_BTSV.dtype)
+    bonus = (gain_BTS * (previous_BTS < V)).unsqueeze(-1).to(logits_BTSV.dtype)
     return logits_BTSV.scatter_add(-1, previous_BTS.clamp(max=V - 1).unsqueeze(-1), bonus)
 
 

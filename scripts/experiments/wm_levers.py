@@ -42,8 +42,9 @@ LEVERS = {
     "patch2": {"state": "false", "patch": "2"},
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},
-    # all three, each code starting from a copy of the previous frame's
-    "copy": {"patch": "2", "corrupt_max": "0.2", "copy_logit": "6"},
+    # all three, each code starting from a copy of the previous frame's (the gate's starting gain)
+    "copy": {"patch": "2", "corrupt_max": "0.2", "copy_logit": "4"},
+    "bench": {"patch": "2"},  # the bench preset as it stands (its patch named for the pace below)
 }
 
 
@@ -99,6 +100,7 @@ def main():
     parser.add_argument("--evals", type=int, default=5, help="held-out readings per run, about")
     parser.add_argument("--steps_per_minute", type=float, nargs=2, default=(30.0, 75.0), metavar=("CODE", "PATCH2"))
     parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--runs", nargs="+", help="<lever>_seed<n> in this order, instead of every lever and seed")
     parser.add_argument("--horizon", type=int, default=16)
     parser.add_argument("--starts", type=int, default=16, help="controllability starts per set (IND, OOD), at most")
@@ -122,7 +124,7 @@ def main():
         if (folder / FINAL / "model.safetensors").is_file():
             continue
         jobs.append((folder, command(run, folder, lever, seed, args.minutes, eval_freq, starts)))
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
     running: list[tuple[Path, subprocess.Popen]] = []
     while jobs or running:
         while jobs and len(running) < args.parallel:

@@ -152,18 +152,18 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
         assert path == out / world_model_dir(control) / FINAL
         assert_same_weights(world_models[control] / "model.safetensors", path / "model.safetensors")
         assert (path.parent / "heldout_curve.jsonl").is_file()
-    reader = ReportSettings(str(models["action"]))
+    reader = ReportSettings(str(models.action))
     resume.run_once(tmp_path / "fidelity", reader, False, lambda: None)
-    copied = (models["action"] / "model.safetensors").stat().st_mtime_ns
+    copied = (models.action / "model.safetensors").stat().st_mtime_ns
     stages.world_models(cfg, out, None, trained_tokenizer)
-    assert (models["action"] / "model.safetensors").stat().st_mtime_ns == copied  # taken once
+    assert (models.action / "model.safetensors").stat().st_mtime_ns == copied  # taken once
     assert resume.is_done(tmp_path / "fidelity", reader, False)
 
     (given / "action" / FINAL / "model.safetensors").write_bytes(
         (world_models["action"] / "model.safetensors").read_bytes()
     )
     stages.world_models(cfg, out, None, trained_tokenizer)
-    assert (models["action"] / "model.safetensors").stat().st_mtime_ns != copied  # new weights: taken again
+    assert (models.action / "model.safetensors").stat().st_mtime_ns != copied  # new weights: taken again
     assert not resume.is_done(tmp_path / "fidelity", reader, False)  # and what read the old ones reruns
 
     record = json.loads((given / "action" / TRAIN_CONFIG).read_text())

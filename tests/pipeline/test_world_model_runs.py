@@ -13,6 +13,7 @@ from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.pipeline import world_model_runs
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig, take_world_model_runs
 from lerobot_roboscape.pipeline.layout import rl_dir
+from lerobot_roboscape.pipeline.pack_format import PLAN, RESULTS, ROLLOUTS, ReplayPlan, read_plan, read_results
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.reward.done_report import (
     DoneReportConfig,
@@ -104,9 +105,10 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
         replay={"tag": "plain", "episodes": 2},
         curve_checkpoints=2,
     )
-    plan = world_model_runs.read_plan(pack)
+    plan = read_plan(pack)
     assert sorted(p.name for p in pack.glob("starts_*")) == ["starts_0.safetensors", "starts_1.safetensors"]
-    assert all("dataset_root" not in run["env"] and "tokenizer" not in run["env"] for run in plan["runs"].values())
+    assert all("dataset_root" not in run.env and "tokenizer" not in run.env for run in plan.runs.values())
+    assert plan.replay == ReplayPlan("plain", 2) and plan.runs["ensemble"].ensemble and plan.curve_checkpoints == 2
 
     out = tmp_path / "wm_runs" / "runs"
     results = world_model_runs.run_pack(
@@ -119,17 +121,17 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
             device="cpu",
         )
     )
-    assert set(results["runs"]) == set(jobs) and (out / world_model_runs.GOALS).is_file()
-    assert results["done"] == json.loads((out / "done_report" / "done_report.json").read_text())["chosen"]
-    for tag, run in results["runs"].items():
+    assert set(results.runs) == set(jobs) and (out / world_model_runs.GOALS).is_file()
+    assert results.done == json.loads((out / "done_report" / "done_report.json").read_text())["chosen"]
+    for tag, run in results.runs.items():
         kept = sorted(p.name for p in (out / "rl" / tag / "checkpoints").iterdir() if p.name.isdigit())
         assert kept == ["00000001", "00000003"], tag  # the curve's two: the first and the last
-        weights = load_file(out / run["final"] / "model.safetensors")
+        weights = load_file(out / run.final / "model.safetensors")
         assert {v.dtype for v in weights.values() if v.is_floating_point()} == {torch.bfloat16}
         assert not list((out / "rl" / tag).rglob("optimizer_state.safetensors"))
     history = [json.loads(line) for line in (out / "rl" / "ensemble" / "history.jsonl").read_text().splitlines()]
     assert "charts/disagreement" in history[0]  # the members reached the ensemble's env
-    rollouts = world_model_runs.load_rollouts(out / world_model_runs.ROLLOUTS)
+    rollouts = world_model_runs.load_rollouts(out / ROLLOUTS)
     assert rollouts.frames.shape[:2] == (rollouts.actions.shape[0] + 1, 2) and len(rollouts.starts) == 2
     assert rollouts.cameras and {"task_family", "scene", "seed"} <= set(rollouts.starts[0])
 
@@ -137,36 +139,37 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
     protocol = tmp_path / "run" / "protocol_paper"
     cfg = ExperimentConfig(world_model_runs=str(tmp_path / "wm_runs"))
     taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
-    final = taken["runs"]["RL w. World Model"]
+    final = taken.runs["RL w. World Model"]
     assert final == protocol / rl_dir("roboscape_mlp", "RL w. World Model") / "checkpoints/00000003/pretrained_model"
     here = load_file(final / "model.safetensors")
-    there = load_file(out / results["runs"]["plain"]["final"] / "model.safetensors")
+    there = load_file(out / results.runs["plain"].final / "model.safetensors")
     assert all(here[k].dtype == torch.float32 and torch.equal(here[k], there[k].float()) for k in there)
     load_policy(final, "cpu")
     record = json.loads((final.parents[2] / STAGE_FILE).read_text())
-    assert record["seconds"] == pytest.approx(results["runs"]["plain"]["seconds"])
+    assert record["seconds"] == pytest.approx(results.runs["plain"].seconds)
     written = (final.parents[2] / STAGE_FILE).stat().st_mtime_ns
     take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
     assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns == written
     # A run that failed there is left out, the others taken; without the plain run's rollouts, nothing is.
     failed = {"method": "RL w. World Model, KL to SFT", "folder": "rl/kl", "error": "RuntimeError: out of memory"}
-    (out / world_model_runs.RESULTS).write_text(json.dumps(results | {"runs": results["runs"] | {"kl": failed}}))
+    written_results = results.to_json()
+    (out / RESULTS).write_text(json.dumps(written_results | {"runs": written_results["runs"] | {"kl": failed}}))
     taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
-    assert "RL w. World Model, KL to SFT" not in taken["runs"] and len(taken["runs"]) == 3
+    assert "RL w. World Model, KL to SFT" not in taken.runs and len(taken.runs) == 3
     assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns != written  # other results: taken again
-    (out / world_model_runs.RESULTS).write_text(json.dumps({k: v for k, v in results.items() if k != "replay"}))
+    (out / RESULTS).write_text(json.dumps({k: v for k, v in written_results.items() if k != "replay"}))
     with pytest.raises(FileNotFoundError, match="did not come back"):
         take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
 
 
 def test_a_pack_or_results_of_another_kind_are_refused_by_name(tmp_path):
     with pytest.raises(FileNotFoundError, match="plan.json is missing"):
-        world_model_runs.read_plan(tmp_path)
-    (tmp_path / world_model_runs.PLAN).write_text(json.dumps({"format": 99}))
+        read_plan(tmp_path)
+    (tmp_path / PLAN).write_text(json.dumps({"format": 99}))
     with pytest.raises(ValueError, match="format 99"):
-        world_model_runs.read_plan(tmp_path)
+        read_plan(tmp_path)
     with pytest.raises(FileNotFoundError, match="have not been brought back"):
-        world_model_runs.read_results(tmp_path)
+        read_results(tmp_path)
     with pytest.raises(ValueError, match="refresh"):
         ExperimentConfig(world_model_runs=str(tmp_path), levers=["refresh"])
 
@@ -197,7 +200,7 @@ def test_without_members_the_ensemble_run_fails_alone_and_the_others_run(
             pack=str(pack), **{k: str(v) for k, v in world_models.items()}, output_dir=str(out), device="cpu"
         )
     )
-    assert results["runs"]["ensemble"]["error"] == "no ensemble member was given"
+    assert results.runs["ensemble"].error == "no ensemble member was given"
     assert not (out / "rl" / "ensemble").exists()
-    assert "error" not in results["runs"]["plain"] and (out / results["runs"]["plain"]["final"]).is_dir()
-    assert json.loads((out / world_model_runs.RESULTS).read_text())["runs"] == results["runs"]
+    assert results.runs["plain"].error is None and (out / results.runs["plain"].final).is_dir()
+    assert json.loads((out / RESULTS).read_text()) == results.to_json()
