@@ -79,12 +79,6 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             what it moves), and copying the previous frame already scores two thirds of the tokens without reading
             the action: weighting the changed ones makes the dynamics, and so the action, carry the loss. Measured
             on the robot's data (docs/results/world_model/report.md): 5x is the bench preset's.
-        copy_logit: the copy prior's starting gain, 0 for none: each code of the previous frame gets a gain added
-            to its logit at the same place, read from the position's hidden state by a gate (softplus of a linear
-            map, starting at copy_logit everywhere), so that a model starts from copying the last frame (two thirds
-            of the tokens on the robot's data, where a 2-core model at 20 minutes got half) and learns where and
-            what changes; a rollout copies its own last frame, and with it the arm's place. One gain shared by
-            every place (a scalar) learned nothing of what changes in 300 steps (docs/results/world_model/levers70).
         done_hidden: hidden width of the done head.
         done_weight: weight of the done loss.
         done_loss: "balanced_bce" (binary cross-entropy averaged over done frames and over the others separately,
@@ -128,7 +122,6 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     clean_frame_prob: float = 0.25
     corrupt_max: float = 0.0
     changed_weight: float = 1.0
-    copy_logit: float = 0.0
     done_hidden: int = 128
     done_weight: float = 1.0
     done_loss: str = "balanced_bce"
@@ -173,8 +166,6 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         for name in ("control_dropout", "clean_frame_prob"):
             if not 0 <= getattr(self, name) < 1:
                 raise InvalidInputError(f"{name} must be in [0, 1), got {getattr(self, name)}")
-        if self.copy_logit < 0:
-            raise InvalidInputError(f"copy_logit must be >= 0 (0: no copy prior), got {self.copy_logit}")
         if self.changed_weight <= 0:
             raise InvalidInputError(f"changed_weight must be > 0, got {self.changed_weight}")
         if self.guidance_scale != 1 and self.control_dropout == 0:

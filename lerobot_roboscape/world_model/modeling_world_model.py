@@ -8,7 +8,6 @@ codes (N positions of G codes each: `group`), while everything outside reads and
 actions one per control step, k per frame, and states one per frame.
 """
 
-import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -23,7 +22,7 @@ from lerobot_roboscape.training.losses import balanced_bce
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.flops import forward_flops_per_clip
-from lerobot_roboscape.world_model.objective import copy_prior, masked_token_loss, training_inputs
+from lerobot_roboscape.world_model.objective import masked_inputs, masked_token_loss
 from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.saved import refuse_unusable
@@ -60,7 +59,6 @@ class STWorldModel(
         self.blocks = nn.ModuleList(STBlock(config) for _ in range(config.n_layer))
         self.ln_f = nn.LayerNorm(C)
         self.head = nn.Linear(C, G * config.vocab_size)  # a code's logits per place in the patch
-        self.copy_gate = nn.Linear(C, G) if config.copy_logit > 0 else None  # each code's copy gain
         self.done_head = nn.Sequential(nn.Linear(C, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, 1))
         for name, module in self.named_modules():
             if not name.startswith("control_encoder.t5"):
@@ -70,7 +68,6 @@ class STWorldModel(
             block.zero_init_modulation()
         if self.robot_state is not None:
             self.robot_state.zero_init_head()
-        self._init_copy_gate()
         self._compiled_blocks: list | None = None  # see compile()
 
     @staticmethod
@@ -79,12 +76,6 @@ class STWorldModel(
             nn.init.normal_(module.weight, std=0.02)
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
-
-    def _init_copy_gate(self) -> None:
-        """Every code's copy gain starts at copy_logit, whatever the hidden state (softplus of a zero projection)."""
-        if self.copy_gate is not None:
-            nn.init.zeros_(self.copy_gate.weight)
-            nn.init.constant_(self.copy_gate.bias, math.log(math.expm1(self.config.copy_logit)))
 
     def redraw_top(self, n_blocks: int) -> nn.ModuleList:
         """Draw the last `n_blocks` blocks and everything that reads them (the final norm, the token and done heads)
@@ -95,8 +86,6 @@ class STWorldModel(
         top = nn.ModuleList([*self.blocks[-n_blocks:], self.ln_f, self.head, self.done_head])
         if self.robot_state is not None:
             top.append(self.robot_state.head)
-        if self.copy_gate is not None:
-            top.append(self.copy_gate)
         for module in top.modules():
             self._init_weights(module)
             if isinstance(module, nn.LayerNorm):
@@ -106,7 +95,6 @@ class STWorldModel(
                 module.zero_init_modulation()
         if self.robot_state is not None:
             self.robot_state.zero_init_head()
-        self._init_copy_gate()
         self.requires_grad_(False)
         return top.requires_grad_(True)
 
@@ -191,26 +179,15 @@ class STWorldModel(
         itemsize = torch.finfo(dtype).bits // 8
         return KVCache.nbytes(self.config.n_layer, rows, self.config.d_model, self.config.window, itemsize)
 
-    def token_logits(self, hidden_BTNC, previous_BTS=None) -> torch.Tensor:
-        """Logits (B, T, S, V) of every code, in code order; with the copy prior, each frame's previous frame's codes
-        `previous_BTS` (the mask token where there is none) get the gain the copy gate reads from the hidden state."""
+    def token_logits(self, hidden_BTNC) -> torch.Tensor:
+        """Logits (B, T, S, V) of every code, in code order."""
         B, T, N, _ = hidden_BTNC.shape
-        logits = self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
-        if self.copy_gate is None:
-            return logits
-        gain_BTS = self.ungroup(F.softplus(self.copy_gate(hidden_BTNC).float()))
-        return copy_prior(logits, previous_BTS, gain_BTS.to(logits.dtype))
+        return self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
 
-    def previous_frames(self, tokens_BTS) -> torch.Tensor:
-        """Each frame's previous frame (B, T, S), the mask token before the first."""
-        return torch.cat([torch.full_like(tokens_BTS[:, :1], self.config.mask_token_id), tokens_BTS[:, :-1]], 1)
-
-    def compute_logits(self, tokens_BTS, control: Control, cache=None, states=None, previous_BTS=None):
-        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`. The
-        frames' previous frames are the tokens' own, except with a cache (T = 1), where the caller gives them."""
+    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None, states=None):
+        """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
         hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states)
-        previous_BTS = self.previous_frames(tokens_BTS) if previous_BTS is None else previous_BTS
-        return self.token_logits(hidden_BTNC, previous_BTS), self.done_logits(hidden_BTNC), kvs
+        return self.token_logits(hidden_BTNC), self.done_logits(hidden_BTNC), kvs
 
     def done_logits(self, hidden_BTNC) -> torch.Tensor:
         """The done head reads the whole current frame: (B, T, N, C) -> (B, T)."""
@@ -236,11 +213,10 @@ class STWorldModel(
         if c.control_dropout > 0:
             dropped = torch.rand(control.pooled.shape[:2], device=tokens.device) < c.control_dropout
             control = control.where(dropped, self.null_control(control))
-        codes, mask = training_inputs(tokens, c, self.ungroup)
+        inputs, mask = masked_inputs(tokens, c, self.ungroup)
         states = batch.get("state")
-        hidden, _ = self.compute_hidden(codes.masked_fill(mask, c.mask_token_id), control, states=states)
-        # the copy prior reads the previous frame whole, as a rollout's is, with its corruption
-        logits, done_logits = self.token_logits(hidden, self.previous_frames(codes)), self.done_logits(hidden)
+        hidden, _ = self.compute_hidden(inputs, control, states=states)
+        logits, done_logits = self.token_logits(hidden), self.done_logits(hidden)
         token_loss, token_logs = masked_token_loss(logits, tokens, mask, c.changed_weight)
         done_loss = self.done_loss(done_logits.float(), done)
         loss = token_loss + c.done_weight * done_loss

@@ -11,13 +11,13 @@ import torch.nn.functional as F
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 
 
-def training_inputs(
+def masked_inputs(
     tokens_BTS: torch.Tensor, c: WorldModelConfig, ungroup: Callable[[torch.Tensor], torch.Tensor]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(the clip's codes, corrupted, before masking; its mask (B, T, S) bool): positions of frames after the first
-    masked at a MaskGIT ratio each, or left clean with clean_frame_prob (a position's codes masked together, `ungroup`
-    spreading a position's flag over them); a share of the codes left unmasked, drawn per clip up to corrupt_max,
-    replaced by random codes."""
+    """(the clip's inputs, its mask (B, T, S) bool): positions of frames after the first masked at a MaskGIT ratio
+    each, or left clean with clean_frame_prob (a position's codes masked together, `ungroup` spreading a position's
+    flag over them); a share of the codes left unmasked, drawn per clip up to corrupt_max, replaced by random
+    codes."""
     B, T, S = tokens_BTS.shape
     device = tokens_BTS.device
     ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=device))  # MaskGIT cosine schedule
@@ -30,15 +30,7 @@ def training_inputs(
         rate = c.corrupt_max * torch.rand(B, 1, 1, device=device)
         corrupt = (torch.rand(B, T, S, device=device) < rate) & ~mask
         inputs = torch.where(corrupt, torch.randint_like(tokens_BTS, c.vocab_size), tokens_BTS)
-    return inputs, mask
-
-
-def copy_prior(logits_BTSV: torch.Tensor, previous_BTS: torch.Tensor, gain_BTS: torch.Tensor) -> torch.Tensor:
-    """The logits with each place's gain added to the previous frame's code there (none where `previous` holds the
-    mask): copying the last frame is where the model starts, and what it learns is where, and what, changes."""
-    V = logits_BTSV.shape[-1]
-    bonus = (gain_BTS * (previous_BTS < V)).unsqueeze(-1).to(logits_BTSV.dtype)
-    return logits_BTSV.scatter_add(-1, previous_BTS.clamp(max=V - 1).unsqueeze(-1), bonus)
+    return inputs.masked_fill(mask, c.mask_token_id), mask
 
 
 def masked_token_loss(

@@ -257,7 +257,7 @@ class Rollout:
         if self.guided:
             frame_B1S = torch.cat([frame_B1S, frame_B1S])
         if self.cache is not None:
-            logits = self.model.compute_logits(frame_B1S, control, self.cache, state, self.tokens[:, -1:])[0][:, -1]
+            logits = self.model.compute_logits(frame_B1S, control, self.cache, states=state)[0][:, -1]
         else:  # without the cache: recompute the whole window (past frames + the new one), as the paper's code did
             tokens = torch.cat([self.tokens, frame_B1S], 1)
             controls, states = self._concat_controls(self.control, control), self._concat_states(state)

@@ -42,8 +42,6 @@ LEVERS = {
     "patch2": {"state": "false", "patch": "2"},
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},
-    # all three, each code starting from a copy of the previous frame's (the gate's starting gain)
-    "copy": {"patch": "2", "corrupt_max": "0.2", "copy_logit": "4"},
     "bench": {"patch": "2"},  # the bench preset as it stands (its patch named for the pace below)
 }
 

@@ -31,7 +31,6 @@ VARIANTS = [
     ("action", {}),
     ("action", CONTROL_PATH),
     ("action", {"patch": 2, "maskgit_steps": 2}),
-    ("action", {"patch": 2, "copy_logit": 3.0}),
     ("text", {"adaln": "none"}),
     ("text", CONTROL_PATH),
     ("text", {"patch": 2}),
@@ -531,20 +530,3 @@ def test_training_corrupts_a_share_of_the_unmasked_context_drawn_per_clip():
     plain.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
     plain(batch)
     assert ((seen[0] == tokens) | (seen[0] == plain.config.mask_token_id)).all()  # corrupt_max=0: none
-
-
-def test_the_copy_prior_starts_a_model_from_copying_the_last_frame_and_learns_its_gain():
-    model = make_model(copy_logit=20.0)
-    batch = random_batch()
-    control = model.encode_control(batch["actions"], batch["no_action"])
-    logits = model.compute_logits(batch["tokens"], control, states=batch["state"])[0]
-    assert torch.equal(logits[:, 1:].argmax(-1), batch["tokens"][:, :-1])  # teacher forced: the previous frame
-    prompt = batch["tokens"][:, :1]
-    generated = model.generate(prompt, 3, **control_kwargs(model, batch, 3)).tokens
-    assert torch.equal(generated, prompt.expand(-1, 3, -1))  # a rollout copies its own last frame
-    plain = make_model()
-    assert not torch.equal(plain.generate(prompt, 3, **control_kwargs(plain, batch, 3)).tokens[:, 0], prompt[:, 0])
-    loss, _ = model.train()(batch)
-    loss.backward()
-    assert model.copy_gate.weight.grad.abs().sum() > 0  # where to copy is learned from the hidden state
-    assert not any("copy_gate" in name for name, _ in plain.named_parameters())  # off by default: saved models load
