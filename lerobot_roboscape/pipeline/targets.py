@@ -4,6 +4,7 @@ simulator's, and the claim's Table 1). A target row is {"value", "goal", "met"} 
 
 import numpy as np
 
+from lerobot_roboscape.envs.reward_readings import RewardReadings
 from lerobot_roboscape.evaluation.results import (
     ALL,
     Cell,
@@ -21,6 +22,7 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     SFT,
 )
+from lerobot_roboscape.reward.done_readings import DoneReport
 
 # The tokenizer's, on held-out OOD frames, each view (issue 26): the object must survive where it covers >= 4 px.
 TOKENIZER_OBJECT_SURVIVAL = 0.95
@@ -159,75 +161,76 @@ def world_model_targets(
             minutes <= ACTION_WM_TRAIN_MINUTES,
             f"{action_curve[-1]['step']} steps; evaluations excluded",
         )
-    source, theta = done["chosen"]["source"], done["chosen"]["theta"]
-    chosen = done["sources"][source]
-    for mode, goal in (("teacher_forced", DONE_ROC_AUC_TEACHER_FORCED), ("open_loop", DONE_ROC_AUC_OPEN_LOOP)):
-        if chosen[mode] is None:
-            continue
-        auc = chosen[mode]["frame_roc_auc"]
-        targets[f"done ROC-AUC, {mode.replace('_', ' ')}, frames of held-out OOD episodes ({source})"] = target_row(
-            auc,
-            f">= {goal}",
-            auc is not None and auc >= goal,
-            f"episodes: {number(chosen[mode]['episode_roc_auc'])}",
-        )
-        c = chosen[mode]["confusion"]
-        successful = c["success_called_done"] + c["success_missed"]
-        if mode == "open_loop" and successful:
-            called = c["success_called_done"] / successful
-            targets[f"done: successful episodes called done at the threshold, open loop ({source})"] = target_row(
-                called,
-                f">= {DONE_SUCCESS_CALLED_DONE}",
-                called >= DONE_SUCCESS_CALLED_DONE,
-                f"{c['success_called_done']} of {successful}",
-            )
-        rate = c["failed_called_done_rate"]
-        targets[f"done: failed episodes called done at the threshold, {mode.replace('_', ' ')} ({source})"] = (
-            target_row(
-                rate,
-                f"<= {DONE_FAILED_CALLED_DONE}",
-                rate is not None and rate <= DONE_FAILED_CALLED_DONE,
-                f"threshold {theta:.3f} chosen on validation episodes; {c['failed_called_done']} of "
-                f"{c['failed_called_done'] + c['failed_not_done']} failed, {c['success_called_done']} of "
-                f"{c['success_called_done'] + c['success_missed']} successful called done",
-            )
-        )
-    goals = rewards["goals"]
-    targets["goal: text model reaches done within the family's horizon (share of held-out starts)"] = target_row(
-        goals["reached_within_horizon"],
-        f">= {GOAL_REACHED}",
-        goals["reached_within_horizon"] >= GOAL_REACHED,
-        f"{goals['starts']} starts",
-    )
-    nearer = goals["nearer_final_than_start"]
-    targets[f"goal frame nearer the real final frame than the start ({rewards['similarity']} similarity)"] = target_row(
-        nearer,
-        f">= {GOAL_NEARER_FINAL}",
-        nearer is not None and nearer >= GOAL_NEARER_FINAL,
-        f"{goals['successful_starts']} successful episodes",
-    )
-    own = goals.get("final_nearer_own_goal_than_other_instructions")
-    targets["goal made under its own instruction nearer the real success than another family's goal"] = target_row(
-        own,
-        f">= {GOAL_OWN_INSTRUCTION}",
-        own is not None and own >= GOAL_OWN_INSTRUCTION,
-        f"{goals['successful_starts']} successful episodes, the same start under another family's instruction",
-    )
+    targets |= done_targets(DoneReport.from_json(done))
+    targets |= goal_targets(RewardReadings.from_json(rewards))
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = reward_target(rewards)
     return targets
 
 
-def reward_target(rewards: dict) -> dict:
+def goal_targets(rewards: RewardReadings) -> dict:
+    """The text model's goals from held-out starts: reached within the horizon, nearer the real success than the
+    start, nearer than another family's goal."""
+    goals, successful = rewards.goals, f"{rewards.goals.successful_starts} successful episodes"
+    reached, nearer = goals.reached_within_horizon, goals.nearer_final_than_start
+    own = goals.final_nearer_own_goal_than_other_instructions
+    return {
+        "goal: text model reaches done within the family's horizon (share of held-out starts)": target_row(
+            reached, f">= {GOAL_REACHED}", reached >= GOAL_REACHED, f"{goals.starts} starts"
+        ),
+        f"goal frame nearer the real final frame than the start ({rewards.similarity} similarity)": target_row(
+            nearer, f">= {GOAL_NEARER_FINAL}", nearer is not None and nearer >= GOAL_NEARER_FINAL, successful
+        ),
+        "goal made under its own instruction nearer the real success than another family's goal": target_row(
+            own,
+            f">= {GOAL_OWN_INSTRUCTION}",
+            own is not None and own >= GOAL_OWN_INSTRUCTION,
+            f"{successful}, the same start under another family's instruction",
+        ),
+    }
+
+
+def done_targets(done: DoneReport) -> dict:
+    """The chosen done source's ROC-AUCs on held-out OOD episodes, teacher forced and open loop, and the episodes it
+    calls done at its threshold."""
+    targets, source = {}, done.source
+    for mode, goal in (("teacher_forced", DONE_ROC_AUC_TEACHER_FORCED), ("open_loop", DONE_ROC_AUC_OPEN_LOOP)):
+        reading, words = done.chosen.reading(mode), mode.replace("_", " ")
+        if reading is None:
+            continue
+        auc, c = reading.frame_roc_auc, reading.confusion
+        targets[f"done ROC-AUC, {words}, frames of held-out OOD episodes ({source})"] = target_row(
+            auc, f">= {goal}", auc is not None and auc >= goal, f"episodes: {number(reading.episode_roc_auc)}"
+        )
+        if mode == "open_loop" and c.successful:
+            called = c.success_called_done / c.successful
+            targets[f"done: successful episodes called done at the threshold, open loop ({source})"] = target_row(
+                called,
+                f">= {DONE_SUCCESS_CALLED_DONE}",
+                called >= DONE_SUCCESS_CALLED_DONE,
+                f"{c.success_called_done} of {c.successful}",
+            )
+        rate = c.failed_called_done_rate
+        targets[f"done: failed episodes called done at the threshold, {words} ({source})"] = target_row(
+            rate,
+            f"<= {DONE_FAILED_CALLED_DONE}",
+            rate is not None and rate <= DONE_FAILED_CALLED_DONE,
+            f"threshold {done.theta:.3f} chosen on validation episodes; {c.failed_called_done} of {c.failed} failed, "
+            f"{c.success_called_done} of {c.successful} successful called done",
+        )
+    return targets
+
+
+def reward_target(rewards: "RewardReadings | dict") -> dict:
     """The world-model return's ROC-AUC on held-out episodes (a reward report), above the baselines it holds."""
-    summary = rewards["summary"]
-    ours = summary["world_model"]["roc_auc_of_return"]
-    baselines = {k: summary[k]["roc_auc_of_return"] for k in REWARD_BASELINES if k in summary}
+    rewards = RewardReadings.from_json(rewards)
+    ours = rewards.returns["world_model"].roc_auc_of_return
+    baselines = {k: rewards.returns[k].roc_auc_of_return for k in REWARD_BASELINES if k in rewards.returns}
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     return target_row(
         ours,
         f">= {REWARD_ROC_AUC}" + "".join(f", above {k} ({number(v)})" for k, v in baselines.items()),
         ours is not None and ours >= REWARD_ROC_AUC and beats,
-        f"similarity: {rewards['similarity']}; done: {rewards['done_source']} at {rewards['theta']:.3f}",
+        f"similarity: {rewards.similarity}; done: {rewards.done_source} at {rewards.theta:.3f}",
     )
 
 
@@ -261,7 +264,7 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
         ),
     }
     if open_loop_rewards is not None:
-        dense = open_loop_rewards["summary"]["world_model_dense"]["roc_auc_of_return"]
+        dense = RewardReadings.from_json(open_loop_rewards).returns["world_model_dense"].roc_auc_of_return
         targets["reward: ROC-AUC of the world-model return, held-out OOD episodes generated open loop"] = reward_target(
             open_loop_rewards
         )

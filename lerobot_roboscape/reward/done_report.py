@@ -30,6 +30,7 @@ from lerobot_roboscape.dataset.reader import camera_names, episode_indices, open
 from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.reward.baselines import RewardModel
+from lerobot_roboscape.reward.done_readings import MODES, DoneReport
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.clips import model_frames
@@ -43,7 +44,6 @@ logger = logging.getLogger(__name__)
 SOURCES = ("world_model", "classifier")  # as the env's done_source
 REPORT_JSON = "done_report.json"
 DEFAULT_THETA = 0.5  # when the validation episodes hold one kind only (tiny runs): no threshold can be chosen
-MODES = ("teacher_forced", "open_loop")
 
 
 @dataclass
@@ -284,8 +284,8 @@ class DoneChoice:
     @classmethod
     def read(cls, folder: Path) -> "DoneChoice":
         """The choice a finished report in `folder` made."""
-        chosen = read_done_report(folder)["chosen"]
-        return cls(chosen["source"], float(chosen["theta"]))
+        report = DoneReport.from_json(read_done_report(folder))
+        return cls(report.source, report.theta)
 
 
 def read_done_report(folder: Path) -> dict:

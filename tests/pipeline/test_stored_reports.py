@@ -9,13 +9,15 @@ from pathlib import Path
 
 import pytest
 
+from lerobot_roboscape.envs.reward_readings import RewardReadings
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.claim_markdown import markdown
 from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import differences
-from lerobot_roboscape.pipeline.targets import claim_targets
+from lerobot_roboscape.pipeline.targets import claim_targets, done_targets, goal_targets
+from lerobot_roboscape.reward.done_readings import DoneReport
 
 RESULTS = Path(__file__).parents[2] / "docs" / "results"
 
@@ -36,3 +38,13 @@ def test_the_claim_report_renders_again_from_its_json():
     assert [d.to_json() for d in differences(summary["table"], summary["families"])] == summary["differences"]
     assert markdown(cfg, summary) == text
     assert ClaimSummary.from_json(summary).to_json() == summary  # read and written back, field for field
+
+
+def test_the_world_models_done_and_goal_targets_render_again_from_their_stored_reports():
+    stored = json.loads((RESULTS / "world_model" / "results.json").read_text())
+    for results in (stored, stored["bench_on_gpu"]):
+        targets = done_targets(DoneReport.from_json(results["done"]))
+        assert targets == {name: t for name, t in results["targets"].items() if name.startswith("done")}
+        readings = {"summary": results["reward"], "goals": results["goals"], "similarity": results["similarity"]}
+        targets = goal_targets(RewardReadings.from_json(readings | {"done_source": "world_model", "theta": 0.5}))
+        assert targets == {name: t for name, t in results["targets"].items() if name.startswith("goal")}

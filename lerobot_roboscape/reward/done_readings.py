@@ -1,0 +1,90 @@
+"""The done report's readings as values (what `done_report.evaluate_done` writes into done_report.json): per source
+of the done signal, its threshold and, per way of reading the episodes, the ROC-AUCs and the episodes it called done
+at that threshold."""
+
+from dataclasses import dataclass
+
+MODES = ("teacher_forced", "open_loop")
+
+
+@dataclass(frozen=True)
+class Confusion:
+    """Episodes by outcome and by whether their best done score reached the threshold."""
+
+    success_called_done: int
+    success_missed: int
+    failed_called_done: int
+    failed_not_done: int
+    failed_called_done_rate: float | None  # None without failed episodes
+
+    @property
+    def successful(self) -> int:
+        return self.success_called_done + self.success_missed
+
+    @property
+    def failed(self) -> int:
+        return self.failed_called_done + self.failed_not_done
+
+
+@dataclass(frozen=True)
+class DoneReading:
+    """One source read one way over a set of episodes: frame and episode ROC-AUCs, and the confusion at the
+    threshold (None where no threshold applied)."""
+
+    episodes: int
+    successful: int
+    frames: int
+    done_frames: int
+    frame_roc_auc: float | None
+    episode_roc_auc: float | None
+    confusion: Confusion | None = None
+
+    @classmethod
+    def from_json(cls, data: dict | None) -> "DoneReading | None":
+        if data is None:
+            return None
+        confusion = data.get("confusion")
+        return cls(**{**data, "confusion": confusion and Confusion(**confusion)})
+
+
+@dataclass(frozen=True)
+class SourceReport:
+    """A done source (the world model's head, or a success classifier): its threshold, where it came from, and its
+    readings on the validation and held-out episodes (None where a mode was not read)."""
+
+    theta: float
+    theta_from: str
+    validation: DoneReading
+    teacher_forced: DoneReading | None
+    open_loop: DoneReading | None
+
+    def reading(self, mode: str) -> DoneReading | None:
+        return getattr(self, mode)
+
+
+@dataclass(frozen=True)
+class DoneReport:
+    """The source the env trusts (the best on the validation episodes) and its threshold, and every source's
+    report."""
+
+    source: str
+    theta: float
+    sources: dict[str, SourceReport]
+
+    @property
+    def chosen(self) -> SourceReport:
+        return self.sources[self.source]
+
+    @classmethod
+    def from_json(cls, data: dict) -> "DoneReport":
+        sources = {
+            name: SourceReport(
+                report["theta"],
+                report["theta_from"],
+                DoneReading.from_json(report["validation"]),
+                *(DoneReading.from_json(report.get(mode)) for mode in MODES),
+            )
+            for name, report in data["sources"].items()
+        }
+        chosen = data["chosen"]
+        return cls(chosen["source"], float(chosen["theta"]), sources)
