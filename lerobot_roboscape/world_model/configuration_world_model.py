@@ -205,9 +205,10 @@ class TinyWorldModelConfig(WorldModelConfig):
 @dataclass
 class BenchWorldModelConfig(WorldModelConfig):
     """The tiny model's width on the bench tokenizer's 16x16 grids, with a window of 6, a position 2x2 codes (128
-    positions per two-view frame): 10.2 clips/s at batch 4 on 2 CPU cores, 3.9x a code per position, and at equal
-    CPU minutes a better arm and more motion in its rollouts (docs/results/world_model/levers70). Changed tokens
-    weigh 5x: on the robot's data copying the previous frame already scores two thirds of the tokens."""
+    positions per two-view frame): 3.9x the clips of a code per position on 2 CPU cores, and at equal CPU minutes a
+    better arm and more motion in its rollouts; at 60 minutes on 2 cores (6 clips/s in the training loop) its
+    rollouts first follow their actions (docs/results/world_model/levers70). Changed tokens weigh 5x: on the robot's
+    data copying the previous frame already scores two thirds of the tokens."""
 
     tokens_per_side: int = 16
     vocab_size: int = 1024
