@@ -11,8 +11,8 @@ class ReturnReading:
     on each class."""
 
     roc_auc_of_return: float | None
-    mean_return_success: float | None
-    mean_return_failure: float | None
+    mean_return_success: float | None = None
+    mean_return_failure: float | None = None
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class RewardReadings:
     similarity and done signal the world model's reward was made with."""
 
     returns: dict[str, ReturnReading]
-    goals: GoalReadings
+    goals: GoalReadings | None  # None in a report on episodes without goals
     similarity: str
     done_source: str
     theta: float
@@ -45,7 +45,7 @@ class RewardReadings:
         goal_fields = {f.name for f in fields(GoalReadings)}
         return cls(
             {kind: ReturnReading(**reading) for kind, reading in data["summary"].items()},
-            GoalReadings(**{k: v for k, v in data["goals"].items() if k in goal_fields}),
+            GoalReadings(**{k: v for k, v in data["goals"].items() if k in goal_fields}) if "goals" in data else None,
             data["similarity"],
             data["done_source"],
             data["theta"],

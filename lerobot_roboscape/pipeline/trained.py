@@ -31,7 +31,7 @@ def trained_stages(cfg: PipelineConfig, out: Path, world_models: bool = True) ->
     tokenizer = out / layout.TOKENIZER_DIR / FINAL
     models = layout.WorldModelPaths(*(out / layout.world_model_dir(c) / FINAL for c in layout.WorldModelPaths._fields))
     done = out / layout.DONE_REPORT_DIR / REPORT_JSON
-    needed = [Path(train.root) / "meta" / "info.json", tokenizer] + ([*models.values(), done] if world_models else [])
+    needed = [Path(train.root) / "meta" / "info.json", tokenizer] + ([*models, done] if world_models else [])
     for path in needed:
         if not path.exists():
             stop = "" if world_models else " --stop_after=tokenizer"

@@ -28,16 +28,16 @@ class Confusion:
 
 @dataclass(frozen=True)
 class DoneReading:
-    """One source read one way over a set of episodes: frame and episode ROC-AUCs, and the confusion at the
-    threshold (None where no threshold applied)."""
+    """One source read one way over a set of episodes: frame and episode ROC-AUCs, the confusion at the threshold
+    (None where no threshold applied), and the counts of episodes and frames (None where a report left them out)."""
 
-    episodes: int
-    successful: int
-    frames: int
-    done_frames: int
     frame_roc_auc: float | None
     episode_roc_auc: float | None
     confusion: Confusion | None = None
+    episodes: int | None = None
+    successful: int | None = None
+    frames: int | None = None
+    done_frames: int | None = None
 
     @classmethod
     def from_json(cls, data: dict | None) -> "DoneReading | None":
@@ -52,11 +52,11 @@ class SourceReport:
     """A done source (the world model's head, or a success classifier): its threshold, where it came from, and its
     readings on the validation and held-out episodes (None where a mode was not read)."""
 
-    theta: float
-    theta_from: str
-    validation: DoneReading
     teacher_forced: DoneReading | None
     open_loop: DoneReading | None
+    theta: float | None = None
+    theta_from: str | None = None
+    validation: DoneReading | None = None
 
     def reading(self, mode: str) -> DoneReading | None:
         return getattr(self, mode)
@@ -79,10 +79,10 @@ class DoneReport:
     def from_json(cls, data: dict) -> "DoneReport":
         sources = {
             name: SourceReport(
-                report["theta"],
-                report["theta_from"],
-                DoneReading.from_json(report["validation"]),
                 *(DoneReading.from_json(report.get(mode)) for mode in MODES),
+                report.get("theta"),
+                report.get("theta_from"),
+                DoneReading.from_json(report.get("validation")),
             )
             for name, report in data["sources"].items()
         }
