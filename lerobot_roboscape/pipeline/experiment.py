@@ -349,7 +349,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
             "them while they are not back)"
         )
     p, clock, trained = cfg.pipeline, StageClock(STEPS), e.trained
-    wm_env, levers, rollouts = None, {}, None
+    wm_env, levers, rollouts, taken = None, {}, None, None
     if e.runs_back:
         clock("world-model env", f"none here: the runs in roboscape_wm went where its models are ({e.elsewhere})")
     else:
@@ -387,7 +387,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     ppo_env = None if context is None else context.world_model
     replays = replay_in_simulator(p, cfg.replay_episodes, e.out, ppo_env, rl[policy][methods.RL_WORLD_MODEL], rollouts)
     clock("report", "the claim's report")
-    report = write_experiment_report(cfg, e.out, results, curve, replays, lever_curves)
+    report = write_experiment_report(cfg, e.out, results, curve, replays, lever_curves, taken and taken.results)
     clock.done()
     return report
 

@@ -32,7 +32,7 @@ from lerobot_roboscape.pipeline.methods import (
     SFT,
     Method,
 )
-from lerobot_roboscape.pipeline.pack_format import read_results
+from lerobot_roboscape.pipeline.pack_format import PackResults
 from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
 from lerobot_roboscape.pipeline.report import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
@@ -99,10 +99,17 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
 
 
 def write_experiment_report(
-    cfg, out: Path, results: Results, curve: list[dict], replays: list[Replay], lever_curves: dict | None = None
+    cfg,
+    out: Path,
+    results: Results,
+    curve: list[dict],
+    replays: list[Replay],
+    lever_curves: dict | None = None,
+    brought_back: PackResults | None = None,
 ) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
-    results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}."""
+    results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}; `brought_back`: what
+    the device reported of the runs in the world model, where they ran elsewhere."""
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
     lever_curves = lever_curves or {}
@@ -113,7 +120,7 @@ def write_experiment_report(
     policies = table.policies
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
-    elsewhere = world_model_runs_record(cfg)
+    elsewhere = world_model_runs_record(cfg, brought_back)
     times = step_times(out, runs, Path(elsewhere["goals"]) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
     summary = ClaimSummary(
         protocol=cfg.protocol,
@@ -157,13 +164,12 @@ def write_experiment_report(
     return folder / "report.md"
 
 
-def world_model_runs_record(cfg) -> dict | None:
-    """Where the runs in the world model ran, when they ran elsewhere (--world_model_runs): the folder they came
-    back to, the GPU, the done threshold chosen there, the goals' file."""
-    if not cfg.world_model_runs:
+def world_model_runs_record(cfg, results: PackResults | None) -> dict | None:
+    """Where the runs in the world model ran, when they ran elsewhere (--world_model_runs) and came back with
+    `results`: the folder they came back to, the GPU, the done threshold chosen there, the goals' file."""
+    if results is None:
         return None
     folder = Path(cfg.world_model_runs).resolve() / RUNS_DIR
-    results = read_results(folder)
     record = {"gpu": results.gpu, "done": results.done, "time_budget_s": results.time_budget_s}
     return {"folder": str(folder), **record, "goals": str(folder / GOALS)}
 

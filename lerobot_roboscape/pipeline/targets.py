@@ -143,7 +143,7 @@ def fidelity_targets(fidelity: dict, domain: str) -> dict:
 def world_model_targets(
     fidelity: dict,
     done: dict,
-    rewards: dict,
+    rewards: "RewardReadings | dict",
     action_curve: list[dict] | None = None,
     fidelity_ind: dict | None = None,
 ) -> dict:
@@ -162,7 +162,8 @@ def world_model_targets(
             f"{action_curve[-1]['step']} steps; evaluations excluded",
         )
     targets |= done_targets(DoneReport.from_json(done))
-    targets |= goal_targets(RewardReadings.from_json(rewards))
+    rewards = RewardReadings.from_json(rewards)
+    targets |= goal_targets(rewards)
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = reward_target(rewards)
     return targets
 

@@ -68,10 +68,10 @@ def run(
     preset: str, patch: int | None, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device
 ) -> dict:
     settings = PATHS[path]
+    patched = {} if patch is None else {"patch": patch}  # the preset's own by default, checked as any --wm.patch
     config = WorldModelConfig.get_choice_class(preset)(
-        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS
+        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS, **patched
     )
-    config.patch = config.patch if patch is None else patch
     torch.manual_seed(0)
     model = STWorldModel(config)
     batches = ClipSampler(cache, cache.episodes, config.window, batch, seed=0, frame_skip=config.frame_skip)
