@@ -36,6 +36,25 @@ def read_tokenizer_report(folder: Path) -> dict:
     return json.loads((Path(folder) / REPORT_JSON).read_text())
 
 
+@dataclass(frozen=True)
+class ViewReading:
+    """One view's measures on the held-out frames (the object's None where the dataset has no masks), and the share
+    of the picture's columns in which the object survives."""
+
+    psnr: float
+    object_psnr: float | None = None
+    object_survival: float | None = None
+    picture_object_survives: float | None = None
+
+
+def view_readings(report: dict) -> dict[str, ViewReading]:
+    """camera -> its readings, from a tokenizer report."""
+    return {
+        camera: ViewReading(m["psnr"], m.get("object_psnr"), m.get("object_survival"), m.get("picture_object_survives"))
+        for camera, m in report["views"].items()
+    }
+
+
 logger = logging.getLogger(__name__)
 CURVE_MEASURES = ("psnr", "object_psnr", "object_survival")
 
@@ -180,7 +199,7 @@ def curve_figure(curve: list[dict], cameras: list[str], path: Path) -> None:
 def headline(report: dict) -> str:
     """The report in one line, for a run's console."""
     return ", ".join(
-        f"{view} PSNR {m['psnr']:.1f} dB, object survives {m['object_survival']}" for view, m in report["views"].items()
+        f"{view} PSNR {m.psnr:.1f} dB, object survives {m.object_survival}" for view, m in view_readings(report).items()
     )
 
 

@@ -30,7 +30,7 @@ from lerobot_roboscape.pipeline.layout import (
     world_model_dir,
 )
 from lerobot_roboscape.pipeline.report import fidelity_results, machine, world_model_results
-from lerobot_roboscape.pipeline.targets import agreement_targets, world_model_targets
+from lerobot_roboscape.pipeline.world_model_targets import agreement_targets, world_model_targets
 from lerobot_roboscape.reward.done_report import read_done_report
 from lerobot_roboscape.training.loop import read_curve
 from lerobot_roboscape.world_model.fidelity import read_fidelity

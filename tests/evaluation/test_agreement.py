@@ -153,7 +153,7 @@ def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dat
 
 
 def test_agreement_targets_are_met_or_missed_by_the_measured_values():
-    from lerobot_roboscape.pipeline.targets import agreement_targets
+    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
 
     def rung(name, sim, wm, wm_return):
         eps = [episode(s, w, wm_return=wm_return) for s, w in zip(sim, wm, strict=True)]

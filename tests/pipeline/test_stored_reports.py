@@ -16,7 +16,8 @@ from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import differences
-from lerobot_roboscape.pipeline.targets import claim_targets, done_targets, goal_targets
+from lerobot_roboscape.pipeline.targets import claim_targets
+from lerobot_roboscape.pipeline.world_model_targets import done_targets, goal_targets
 from lerobot_roboscape.reward.done_readings import DoneReport
 
 RESULTS = Path(__file__).parents[2] / "docs" / "results"
