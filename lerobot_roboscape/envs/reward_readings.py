@@ -38,6 +38,16 @@ class RewardReadings:
     done_source: str
     theta: float
 
+    @property
+    def world_model(self) -> ReturnReading:
+        """The world model's reward: the dense similarity to the goal and the sparse done."""
+        return self.returns["world_model"]
+
+    @property
+    def dense(self) -> ReturnReading:
+        """The dense term alone."""
+        return self.returns["world_model_dense"]
+
     @classmethod
     def from_json(cls, data: "dict | RewardReadings") -> "RewardReadings":
         if isinstance(data, RewardReadings):

@@ -11,7 +11,7 @@ from lerobot_roboscape.evaluation.tables import (
     SPLIT_NAMES,
     format_table,
 )
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, WorldModelRunsRecord
 from lerobot_roboscape.pipeline.config import changed_flags, settings_flags
 from lerobot_roboscape.pipeline.methods import (
     PAPER_PROTOCOL,
@@ -63,7 +63,7 @@ def difference(d: Difference) -> str:
 FILTERS = {"cell": cell, "difference": difference}  # beside the run report's
 
 
-def protocol(cfg, elsewhere: dict | None = None) -> str:
+def protocol(cfg, elsewhere: WorldModelRunsRecord | None = None) -> str:
     """The protocol's paragraph; `elsewhere`: where the runs in the world model ran (world_model_runs_record)."""
     p = cfg.pipeline
     if cfg.sft_checkpoint:
@@ -105,10 +105,10 @@ def protocol(cfg, elsewhere: dict | None = None) -> str:
             f" on the same machine, one run at a time: {envs}."
             if not elsewhere
             else f": {envs}. The runs in `roboscape_wm` ran where its models were trained "
-            f"({elsewhere['gpu'] or 'no GPU'}, `--world_model_runs`), side by side, one process each, for "
+            f"({elsewhere.gpu or 'no GPU'}, `--world_model_runs`), side by side, one process each, for "
             + (
-                f"{elsewhere['time_budget_s'] / 60:.3g} min of PPO's clock"
-                if elsewhere["time_budget_s"]
+                f"{elsewhere.time_budget_s / 60:.3g} min of PPO's clock"
+                if elsewhere.time_budget_s
                 else "the same iterations"
             )
             + "; those in the simulator here, one at a time; the table of PPO's runs gives each its env steps."
@@ -202,8 +202,8 @@ def markdown(cfg, summary: "ClaimSummary | dict") -> str:
         table=format_table(table, p.data.families, f"{p.scale} scale", True, paper_methods(table)),
         other=summary.other_protocol
         and (
-            summary.other_protocol["protocol"],
-            format_table(summary.other_protocol["table"], p.data.families, f"{p.scale} scale"),
+            summary.other_protocol.protocol,
+            format_table(summary.other_protocol.table, p.data.families, f"{p.scale} scale"),
         ),
         short=SHORT,
         difference_rows=difference_rows,
@@ -217,7 +217,7 @@ def markdown(cfg, summary: "ClaimSummary | dict") -> str:
 def lever_rows(summary: ClaimSummary, families: list[str]) -> list[tuple]:
     """Each lever's row: its method, its description, its OOD cells, its checkpoint curve and the simulator steps
     that ran beside its PPO (the done refresh's)."""
-    beside = {(r["policy"], r["method"]): r.get("simulator_steps_beside_ppo", 0) for r in summary.ppo_runs}
+    beside = {(r.policy, r.method): r.simulator_steps_beside_ppo or 0 for r in summary.ppo_runs}
     levers = summary.levers
     return [
         (

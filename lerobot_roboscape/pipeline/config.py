@@ -17,6 +17,7 @@ import yaml
 from lerobot.utils.utils import flatten_dict
 
 from lerobot_roboscape.reward.train import RewardTrainingConfig
+from lerobot_roboscape.rl.configuration_ppo import NUM_ENVS
 from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig, TokenizerConfig
 from lerobot_roboscape.tokenizer.train import TokenizerTrainingConfig
@@ -108,7 +109,7 @@ class PPOSettings:
     save_freq: iterations between checkpoints.
     """
 
-    num_envs: int = 6
+    num_envs: int = NUM_ENVS
     iterations: int = 2
     time_budget_s: float | None = None
     critic_warmup_iterations: int | None = 1

@@ -98,9 +98,24 @@ def _ppo_seconds(folder: Path) -> float:
     return checkpoint_seconds(checkpoint)
 
 
-def refresh_rounds(folder: Path) -> list[dict]:
-    """The figures of each refit of a run (round, simulator steps, success of the rollouts, the head's outputs)."""
-    return [json.loads(p.read_text()) for p in sorted(Path(folder).glob(f"{REFRESH_DIR}/round_*/refresh.json"))]
+@dataclass(frozen=True)
+class RefreshRound:
+    """The figures of one refit: its round, the policy that played the rollouts, their simulator steps and success,
+    and the fit's (`done_tuning.refit_done_head`: the loss first and last, each source's frames and positives)."""
+
+    round: int
+    policy: str
+    simulator_steps: int
+    rollout_success: float
+    loss: dict[str, float]
+    rollouts: dict
+    demonstrations: dict
+
+
+def refresh_rounds(folder: Path) -> list[RefreshRound]:
+    """The figures of each refit of a run."""
+    paths = sorted(Path(folder).glob(f"{REFRESH_DIR}/round_*/refresh.json"))
+    return [RefreshRound(**json.loads(p.read_text())) for p in paths]
 
 
 def refreshed_world_model(refresh: DoneRefresh, base: str, policy: Path, round_: int, run: Path) -> Path:
@@ -128,16 +143,17 @@ def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, fold
     sources = [(policy_cache, policy_cache.episodes), (demo_cache, demo_episodes)]
     figures = refit_done_head(model, sources, refresh.steps)
     save_atomically(model, folder / FINAL)
-    summary = {
-        "round": round_,
-        "policy": str(policy_path),
-        "simulator_steps": int(sum(len(e.action) - 1 for e in rollouts)),
-        "rollout_success": float(np.mean([e.done[-1] > 0.5 for e in rollouts])),
-        "loss": figures["loss"],
-        "rollouts": figures["sources"][0],
-        "demonstrations": figures["sources"][1],
-    }
-    write_text_atomically(folder / "refresh.json", json.dumps(summary, indent=2))
+    rollouts_fit, demonstrations_fit = figures["sources"]
+    summary = RefreshRound(
+        round_,
+        str(policy_path),
+        int(sum(len(e.action) - 1 for e in rollouts)),
+        float(np.mean([e.done[-1] > 0.5 for e in rollouts])),
+        figures["loss"],
+        rollouts_fit,
+        demonstrations_fit,
+    )
+    write_text_atomically(folder / "refresh.json", json.dumps(asdict(summary), indent=2))
 
 
 @torch.no_grad()

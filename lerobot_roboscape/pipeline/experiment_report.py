@@ -18,7 +18,7 @@ from lerobot_roboscape.evaluation.tables import (
     write_table,
 )
 from lerobot_roboscape.pipeline.claim_markdown import markdown, readme_block, update_readme
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, OtherProtocol, PpoRun, WorldModelRunsRecord
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import CURVE_DIR, EVAL_DIR, GOAL_FILE, REPLAY_DIR, protocol_dir, rl_dir
@@ -62,39 +62,37 @@ def differences(table: Results | dict, families: list[str]) -> list[Difference]:
     return rows
 
 
-def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[dict]:
+def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[PpoRun]:
     """What each PPO run did in its budget: iterations, PPO's clock, env steps, the last iterations' training
     success and return in its own env, and the run's wall-clock with its setup (env, goals)."""
     rows = []
     for policy in policies:
         for method in methods:
-            history = read_ppo_history(out / rl_dir(policy, method))
+            folder = out / rl_dir(policy, method)
+            history = read_ppo_history(folder)
             if not history:
                 continue
             first, last = history[0], history[-3:]
+            mean = lambda values, digits: round(float(np.mean(values)), digits)  # noqa: E731
+            ensemble = first.disagreement is not None  # an ensemble guarded the run: how far from the data it went
             rows.append(
-                {
-                    "policy": policy,
-                    "method": method,
-                    "iterations": history[-1].iteration,
-                    "ppo_seconds": round(history[-1].seconds, 1),
-                    "decisions": sum(row.samples for row in history),
-                    "first_return": round(first.episode_return, 3),
-                    "last_return": round(float(np.mean([row.episode_return for row in last])), 3),
-                    "first_success": round(first.success, 3),
-                    "last_success": round(float(np.mean([row.success for row in last])), 3),
-                    "wall_seconds": stage_seconds(out / rl_dir(policy, method)),
-                    "simulator_steps_beside_ppo": sum(
-                        r["simulator_steps"] for r in refresh_rounds(out / rl_dir(policy, method))
-                    ),
-                }
+                PpoRun(
+                    policy,
+                    method,
+                    iterations=history[-1].iteration,
+                    ppo_seconds=round(history[-1].seconds, 1),
+                    decisions=sum(row.samples for row in history),
+                    first_return=round(first.episode_return, 3),
+                    last_return=mean([row.episode_return for row in last], 3),
+                    first_success=round(first.success, 3),
+                    last_success=mean([row.success for row in last], 3),
+                    wall_seconds=stage_seconds(folder),
+                    simulator_steps_beside_ppo=sum(r.simulator_steps for r in refresh_rounds(folder)),
+                    first_disagreement=round(first.disagreement, 4) if ensemble else None,
+                    last_disagreement=mean([row.disagreement for row in last], 4) if ensemble else None,
+                    last_halted=mean([row.halted for row in last], 3) if ensemble else None,
+                )
             )
-            if first.disagreement is not None:  # an ensemble guarded the run: how far from the data it went
-                rows[-1] |= {
-                    "first_disagreement": round(first.disagreement, 4),
-                    "last_disagreement": round(float(np.mean([row.disagreement for row in last])), 4),
-                    "last_halted": round(float(np.mean([row.halted for row in last])), 3),
-                }
     return rows
 
 
@@ -121,7 +119,7 @@ def write_experiment_report(
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
     elsewhere = world_model_runs_record(cfg, brought_back)
-    times = step_times(out, runs, Path(elsewhere["goals"]) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
+    times = step_times(out, runs, Path(elsewhere.goals) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
     summary = ClaimSummary(
         protocol=cfg.protocol,
         scale=p.scale,
@@ -164,31 +162,30 @@ def write_experiment_report(
     return folder / "report.md"
 
 
-def world_model_runs_record(cfg, results: PackResults | None) -> dict | None:
+def world_model_runs_record(cfg, results: PackResults | None) -> WorldModelRunsRecord | None:
     """Where the runs in the world model ran, when they ran elsewhere (--world_model_runs) and came back with
     `results`: the folder they came back to, the GPU, the done threshold chosen there, the goals' file."""
     if results is None:
         return None
     folder = Path(cfg.world_model_runs).resolve() / RUNS_DIR
-    record = {"gpu": results.gpu, "done": results.done, "time_budget_s": results.time_budget_s}
-    return {"folder": str(folder), **record, "goals": str(folder / GOALS)}
+    return WorldModelRunsRecord(str(folder), results.gpu, results.done, results.time_budget_s, str(folder / GOALS))
 
 
 PROTOCOL_TABLE = "table1.json"  # each protocol's Table 1, in its folder of the run (layout.protocol_dir)
 
 
-def other_protocol(cfg, out: Path) -> dict | None:
+def other_protocol(cfg, out: Path) -> OtherProtocol | None:
     """The other protocol's Table 1 on the same run (its world models, goals and data), when it ran: {protocol,
     table}."""
     run = Path(cfg.pipeline.output_dir).resolve()
     for name in PROTOCOLS:
         path = run / protocol_dir(name) / PROTOCOL_TABLE
         if name != cfg.protocol and path.is_file():
-            return json.loads(path.read_text())
+            return OtherProtocol.from_json(json.loads(path.read_text()))
     return None
 
 
-def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]:
+def step_times(out: Path, runs: list[PpoRun], goal_file: Path) -> dict[str, float]:
     """Seconds of each step of the experiment, from the stage records in `out`. A PPO run's wall-clock holds its
     setup too: the first world-model run's holds the generation of every start's goal."""
     times = {}
@@ -196,9 +193,9 @@ def step_times(out: Path, runs: list[dict], goal_file: Path) -> dict[str, float]
     if goals is not None:
         times["goals of the world-model starts (the text model, once, before PPO's clock)"] = goals
     for run in runs:
-        times[f"PPO {run['method']}: PPO's clock (the budget)"] = run["ppo_seconds"]
-        if run["wall_seconds"]:
-            times[f"PPO {run['method']}: wall-clock with its setup"] = run["wall_seconds"]
+        times[f"PPO {run.method}: PPO's clock (the budget)"] = run.ppo_seconds
+        if run.wall_seconds:
+            times[f"PPO {run.method}: wall-clock with its setup"] = run.wall_seconds
     evaluations = [stage_seconds(f.parent) or 0.0 for f in (out / EVAL_DIR).glob("*/*/*/stage.json")]
     times[f"simulator evaluation, Table 1 and the ablation ({len(evaluations)} jobs)"] = sum(evaluations)
     curves = (out / CURVE_DIR).glob("*/**/stage.json")  # a folder per policy (and per lever), then per checkpoint

@@ -54,17 +54,16 @@ def fidelity_targets(fidelity: "FidelityReadings | dict", domain: str) -> dict:
     steps = f"first {fidelity.horizon} control steps, {where}"
     targets = {}
     control, longer = fidelity.control, fidelity.control_long
-    regions = control.world_model if control else {}
-    if "whole_frame" in regions:
-        measures = regions["whole_frame"]
+    if control and control.whole_frame is not None:
+        measures = control.whole_frame
         detail = f"{measures.starts} starts; a model ignoring the actions: "
-        detail += f"{control.ignoring_actions['whole_frame'].retrieval:.3f}"
-        if "object" in regions:
-            detail += f"; the object's region: {regions['object'].retrieval:.3f}"
+        detail += f"{control.whole_frame_ignoring_actions.retrieval:.3f}"
+        if control.object is not None:
+            detail += f"; the object's region: {control.object.retrieval:.3f}"
         if control.likelihood_retrieval is not None:
             detail += f"; from the likelihood of each real future: {control.likelihood_retrieval:.3f}"
-        if longer and "whole_frame" in longer.world_model:
-            detail += f"; over {fidelity.long_horizon} control steps: {longer.world_model['whole_frame'].retrieval:.3f}"
+        if longer and longer.whole_frame is not None:
+            detail += f"; over {fidelity.long_horizon} control steps: {longer.whole_frame.retrieval:.3f}"
         targets[f"action WM retrieval of its own future among 4 action sequences, whole frame, {steps}"] = target_row(
             measures.retrieval, f">= {retrieval_goal}", measures.retrieval >= retrieval_goal, detail
         )
@@ -202,7 +201,7 @@ def done_targets(done: DoneReport) -> dict:
 def reward_target(rewards: "RewardReadings | dict") -> dict:
     """The world-model return's ROC-AUC on held-out episodes (a reward report), above the baselines it holds."""
     rewards = RewardReadings.from_json(rewards)
-    ours = rewards.returns["world_model"].roc_auc_of_return
+    ours = rewards.world_model.roc_auc_of_return
     baselines = {k: rewards.returns[k].roc_auc_of_return for k in REWARD_BASELINES if k in rewards.returns}
     beats = all(ours is not None and (v is None or ours > v) for v in baselines.values())
     return target_row(
@@ -242,7 +241,7 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
         ),
     }
     if open_loop_rewards is not None:
-        dense = RewardReadings.from_json(open_loop_rewards).returns["world_model_dense"].roc_auc_of_return
+        dense = RewardReadings.from_json(open_loop_rewards).dense.roc_auc_of_return
         targets["reward: ROC-AUC of the world-model return, held-out OOD episodes generated open loop"] = reward_target(
             open_loop_rewards
         )

@@ -38,6 +38,11 @@ PPO_DEFAULTS = {
 }
 
 
+# Parallel episodes a PPO iteration plays: the bench experiment's 8 on 2 CPU cores (docs/results/bench/report.md); the
+# pipeline's scales and roboscape-ppo share it, a scale overrides it where it sizes PPO (smoke, GPU, paper).
+NUM_ENVS = 8
+
+
 @dataclass
 class PPOConfig:
     """Args:
@@ -87,7 +92,7 @@ class PPOConfig:
     policy_path: str = ""
     env: EnvConfig = field(default_factory=RoboscapeWorldModelEnvConfig)
     output_dir: Path = Path("outputs/ppo")
-    num_envs: int = 16
+    num_envs: int = NUM_ENVS
     iterations: int = 100
     time_budget_s: float | None = None
     gamma: float = 0.99

@@ -46,6 +46,19 @@ class ControlReading:
     likelihood_retrieval: float | None = None
     arm: ArmReading = ArmReading()
 
+    @property
+    def whole_frame(self) -> RegionReading | None:
+        return self.world_model.get("whole_frame")
+
+    @property
+    def object(self) -> RegionReading | None:
+        """None where no start showed the object."""
+        return self.world_model.get("object")
+
+    @property
+    def whole_frame_ignoring_actions(self) -> RegionReading | None:
+        return self.ignoring_actions.get("whole_frame")
+
     @classmethod
     def from_json(cls, data: dict | None) -> "ControlReading | None":
         if not data:

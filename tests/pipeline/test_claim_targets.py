@@ -154,7 +154,7 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
         "lever_settings": lever_descriptions([RL_WORLD_MODEL_KL, ENSEMBLE], cfg.lever),
         "ppo_runs": [
             {"policy": "mlp", "method": ENSEMBLE, "iterations": 9, "ppo_seconds": 60.0, "decisions": 900}
-            | {"first_return": 0.1, "last_return": 0.2, "first_success": 0.0, "last_success": 0.1}
+            | {"first_return": 0.1, "last_return": 0.2, "first_success": 0.0, "last_success": 0.1, "wall_seconds": 75.0}
             | {"first_disagreement": 0.012, "last_disagreement": 0.034, "last_halted": 0.25}
         ],
         "curve": curve,
