@@ -71,6 +71,18 @@ class RefreshSettings:
 
 
 @dataclass
+class TrustSettings:
+    """target_kl: an iteration's update stops at the first minibatch whose approximate KL from the rollout's policy
+    exceeds it (PPO's --target_kl), so no update carries the policy far from where its world-model data came from."""
+
+    target_kl: float = 0.02
+
+    def __post_init__(self):
+        if self.target_kl <= 0:
+            raise InvalidInputError(f"--lever.trust.target_kl must be > 0, got {self.target_kl}")
+
+
+@dataclass
 class LeverSettings:
     """Each lever's settings: starting points; what each measured goes in the claim's report."""
 
@@ -78,6 +90,7 @@ class LeverSettings:
     ensemble: EnsembleSettings = field(default_factory=EnsembleSettings)
     branched: BranchedSettings = field(default_factory=BranchedSettings)
     refresh: RefreshSettings = field(default_factory=RefreshSettings)
+    trust: TrustSettings = field(default_factory=TrustSettings)
 
 
 @dataclass
@@ -187,6 +200,14 @@ LEVERS = {
                 f"{settings.refresh.episodes} simulator episodes of the current policy"
             ),
             simulator=True,
+        ),
+        Lever(
+            "trust",
+            world_model_variant("updates stopped at a target KL", "trust"),
+            lambda context, settings: RLRun(context.world_model, {"target_kl": settings.trust.target_kl}),
+            lambda settings: (
+                f"each iteration's update stopped once its KL from the rollout's policy > {settings.trust.target_kl}"
+            ),
         ),
     )
 }

@@ -101,6 +101,18 @@ def test_the_levers_settings_are_checked_where_they_are_given():
     assert str(parsing.value.__cause__) == "--lever.refresh.rounds must be >= 1, got 0"
     with pytest.raises(InvalidInputError, match="--lever.ensemble.steps_share must be in \\(0, 1\\], got 1.5"):
         EnsembleSettings(steps_share=1.5)
+    with pytest.raises(ParsingError) as parsing:
+        parse_config(ExperimentConfig, ["--lever.trust.target_kl=0"], "pipeline.")
+    assert str(parsing.value.__cause__) == "--lever.trust.target_kl must be > 0, got 0.0"
     with pytest.raises(InvalidInputError, match="--levers=\\['refresh'\\] cannot run with --world_model_runs"):
         ExperimentConfig(levers=["kl", "refresh"], world_model_runs="elsewhere")
     assert ExperimentConfig(lever=LeverSettings()).lever.kl.coef == 0.1
+
+
+def test_the_trust_lever_stops_each_update_at_its_target_kl(context):
+    cfg = parse_config(ExperimentConfig, ["--levers=[trust]", "--lever.trust.target_kl=0.05"], "pipeline.")
+    (run,) = lever_runs(cfg.levers, context, cfg.lever).values()
+    assert run.env == context.world_model and run.settings == {"target_kl": 0.05} and run.runner is ppo
+    method = LEVERS["trust"].method
+    assert method.tag == "ppo_world_model_trust" and method.ood_only
+    assert lever_descriptions([method], cfg.lever)[method].endswith("KL from the rollout's policy > 0.05")
