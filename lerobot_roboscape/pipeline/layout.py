@@ -17,6 +17,7 @@ CONTROL_IND_DIR = "datasets/roboscape_controllability_ind"
 EXPLORE_DIR = "datasets/roboscape_explore"
 EXPLORE_REPO_ID = "local/roboscape_explore"
 DONE_REPORT_DIR = "done_report"
+DONE_REPORT_IND_DIR = "done_report_ind"  # on the validation episodes the threshold was not chosen on (IND)
 CONVERTED_DIR = "datasets/maniskill_converted"
 TRAJECTORIES_DIR = "maniskill_trajectories"
 TOKENIZER_DIR = "tokenizer"

@@ -7,6 +7,7 @@ import platform
 import shutil
 from datetime import date
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib
 import torch
@@ -22,6 +23,7 @@ from lerobot_roboscape.pipeline.layout import (
     CONVERTED_DIR,
     DEMOS_DIR,
     DONE_REPORT_DIR,
+    DONE_REPORT_IND_DIR,
     EVAL_DIR,
     FIDELITY_DIR,
     FIDELITY_IND_DIR,
@@ -47,10 +49,12 @@ from lerobot_roboscape.pipeline.methods import (
 )
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import measure_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
 from lerobot_roboscape.reward.done_report import read_done_report
 from lerobot_roboscape.tokenizer.report import read_tokenizer_report
 from lerobot_roboscape.training.loop import read_curve
 from lerobot_roboscape.world_model.fidelity import read_fidelity
+from lerobot_roboscape.world_model.fidelity_readings import FidelityReadings
 
 matplotlib.use("Agg")
 
@@ -72,6 +76,7 @@ STAGE_FOLDERS = {
     "reward models, success classifier, done and reward reports": [
         *map(reward_model_dir, (*REWARD_BASELINES, SUCCESS_CLASSIFIER)),
         DONE_REPORT_DIR,
+        DONE_REPORT_IND_DIR,
         REWARD_REPORT_DIR,
     ],
     "SFT (lerobot-train)": [*map(sft_dir, POLICIES)],
@@ -83,15 +88,9 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
     tokenizer = read_tokenizer_report(out / TOKENIZER_REPORT_DIR)
-    fidelity = read_fidelity(out / FIDELITY_DIR)
-    fidelity_ind = read_fidelity(out / FIDELITY_IND_DIR)
-    done = read_done_report(out / DONE_REPORT_DIR)
-    rewards = read_reward_report(out / REWARD_REPORT_DIR)
+    models = WorldModelReports.read(out)
     table = read_table(out / TABLES_DIR)
-    curve = read_curve(out / world_model_dir("action"))
-    targets = tokenizer_targets(tokenizer) | measure_targets(
-        fidelity, done, rewards, table, cfg.data.families, curve, fidelity_ind
-    )
+    targets = tokenizer_targets(tokenizer) | models.targets() | measure_targets(table, cfg.data.families)
     times = stage_times(cfg, out)
     results = {
         "scale": cfg.scale,
@@ -102,17 +101,17 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "table": table.to_json(),
         "stage_seconds": times,
         "tokenizer": tokenizer["views"],
-        **world_model_results(fidelity, done, rewards),
+        **models.results(),
     }
-    if fidelity_ind is not None:
-        results["fidelity_ind"] = fidelity_results(fidelity_ind)
     (folder / "results.json").write_text(json.dumps(results, indent=2))
 
     shutil.copy2(out / TOKENIZER_REPORT_DIR / "reconstruction.png", folder / "tokenizer_reconstruction.png")
     if (out / TOKENIZER_REPORT_DIR / "heldout_curve.png").exists():
         shutil.copy2(out / TOKENIZER_REPORT_DIR / "heldout_curve.png", folder / "tokenizer_curve.png")
     world_model_figure(
-        out / FIDELITY_DIR / "side_by_side.mp4", fidelity["prompt_frames"], folder / "world_model_open_loop.png"
+        out / FIDELITY_DIR / "side_by_side.mp4",
+        FidelityReadings.from_json(models.fidelity).prompt_frames,
+        folder / "world_model_open_loop.png",
     )
     ppo_curves(out, table.policies, folder / "ppo_curves.png")
     for source, name in (
@@ -127,6 +126,44 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     if report_dir:
         shutil.copytree(folder, report_dir, dirs_exist_ok=True)
     return folder / "report.md"
+
+
+class WorldModelReports(NamedTuple):
+    """The reports on a run's world models (None where the scale made none): fidelity OOD and IND, the done report
+    on held-out OOD episodes and on the validation half that did not choose its threshold (IND), the reward report,
+    and the action model's held-out curve."""
+
+    fidelity: dict
+    fidelity_ind: dict | None
+    done: dict
+    done_ind: dict | None
+    rewards: dict
+    action_curve: list[dict]
+
+    @classmethod
+    def read(cls, out: Path) -> "WorldModelReports":
+        return cls(
+            read_fidelity(out / FIDELITY_DIR),
+            read_fidelity(out / FIDELITY_IND_DIR),
+            read_done_report(out / DONE_REPORT_DIR),
+            read_done_report(out / DONE_REPORT_IND_DIR) if (out / DONE_REPORT_IND_DIR).is_dir() else None,
+            read_reward_report(out / REWARD_REPORT_DIR),
+            read_curve(out / world_model_dir("action")),
+        )
+
+    def targets(self) -> dict:
+        return world_model_targets(
+            self.fidelity, self.done, self.rewards, self.action_curve, self.fidelity_ind, self.done_ind
+        )
+
+    def results(self) -> dict:
+        """What results.json keeps of them."""
+        results = world_model_results(self.fidelity, self.done, self.rewards)
+        if self.fidelity_ind is not None:
+            results["fidelity_ind"] = fidelity_results(self.fidelity_ind)
+        if self.done_ind is not None:
+            results["done_ind"] = {k: self.done_ind[k] for k in ("chosen", "sources")}
+        return results
 
 
 def fidelity_results(fidelity: dict) -> dict:

@@ -91,7 +91,9 @@ def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, ar
     trained = stages.reward_models(cfg, out, data, tokenizer, models)
     done = stages.done_report(cfg, out, data, tokenizer, models, trained)
     print(f"done: {done.source} at threshold {done.theta:.3f}")
-    artifacts["done report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.DONE_REPORT_DIR / "done_report.md")
+    for name, folder in (("done report", layout.DONE_REPORT_DIR), ("done report IND", layout.DONE_REPORT_IND_DIR)):
+        if (out / folder).is_dir():
+            artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / folder / "done_report.md")
     wm_env = stages.world_model_env(cfg, data.train, tokenizer, models, done, trained)
     rewards = stages.reward_report(cfg, out, data, wm_env, trained)
     print(reward_report.headline(rewards))

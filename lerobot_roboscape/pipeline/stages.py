@@ -13,7 +13,7 @@ import imageio.v3 as iio
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.dataset.reader import open_dataset
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import (
     RewardReportConfig,
@@ -26,6 +26,7 @@ from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.data_stages import Datasets
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
+    DONE_REPORT_IND_DIR,
     REWARD_REPORT_DIR,
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
@@ -227,9 +228,12 @@ def done_report(
     chosen on the validation episodes and measured on the held-out ones (the report, in its folder)."""
     folder = out / DONE_REPORT_DIR
     classifier = trained.get(SUCCESS_CLASSIFIER)
+    validation, judge_ind = data.validation, None
+    if data.validation.root != data.train.root:  # a collection of its own: half chooses, half judges in domain
+        validation, judge_ind = halves(data.validation)
     report_cfg = DoneReportConfig(
         dataset=spread(data.heldout, cfg.data.report_episodes),
-        validation=data.validation,
+        validation=validation,
         tokenizer=str(tokenizer_path),
         world_model=str(models.action),
         success_classifier=_str(classifier),
@@ -237,7 +241,22 @@ def done_report(
         device=cfg.device,
     )
     run_once(folder, report_cfg, cfg.fresh, lambda: evaluate_done(report_cfg))
+    if judge_ind is not None:  # the same choice (same models, same validation half), judged on the other half
+        ind_cfg = replace(report_cfg, dataset=judge_ind, output_dir=out / DONE_REPORT_IND_DIR)
+        run_once(ind_cfg.output_dir, ind_cfg, cfg.fresh, lambda: evaluate_done(ind_cfg))
     return DoneChoice.read(folder)
+
+
+def halves(dataset: DatasetConfig) -> tuple[DatasetConfig, DatasetConfig]:
+    """The dataset's episodes in two halves, each holding every other episode of each (family, outcome): one to
+    choose the done threshold on, one to judge it (the set that picks a threshold cannot judge it)."""
+    d = open_dataset(dataset.repo_id, dataset.root)
+    groups: dict[tuple, list[int]] = {}
+    for i in range(d.meta.total_episodes):
+        facts = episode_facts(d, i)
+        groups.setdefault((facts["task_family"], bool(facts["success"])), []).append(i)
+    first, second = (sorted(i for group in groups.values() for i in group[k::2]) for k in (0, 1))
+    return replace(dataset, episodes=first), replace(dataset, episodes=second)
 
 
 def world_model_env(

@@ -26,6 +26,7 @@ DONE_ROC_AUC_TEACHER_FORCED = 0.95
 DONE_ROC_AUC_OPEN_LOOP = 0.9
 DONE_FAILED_CALLED_DONE = 0.1  # share of failed episodes the done signal calls done, at the chosen threshold
 DONE_SUCCESS_CALLED_DONE = 0.7  # share of successful episodes it calls done, open loop
+DONE_FAILED_CALLED_DONE_IND = 0.2  # in domain, on its own set of episodes (issue 70)
 ACTION_WM_TRAIN_MINUTES = 60  # the bench action model on 2 CPU cores
 GOAL_REACHED = 0.7  # issue 37: from held-out starts, within the family's horizon
 GOAL_NEARER_FINAL = 0.9
@@ -123,11 +124,12 @@ def world_model_targets(
     rewards: "RewardReadings | dict",
     action_curve: list[dict] | None = None,
     fidelity_ind: dict | None = None,
+    done_ind: dict | None = None,
 ) -> dict:
     """The world models' targets: controllability and open-loop fidelity in domain (`fidelity_ind`, when the scale
-    has new starts of the training scenes) and out of domain (`fidelity`), the done signal, the goals and the
-    reward on held-out OOD episodes; with the action model's held-out curve (world_model/train.py's
-    heldout_curve.jsonl), its training minutes."""
+    has new starts of the training scenes) and out of domain (`fidelity`), the done signal (and, `done_ind`, on the
+    validation episodes that did not choose its threshold), the goals and the reward on held-out OOD episodes; with
+    the action model's held-out curve (world_model/train.py's heldout_curve.jsonl), its training minutes."""
     targets = fidelity_targets(fidelity_ind, "ind") if fidelity_ind is not None else {}
     targets |= fidelity_targets(fidelity, "ood")
     if action_curve:
@@ -139,6 +141,8 @@ def world_model_targets(
             f"{action_curve[-1]['step']} steps; evaluations excluded",
         )
     targets |= done_targets(DoneReport.from_json(done))
+    if done_ind is not None:
+        targets |= done_ind_targets(DoneReport.from_json(done_ind))
     rewards = RewardReadings.from_json(rewards)
     targets |= goal_targets(rewards)
     targets["world-model reward: ROC-AUC of the return, held-out OOD episodes"] = reward_target(rewards)
@@ -196,6 +200,32 @@ def done_targets(done: DoneReport) -> dict:
             f"{c.success_called_done} of {c.successful} successful called done",
         )
     return targets
+
+
+def done_ind_targets(done: DoneReport) -> dict:
+    """The chosen source open loop on validation episodes of the training scenes that did not choose its threshold
+    (issue 70): the successful episodes it calls done, and the failed ones."""
+    reading, source = done.chosen.reading("open_loop"), done.source
+    if reading is None or reading.confusion is None:
+        return {}
+    c, where = reading.confusion, f"open loop, IND episodes of its own set ({source})"
+    called = c.success_called_done / c.successful if c.successful else None
+    rate = c.failed_called_done_rate
+    detail = f"threshold {done.theta:.3f}; frame ROC-AUC {number(reading.frame_roc_auc)}"
+    return {
+        f"done: successful episodes called done at the threshold, {where}": target_row(
+            called,
+            f">= {DONE_SUCCESS_CALLED_DONE}",
+            called is not None and called >= DONE_SUCCESS_CALLED_DONE,
+            f"{c.success_called_done} of {c.successful}; {detail}",
+        ),
+        f"done: failed episodes called done at the threshold, {where}": target_row(
+            rate,
+            f"<= {DONE_FAILED_CALLED_DONE_IND}",
+            rate is not None and rate <= DONE_FAILED_CALLED_DONE_IND,
+            f"{c.failed_called_done} of {c.failed}",
+        ),
+    }
 
 
 def reward_target(rewards: "RewardReadings | dict") -> dict:

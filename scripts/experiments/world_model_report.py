@@ -20,19 +20,15 @@ import json
 import shutil
 from pathlib import Path
 
-from lerobot_roboscape.envs.reward_report import read_reward_report
 from lerobot_roboscape.pipeline.figures import world_model_figure
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     FIDELITY_DIR,
     FIDELITY_IND_DIR,
     REWARD_REPORT_DIR,
-    world_model_dir,
 )
-from lerobot_roboscape.pipeline.report import fidelity_results, machine, world_model_results
-from lerobot_roboscape.pipeline.world_model_targets import agreement_targets, world_model_targets
-from lerobot_roboscape.reward.done_report import read_done_report
-from lerobot_roboscape.training.loop import read_curve
+from lerobot_roboscape.pipeline.report import WorldModelReports, machine
+from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
 from lerobot_roboscape.world_model.fidelity import read_fidelity
 
 FIGURES = {
@@ -97,15 +93,8 @@ def main():
 
 def read_run(run: Path) -> tuple[dict, dict]:
     """The targets and the measured results of the fidelity, done and reward reports under `run`."""
-    fidelity = read_fidelity(run / FIDELITY_DIR)
-    done = read_done_report(run / DONE_REPORT_DIR)
-    rewards = read_reward_report(run / REWARD_REPORT_DIR)
-    fidelity_ind = read_fidelity(run / FIDELITY_IND_DIR)
-    curve = read_curve(run / world_model_dir("action"))
-    measured = world_model_results(fidelity, done, rewards)
-    if fidelity_ind is not None:
-        measured["fidelity_ind"] = fidelity_results(fidelity_ind)
-    return world_model_targets(fidelity, done, rewards, curve, fidelity_ind), measured
+    reports = WorldModelReports.read(run)
+    return reports.targets(), reports.results()
 
 
 def _value(t: dict) -> str:

@@ -6,6 +6,7 @@ import pytest
 
 from lerobot_roboscape.pipeline import methods
 from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
 
 
 def cell(rate: float, n: int = 10) -> dict:
@@ -87,7 +88,10 @@ def test_targets_compare_the_measured_values_with_the_goals():
         "tcp_error_cm": 1.2,
         "tcp_error_share_of_moved": 0.153,
     }
-    targets = measure_targets(fidelity, done, rewards, table, ["push"], fidelity_ind=fidelity_ind)
+    done_ind = json.loads(json.dumps(done))  # its own IND episodes: the same choice, 2 of 10 failures called done
+    done_ind["sources"]["classifier"]["open_loop"] = mode(0.9, 2)
+    targets = world_model_targets(fidelity, done, rewards, fidelity_ind=fidelity_ind, done_ind=done_ind)
+    targets |= measure_targets(table, ["push"])
     met = {name: t["met"] for name, t in targets.items()}
     assert list(met)[0].endswith("new starts in the training scenes (IND)")  # in domain first
     ood, ind = "held-out OOD starts", "new starts in the training scenes (IND)"
@@ -123,6 +127,10 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met["done: failed episodes called done at the threshold, teacher forced (classifier)"]  # 1 of 10
     assert not met["done: failed episodes called done at the threshold, open loop (classifier)"]  # 3 of 10
     assert met["done: successful episodes called done at the threshold, open loop (classifier)"]  # 9 of 10
+    in_domain = "open loop, IND episodes of its own set (classifier)"
+    assert met[f"done: successful episodes called done at the threshold, {in_domain}"]  # 9 of 10 >= 0.7
+    assert met[f"done: failed episodes called done at the threshold, {in_domain}"]  # 2 of 10 <= 0.2 in domain
+    assert targets[f"done: failed episodes called done at the threshold, {in_domain}"]["goal"] == "<= 0.2"
     assert met["goal: text model reaches done within the family's horizon (share of held-out starts)"]
     assert not met["goal frame nearer the real final frame than the start (tokenizer similarity)"]
     assert met["goal made under its own instruction nearer the real success than another family's goal"]
@@ -134,8 +142,6 @@ def test_targets_compare_the_measured_values_with_the_goals():
 
 
 def test_the_action_model_training_minutes_are_read_from_its_curve():
-    from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
-
     fidelity = {"config": {"horizon": 16}, "per_step": {"prediction_psnr": [20.0], "reconstruction_psnr": [27.0]}}
     done = {"chosen": {"source": "world_model", "theta": 0.5}, "sources": {"world_model": {}}}
     done["sources"]["world_model"] = {"teacher_forced": None, "open_loop": None}
