@@ -47,6 +47,12 @@ def read_reward_report(folder: Path) -> dict:
     return json.loads((Path(folder) / REPORT_JSON).read_text())
 
 
+def results_entry(report: dict) -> dict:
+    """What a run's results.json keeps of a reward report: each reward's return reading, the goals', the
+    similarity."""
+    return {"reward": report["summary"], "goals": report["goals"], "similarity": report["similarity"]}
+
+
 logger = logging.getLogger(__name__)
 FRAMES = ("real", "open_loop")
 

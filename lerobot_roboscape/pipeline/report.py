@@ -12,7 +12,7 @@ from typing import NamedTuple
 import matplotlib
 import torch
 
-from lerobot_roboscape.envs.reward_report import read_reward_report
+from lerobot_roboscape.envs import reward_report
 from lerobot_roboscape.evaluation.results import Results
 from lerobot_roboscape.evaluation.tables import format_table, read_table
 from lerobot_roboscape.io.templates import number, render_report
@@ -50,10 +50,10 @@ from lerobot_roboscape.pipeline.methods import (
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.pipeline.targets import measure_targets, tokenizer_targets
 from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
-from lerobot_roboscape.reward.done_report import read_done_report
-from lerobot_roboscape.tokenizer.report import read_tokenizer_report
+from lerobot_roboscape.reward import done_report
+from lerobot_roboscape.tokenizer import report as tokenizer_report
 from lerobot_roboscape.training.loop import read_curve
-from lerobot_roboscape.world_model.fidelity import read_fidelity
+from lerobot_roboscape.world_model import fidelity as fidelity_report
 from lerobot_roboscape.world_model.fidelity_readings import FidelityReadings
 
 matplotlib.use("Agg")
@@ -87,7 +87,7 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
     """Write report.md, results.json and the figures into out/report (and report_dir); returns report.md."""
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
-    tokenizer = read_tokenizer_report(out / TOKENIZER_REPORT_DIR)
+    tokenizer = tokenizer_report.read_tokenizer_report(out / TOKENIZER_REPORT_DIR)
     models = WorldModelReports.read(out)
     table = read_table(out / TABLES_DIR)
     targets = tokenizer_targets(tokenizer) | models.targets() | measure_targets(table, cfg.data.families)
@@ -100,7 +100,7 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
         "targets": targets,
         "table": table.to_json(),
         "stage_seconds": times,
-        "tokenizer": tokenizer["views"],
+        "tokenizer": tokenizer_report.results_entry(tokenizer),
         **models.results(),
     }
     (folder / "results.json").write_text(json.dumps(results, indent=2))
@@ -143,11 +143,11 @@ class WorldModelReports(NamedTuple):
     @classmethod
     def read(cls, out: Path) -> "WorldModelReports":
         return cls(
-            read_fidelity(out / FIDELITY_DIR),
-            read_fidelity(out / FIDELITY_IND_DIR),
-            read_done_report(out / DONE_REPORT_DIR),
-            read_done_report(out / DONE_REPORT_IND_DIR) if (out / DONE_REPORT_IND_DIR).is_dir() else None,
-            read_reward_report(out / REWARD_REPORT_DIR),
+            fidelity_report.read_fidelity(out / FIDELITY_DIR),
+            fidelity_report.read_fidelity(out / FIDELITY_IND_DIR),
+            done_report.read_done_report(out / DONE_REPORT_DIR),
+            done_report.read_done_report(out / DONE_REPORT_IND_DIR) if (out / DONE_REPORT_IND_DIR).is_dir() else None,
+            reward_report.read_reward_report(out / REWARD_REPORT_DIR),
             read_curve(out / world_model_dir("action")),
         )
 
@@ -158,28 +158,13 @@ class WorldModelReports(NamedTuple):
 
     def results(self) -> dict:
         """What results.json keeps of them."""
-        results = world_model_results(self.fidelity, self.done, self.rewards)
+        results = {"fidelity": fidelity_report.results_entry(self.fidelity)}
+        results |= {"done": done_report.results_entry(self.done), **reward_report.results_entry(self.rewards)}
         if self.fidelity_ind is not None:
-            results["fidelity_ind"] = fidelity_results(self.fidelity_ind)
+            results["fidelity_ind"] = fidelity_report.results_entry(self.fidelity_ind)
         if self.done_ind is not None:
-            results["done_ind"] = {k: self.done_ind[k] for k in ("chosen", "sources")}
+            results["done_ind"] = done_report.results_entry(self.done_ind)
         return results
-
-
-def fidelity_results(fidelity: dict) -> dict:
-    """What results.json keeps of a fidelity report."""
-    return {k: fidelity[k] for k in ("mean", "per_step", "controllability", "controllability_long") if k in fidelity}
-
-
-def world_model_results(fidelity: dict, done: dict, rewards: dict) -> dict:
-    """What results.json keeps of the fidelity, done and reward reports."""
-    return {
-        "fidelity": fidelity_results(fidelity),
-        "done": {k: done[k] for k in ("chosen", "sources")},
-        "reward": rewards["summary"],
-        "goals": rewards["goals"],
-        "similarity": rewards["similarity"],
-    }
 
 
 def protocol(cfg: PipelineConfig) -> str:

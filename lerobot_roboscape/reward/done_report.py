@@ -293,6 +293,11 @@ def read_done_report(folder: Path) -> dict:
     return json.loads((Path(folder) / REPORT_JSON).read_text())
 
 
+def results_entry(report: dict) -> dict:
+    """What a run's results.json keeps of a done report: the choice and every source's readings."""
+    return {k: report[k] for k in ("chosen", "sources")}
+
+
 def evaluate_done(cfg: DoneReportConfig) -> dict:
     device = resolve_device(cfg.device)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()

@@ -36,6 +36,11 @@ def read_tokenizer_report(folder: Path) -> dict:
     return json.loads((Path(folder) / REPORT_JSON).read_text())
 
 
+def results_entry(report: dict) -> dict:
+    """What a run's results.json keeps of a tokenizer report: each view's measures."""
+    return report["views"]
+
+
 @dataclass(frozen=True)
 class ViewReading:
     """One view's measures on the held-out frames (the object's None where the dataset has no masks), and the share

@@ -48,6 +48,12 @@ def read_fidelity(folder: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def results_entry(report: dict) -> dict:
+    """What a run's results.json keeps of a fidelity report: the means, the per-step measures and the
+    controllability readings."""
+    return {k: report[k] for k in ("mean", "per_step", "controllability", "controllability_long") if k in report}
+
+
 logger = logging.getLogger(__name__)
 METRICS = ("psnr", "ssim", "lpips")
 # Of the task object (metrics/image_fidelity.py), when the held-out dataset has its masks: over views and the
