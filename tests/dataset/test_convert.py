@@ -80,6 +80,7 @@ def test_existing_output_is_kept(recorded, tmp_path):
         convert(ConvertConfig(h5=str(recorded), root=str(tmp_path / "out")))
 
 
+@pytest.mark.slow  # records in the simulator and runs ManiSkill's replay command, as the slow fixtures do
 def test_file_rendered_by_replay_trajectory_converts(tmp_path):
     """The route the state-only error suggests: ManiSkill's replay_trajectory renders RGB, then we convert."""
     import subprocess
