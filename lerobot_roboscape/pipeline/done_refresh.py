@@ -29,7 +29,7 @@ from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import episodes_token_cache, load_or_build_token_cache
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import resolve_device, save_atomically
-from lerobot_roboscape.world_model.done_tuning import refit_done_head
+from lerobot_roboscape.world_model.done_tuning import SourceFit, refit_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 
@@ -108,14 +108,19 @@ class RefreshRound:
     simulator_steps: int
     rollout_success: float
     loss: dict[str, float]
-    rollouts: dict
-    demonstrations: dict
+    rollouts: SourceFit
+    demonstrations: SourceFit
+
+    @classmethod
+    def from_json(cls, data: dict) -> "RefreshRound":
+        fits = {k: SourceFit(**data[k]) for k in ("rollouts", "demonstrations")}
+        return cls(**{**data, **fits})
 
 
 def refresh_rounds(folder: Path) -> list[RefreshRound]:
     """The figures of each refit of a run."""
     paths = sorted(Path(folder).glob(f"{REFRESH_DIR}/round_*/refresh.json"))
-    return [RefreshRound(**json.loads(p.read_text())) for p in paths]
+    return [RefreshRound.from_json(json.loads(p.read_text())) for p in paths]
 
 
 def refreshed_world_model(refresh: DoneRefresh, base: str, policy: Path, round_: int, run: Path) -> Path:
@@ -143,15 +148,13 @@ def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, fold
     sources = [(policy_cache, policy_cache.episodes), (demo_cache, demo_episodes)]
     figures = refit_done_head(model, sources, refresh.steps)
     save_atomically(model, folder / FINAL)
-    rollouts_fit, demonstrations_fit = figures["sources"]
     summary = RefreshRound(
         round_,
         str(policy_path),
         int(sum(len(e.action) - 1 for e in rollouts)),
         float(np.mean([e.done[-1] > 0.5 for e in rollouts])),
-        figures["loss"],
-        rollouts_fit,
-        demonstrations_fit,
+        figures.loss,
+        *figures.sources,  # the rollouts', then the demonstrations'
     )
     write_text_atomically(folder / "refresh.json", json.dumps(asdict(summary), indent=2))
 

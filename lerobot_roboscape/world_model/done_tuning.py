@@ -9,6 +9,7 @@ reads, so they are computed once and the head trains on them in seconds.
 """
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -87,11 +88,30 @@ def tune_done_head(
     return losses
 
 
+@dataclass(frozen=True)
+class SourceFit:
+    """One source's frames and positives in a refit, and the head's mean output after it on its open-loop positive
+    and negative frames (None where it has none)."""
+
+    frames: int
+    positives: int
+    done_of_open_loop_positives: float | None
+    done_of_open_loop_negatives: float | None
+
+
+@dataclass(frozen=True)
+class RefitFigures:
+    """A refit's loss, first and last step ({"first", "last"}), and each source's figures in the order given."""
+
+    loss: dict[str, float]
+    sources: list[SourceFit]
+
+
 def refit_done_head(
     model: STWorldModel,
     sources: list[tuple[TokenCache, list[dict]]],
     steps: int,
-) -> dict:
+) -> RefitFigures:
     """Refit the done head on the open-loop and real frames of the episodes of every (cache, episodes) source (the
     policy's simulator rollouts beside demonstrations, so the head keeps what it knew); returns the fit's figures
     per source: frames, positives, and the head's mean output on open-loop positives / negatives after the fit."""
@@ -106,11 +126,11 @@ def refit_done_head(
             after = torch.sigmoid(model.done_head(source_features.to(device)).squeeze(-1)).cpu()
             positive, negative = open_loop & (source_labels > 0.5), open_loop & (source_labels <= 0.5)
             figures.append(
-                {
-                    "frames": len(source_labels),
-                    "positives": int((source_labels > 0.5).sum()),
-                    "done_of_open_loop_positives": float(after[positive].mean()) if positive.any() else None,
-                    "done_of_open_loop_negatives": float(after[negative].mean()) if negative.any() else None,
-                }
+                SourceFit(
+                    len(source_labels),
+                    int((source_labels > 0.5).sum()),
+                    float(after[positive].mean()) if positive.any() else None,
+                    float(after[negative].mean()) if negative.any() else None,
+                )
             )
-    return {"loss": {"first": losses[0], "last": losses[-1]}, "sources": figures}
+    return RefitFigures({"first": losses[0], "last": losses[-1]}, figures)

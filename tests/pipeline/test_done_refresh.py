@@ -52,7 +52,7 @@ def test_the_done_head_is_refitted_on_the_policys_rollouts_between_slices_of_ppo
     # One refit, after the first slice, on 2 simulator episodes of the policy as it was then.
     (figures,) = refresh_rounds(run)
     assert figures.round == 1 and figures.simulator_steps == 2 * SIM_STEPS
-    assert figures.rollouts["frames"] > 0 and figures.demonstrations["positives"] > 0
+    assert figures.rollouts.frames > 0 and figures.demonstrations.positives > 0
     assert figures.loss["last"] < figures.loss["first"]
     # The refitted model is the base one but for its done head.
     refitted = run / REFRESH_DIR / "round_1" / FINAL
