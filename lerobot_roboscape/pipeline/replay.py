@@ -83,7 +83,7 @@ def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) 
     folder.mkdir(parents=True)
     rows, strips = [], []
     for i, start in enumerate(rollouts.starts):
-        family, scene, seed = start["task_family"], start["scene"], int(start["seed"])
+        family, scene, seed = start.task_family, start.scene, start.seed
         job = EpisodeJob(family, scene, seed, "optimal", image_size)
         replayed = replay_actions(worker_env(job), job, rollouts.actions[:, i], {})
         simulator = np.concatenate([replayed.images[camera] for camera in rollouts.cameras], axis=1)  # (T, 2H, W, 3)
@@ -91,7 +91,7 @@ def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) 
         wm_success, sim_success = bool(rollouts.success[i]), bool(replayed.success.any())
         outcome = f"wm-{'success' if wm_success else 'failure'}_sim-{'success' if sim_success else 'failure'}"
         row = Replay(
-            start["episode_index"],
+            start.episode_index,
             family,
             scene,
             round(float(rollouts.returns[i]), 3),

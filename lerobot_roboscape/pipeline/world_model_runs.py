@@ -262,6 +262,22 @@ def _cast(path: Path, dtype: torch.dtype) -> None:
 # ---- rollouts of a policy in the world model (the replay's first half) --------------------------------------------
 
 
+@dataclass(frozen=True)
+class RolloutStart:
+    """Where a rollout started: its demonstration's episode, and the facts the simulator replays it from."""
+
+    episode_index: int
+    task_family: str
+    scene: str
+    seed: int
+
+    @classmethod
+    def of(cls, start) -> "RolloutStart":
+        """From one of `roboscape_wm`'s starts."""
+        facts = start.facts
+        return cls(start.episode_index, facts["task_family"], facts["scene"], int(facts["seed"]))
+
+
 @dataclass
 class Rollouts:
     """A policy's episodes in `roboscape_wm` from chosen starts: what the env drew (frames, T + 1 per episode), the
@@ -271,7 +287,7 @@ class Rollouts:
     actions: np.ndarray  # (T, B, A)
     returns: np.ndarray  # (B,)
     success: np.ndarray  # (B,) bool: the world model's done reached theta
-    starts: list[dict]  # per episode: episode_index and the start's facts (family, scene, seed)
+    starts: list[RolloutStart]
     cameras: list[str]  # the views, top to bottom in each frame
 
 
@@ -298,9 +314,7 @@ def roll_out(env_cfg: RoboscapeWorldModelEnvConfig, checkpoint: Path, episodes: 
         if (terminated | truncated).all():
             break
     env.close()
-    starts = [
-        {"episode_index": s.episode_index} | {k: s.facts[k] for k in ("task_family", "scene", "seed")} for s in chosen
-    ]
+    starts = [RolloutStart.of(s) for s in chosen]
     return Rollouts(np.stack(frames), np.stack(actions), returns, succeeded, starts, list(env.cameras))
 
 
@@ -311,13 +325,13 @@ def save_rollouts(rollouts: Rollouts, path: Path) -> Path:
         "returns": torch.from_numpy(rollouts.returns.astype(np.float32)),
         "success": torch.from_numpy(rollouts.success.astype(np.uint8)),
     }
-    return save_tensors(path, tensors, {"starts": json.dumps(rollouts.starts), "cameras": json.dumps(rollouts.cameras)})
+    starts = json.dumps([asdict(start) for start in rollouts.starts])
+    return save_tensors(path, tensors, {"starts": starts, "cameras": json.dumps(rollouts.cameras)})
 
 
 def load_rollouts(path: Path) -> Rollouts:
     records, tensors = load_tensors(path, "save_rollouts", ("starts", "cameras"))
     t = {name: tensor.numpy() for name, tensor in tensors.items()}
     returns, success = t["returns"].astype(np.float64), t["success"].astype(bool)
-    return Rollouts(
-        t["frames"], t["actions"], returns, success, *(json.loads(records[k]) for k in ("starts", "cameras"))
-    )
+    starts = [RolloutStart(**start) for start in json.loads(records["starts"])]
+    return Rollouts(t["frames"], t["actions"], returns, success, starts, json.loads(records["cameras"]))
