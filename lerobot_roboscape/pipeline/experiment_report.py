@@ -65,6 +65,7 @@ def differences(table: Results | dict, families: list[str]) -> list[Difference]:
 def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[PpoRun]:
     """What each PPO run did in its budget: iterations, PPO's clock, env steps, the last iterations' training
     success and return in its own env, and the run's wall-clock with its setup (env, goals)."""
+    mean = lambda values, digits: round(float(np.mean(values)), digits)  # noqa: E731
     rows = []
     for policy in policies:
         for method in methods:
@@ -73,7 +74,6 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[PpoRun]
             if not history:
                 continue
             first, last = history[0], history[-3:]
-            mean = lambda values, digits: round(float(np.mean(values)), digits)  # noqa: E731
             ensemble = first.disagreement is not None  # an ensemble guarded the run: how far from the data it went
             rows.append(
                 PpoRun(

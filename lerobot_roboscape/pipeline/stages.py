@@ -225,7 +225,9 @@ def done_report(
     cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path, models: WorldModelPaths, trained: dict
 ) -> DoneChoice:
     """Which done signal the env trusts (the action model's head or the success classifier) and its threshold,
-    chosen on the validation episodes and measured on the held-out ones (the report, in its folder)."""
+    chosen on the validation episodes and measured on the held-out ones (the report, in its folder). Where the
+    validation episodes are a collection of their own, half of them choose and the other half judge the same choice
+    in domain (its report in DONE_REPORT_IND_DIR)."""
     folder = out / DONE_REPORT_DIR
     classifier = trained.get(SUCCESS_CLASSIFIER)
     validation, judge_ind = data.validation, None
