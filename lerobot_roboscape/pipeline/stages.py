@@ -13,7 +13,7 @@ import imageio.v3 as iio
 import numpy as np
 from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.dataset.reader import episode_facts, open_dataset
+from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.reward_report import (
     RewardReportConfig,
@@ -253,10 +253,9 @@ def halves(dataset: DatasetConfig) -> tuple[DatasetConfig, DatasetConfig]:
     """The dataset's episodes in two halves, each holding every other episode of each (family, outcome): one to
     choose the done threshold on, one to judge it (the set that picks a threshold cannot judge it)."""
     d = open_dataset(dataset.repo_id, dataset.root)
-    groups: dict[tuple, list[int]] = {}
+    succeeded, groups = set(successful_episodes(d)), {}
     for i in range(d.meta.total_episodes):
-        facts = episode_facts(d, i)
-        groups.setdefault((facts["task_family"], bool(facts["success"])), []).append(i)
+        groups.setdefault((episode_facts(d, i)["task_family"], i in succeeded), []).append(i)
     first, second = (sorted(i for group in groups.values() for i in group[k::2]) for k in (0, 1))
     return replace(dataset, episodes=first), replace(dataset, episodes=second)
 
