@@ -38,6 +38,16 @@ class Artifact:
     path: Path
 
 
+class Artifacts(dict[str, Artifact]):
+    """What a run made, by name, in the order made. A name is given once: a second artifact under it would hide the
+    first from the run's closing check."""
+
+    def add(self, name: str, kind: ArtifactKind, path: Path | str) -> None:
+        if name in self:
+            raise ValueError(f"artifact {name!r} is already listed (at {self[name].path})")
+        self[name] = Artifact(kind, Path(path))
+
+
 def _video(path: Path) -> str:
     with av.open(str(path)) as container:
         return f"video, {sum(1 for _ in container.decode(video=0))} frames"

@@ -10,7 +10,7 @@ from lerobot_roboscape.envs import reward_report
 from lerobot_roboscape.evaluation.tables import write_table
 from lerobot_roboscape.hub.push import push_run
 from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, stages
-from lerobot_roboscape.pipeline.artifacts import Artifact, ArtifactKind, load_artifact
+from lerobot_roboscape.pipeline.artifacts import ArtifactKind, Artifacts, load_artifact
 from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
 from lerobot_roboscape.pipeline.config import PipelineConfig, preset
 from lerobot_roboscape.pipeline.report import write_report
@@ -35,47 +35,44 @@ STAGES = (
 )
 
 
-def run_pipeline(cfg: PipelineConfig) -> dict[str, Artifact]:
+def run_pipeline(cfg: PipelineConfig) -> Artifacts:
     """Run every stage (skipping those already complete in output_dir), or those up to cfg.stop_after; returns
     {artifact name: artifact} of the stages run."""
-    artifacts: dict[str, Artifact] = {}
+    artifacts = Artifacts()
     with contextlib.suppress(StopAfter):
         _run_stages(cfg, StageClock(STAGES, cfg.stop_after), artifacts)
     return artifacts
 
 
-def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: dict[str, Artifact]) -> None:
+def _run_stages(cfg: PipelineConfig, clock: StageClock, artifacts: Artifacts) -> None:
     out = Path(cfg.output_dir).resolve()
     data, tokenizer, models, wm_env = _data_and_world_models(cfg, out, clock, artifacts)
     checkpoints = _policies(cfg, out, clock, artifacts, data, wm_env)
     _push_and_report(cfg, out, clock, artifacts, data, tokenizer, models, checkpoints)
 
 
-def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict[str, Artifact]):
+def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: Artifacts):
     """The stages up to the world-model env: the data, the tokenizer, the world models, their reports, the done
     signal, the rewards and a rollout in the env. Returns (data, tokenizer, world models, the env's config)."""
 
     clock("collect", "collect demonstrations and held-out episodes (ManiSkill); record and convert a trajectory file")
     data = data_stages.demonstrations(cfg.data, out, cfg.fresh)
-    artifacts["demonstrations (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.train.root))
-    artifacts["held-out episodes (LeRobotDataset)"] = Artifact(ArtifactKind.DATASET, Path(data.heldout.root))
-    artifacts["ManiSkill trajectory file"] = Artifact(ArtifactKind.TRAJECTORY_FILE, data.trajectory_file)
+    artifacts.add("demonstrations (LeRobotDataset)", ArtifactKind.DATASET, Path(data.train.root))
+    artifacts.add("held-out episodes (LeRobotDataset)", ArtifactKind.DATASET, Path(data.heldout.root))
+    artifacts.add("ManiSkill trajectory file", ArtifactKind.TRAJECTORY_FILE, data.trajectory_file)
 
     clock("tokenizer", f"train the image tokenizer ({preset(cfg.tokenizer)} preset)")
     tokenizer = stages.tokenizer(cfg, out, data)
-    artifacts["tokenizer"] = Artifact(ArtifactKind.TOKENIZER, tokenizer)
+    artifacts.add("tokenizer", ArtifactKind.TOKENIZER, tokenizer)
 
     clock("tokenizer report", "tokenizer report on the held-out frames (whole frame, object, codebook; each view)")
     print(tokenizer_report.headline(stages.tokenizer_report(cfg, out, data, tokenizer)))
-    artifacts["tokenizer report"] = Artifact(
-        ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md"
-    )
+    artifacts.add("tokenizer report", ArtifactKind.MARKDOWN, out / layout.TOKENIZER_REPORT_DIR / "tokenizer_report.md")
 
     clock("world models", f"train the action and the text world models ({preset(cfg.wm)} preset)")
     models = stages.world_models(cfg, out, data, tokenizer)
-    artifacts |= {
-        f"{control} world model": Artifact(ArtifactKind.WORLD_MODEL, path) for control, path in models.items()
-    }
+    for control, path in models.items():
+        artifacts.add(f"{control} world model", ArtifactKind.WORLD_MODEL, path)
 
     clock("fidelity report", "fidelity of the action world model: new starts of its training scenes, then OOD")
     for domain in ("ind", "ood"):
@@ -84,8 +81,8 @@ def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, ar
             continue
         print(f"{domain.upper()}: {fidelity_report.headline(fidelity)}")
         name = "fidelity report" + (" IND" if domain == "ind" else "")
-        artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / layout.fidelity_dir(domain) / "fidelity.md")
-    artifacts["predicted vs real video"] = Artifact(ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
+        artifacts.add(name, ArtifactKind.MARKDOWN, out / layout.fidelity_dir(domain) / "fidelity.md")
+    artifacts.add("predicted vs real video", ArtifactKind.VIDEO, out / layout.FIDELITY_DIR / "side_by_side.mp4")
 
     clock("done and reward", "reward models, the done signal and the reward report (held-out episodes)")
     trained = stages.reward_models(cfg, out, data, tokenizer, models)
@@ -93,30 +90,31 @@ def _data_and_world_models(cfg: PipelineConfig, out: Path, clock: StageClock, ar
     print(f"done: {done.source} at threshold {done.theta:.3f}")
     for name, folder in (("done report", layout.DONE_REPORT_DIR), ("done report IND", layout.DONE_REPORT_IND_DIR)):
         if (out / folder).is_dir():
-            artifacts[name] = Artifact(ArtifactKind.MARKDOWN, out / folder / "done_report.md")
+            artifacts.add(name, ArtifactKind.MARKDOWN, out / folder / "done_report.md")
     wm_env = stages.world_model_env(cfg, data.train, tokenizer, models, done, trained)
     rewards = stages.reward_report(cfg, out, data, wm_env, trained)
     print(reward_report.headline(rewards))
-    artifacts["reward report"] = Artifact(ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
+    artifacts.add("reward report", ArtifactKind.MARKDOWN, out / layout.REWARD_REPORT_DIR / "reward_report.md")
 
     clock("world-model rollout", "random actions in the roboscape_wm environment (world-model reward)")
     rollout = stages.world_model_rollout(out, wm_env)
     print(f"{rollout.steps} steps of {rollout.episodes} episodes, return {rollout.returns}")
-    artifacts["roboscape_wm rollout video (frame | goal)"] = Artifact(ArtifactKind.VIDEO, rollout.video)
-    artifacts["roboscape_wm reward curve"] = Artifact(ArtifactKind.IMAGE, rollout.plot)
+    artifacts.add("roboscape_wm rollout video (frame | goal)", ArtifactKind.VIDEO, rollout.video)
+    artifacts.add("roboscape_wm reward curve", ArtifactKind.IMAGE, rollout.plot)
     return data, tokenizer, models, wm_env
 
 
-def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict[str, Artifact], data, wm_env) -> dict:
+def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: Artifacts, data, wm_env) -> dict:
     """SFT, LeRobot's evaluation in the world model, PPO in both envs and Table 1; returns {policy: {method:
     checkpoint}}."""
     clock("SFT", "SFT with lerobot-train: " + " and ".join(policy_stages.policy_specs(cfg)))
     sft = policy_stages.sft(cfg, out, data.train)
-    artifacts |= {f"{name} after SFT": Artifact(ArtifactKind.POLICY, path) for name, path in sft.items()}
+    for name, path in sft.items():
+        artifacts.add(f"{name} after SFT", ArtifactKind.POLICY, path)
 
     clock("lerobot-eval in the world model", "lerobot-eval in roboscape_wm (LeRobot's evaluation in the world model)")
     for name, path in policy_stages.lerobot_eval_in_world_model(cfg, out, sft, wm_env).items():
-        artifacts[f"{name} lerobot-eval in roboscape_wm"] = Artifact(ArtifactKind.JSON, path)
+        artifacts.add(f"{name} lerobot-eval in roboscape_wm", ArtifactKind.JSON, path)
 
     clock(
         "PPO",
@@ -126,7 +124,8 @@ def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict
     rl = policy_stages.rl(cfg, out, data.train, wm_env, sft)
     checkpoints = policy_stages.every_checkpoint(sft, rl)
     for name, runs in rl.items():
-        artifacts |= {f"{name} after {method}": Artifact(ArtifactKind.POLICY, path) for method, path in runs.items()}
+        for method, path in runs.items():
+            artifacts.add(f"{name} after {method}", ArtifactKind.POLICY, path)
 
     clock("Table 1", "success in the simulator, IND and OOD (Table 1)")
     table = policy_stages.simulator_eval(cfg, out, data.train, checkpoints)
@@ -135,12 +134,14 @@ def _policies(cfg: PipelineConfig, out: Path, clock: StageClock, artifacts: dict
     tables = out / layout.TABLES_DIR
     write_table(table, cfg.data.families, tables)
     print((tables / "tables.md").read_text())
-    artifacts["Table 1"] = Artifact(ArtifactKind.MARKDOWN, tables / "tables.md")
-    artifacts["Table 1 bar chart"] = Artifact(ArtifactKind.IMAGE, tables / "tables.png")
+    artifacts.add("Table 1", ArtifactKind.MARKDOWN, tables / "tables.md")
+    artifacts.add("Table 1 bar chart", ArtifactKind.IMAGE, tables / "tables.png")
     return checkpoints
 
 
-def _push_and_report(cfg, out: Path, clock: StageClock, artifacts: dict, data, tokenizer, models, checkpoints) -> None:
+def _push_and_report(
+    cfg, out: Path, clock: StageClock, artifacts: Artifacts, data, tokenizer, models, checkpoints
+) -> None:
     """Every artifact to the Hub (or a folder shaped like it), the run's report, and the table of what was made."""
     hub = out / "hub"
     clock("push", "push to the Hub" if cfg.push_to_hub else f"push to a local folder shaped like the Hub ({hub})")
@@ -162,11 +163,11 @@ def _push_and_report(cfg, out: Path, clock: StageClock, artifacts: dict, data, t
     for (label, kind), where in zip(labels.items(), pushed.values(), strict=True):
         print(f"{label:36s} {where}")
         if local_dir is not None:
-            artifacts[label] = Artifact(kind, Path(where))
+            artifacts.add(label, kind, Path(where))
 
     clock("report", "the experiment's report")
     report = write_report(cfg, out, cfg.report_dir)
-    artifacts["experiment report"] = Artifact(ArtifactKind.MARKDOWN, report)
+    artifacts.add("experiment report", ArtifactKind.MARKDOWN, report)
     clock.done()
 
     print(f"\n=== results ({(time.time() - clock.began) / 60:.1f} min) ===")

@@ -248,3 +248,16 @@ def test_a_run_stops_after_the_stage_it_names():
             clock(stage, stage)
             ran.append(stage)
     assert ran == ["collect", "tokenizer"] and set(clock.seconds) == {"collect", "tokenizer"}
+
+
+def test_a_run_lists_each_artifact_once_and_refuses_a_second_under_its_name(tmp_path):
+    from lerobot_roboscape.pipeline.artifacts import ArtifactKind, Artifacts, load_artifact
+
+    report = tmp_path / "report.md"
+    report.write_text("# report\n\nline\n")
+    artifacts = Artifacts()
+    artifacts.add("experiment report", ArtifactKind.MARKDOWN, str(report))
+    assert load_artifact(artifacts["experiment report"]) == "markdown, 3 lines"
+    with pytest.raises(ValueError, match="'experiment report' is already listed"):
+        artifacts.add("experiment report", ArtifactKind.MARKDOWN, tmp_path / "other.md")
+    assert artifacts["experiment report"].path == report
