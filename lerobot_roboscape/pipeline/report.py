@@ -52,7 +52,7 @@ from lerobot_roboscape.pipeline.targets import measure_targets, tokenizer_target
 from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
 from lerobot_roboscape.reward import done_report
 from lerobot_roboscape.tokenizer import report as tokenizer_report
-from lerobot_roboscape.training.loop import read_curve
+from lerobot_roboscape.training.loop import TrainingTime
 from lerobot_roboscape.world_model import fidelity as fidelity_report
 from lerobot_roboscape.world_model.fidelity_readings import FidelityReadings
 
@@ -131,14 +131,14 @@ def write_report(cfg: PipelineConfig, out: Path, report_dir: str | None = None) 
 class WorldModelReports(NamedTuple):
     """The reports on a run's world models (None where the scale made none): fidelity OOD and IND, the done report
     on held-out OOD episodes and on the validation half that did not choose its threshold (IND), the reward report,
-    and the action model's held-out curve."""
+    and the action model's training time."""
 
     fidelity: dict
     fidelity_ind: dict | None
     done: dict
     done_ind: dict | None
     rewards: dict
-    action_curve: list[dict]
+    action_time: TrainingTime | None
 
     @classmethod
     def read(cls, out: Path) -> "WorldModelReports":
@@ -148,12 +148,12 @@ class WorldModelReports(NamedTuple):
             done_report.read_done_report(out / DONE_REPORT_DIR),
             done_report.read_done_report(out / DONE_REPORT_IND_DIR) if (out / DONE_REPORT_IND_DIR).is_dir() else None,
             reward_report.read_reward_report(out / REWARD_REPORT_DIR),
-            read_curve(out / world_model_dir("action")),
+            TrainingTime.read(out / world_model_dir("action")),
         )
 
     def targets(self) -> dict:
         return world_model_targets(
-            self.fidelity, self.done, self.rewards, self.action_curve, self.fidelity_ind, self.done_ind
+            self.fidelity, self.done, self.rewards, self.action_time, self.fidelity_ind, self.done_ind
         )
 
     def results(self) -> dict:

@@ -43,6 +43,7 @@ from lerobot_roboscape.pipeline.pack_format import (
 )
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
+from lerobot_roboscape.reward.done_readings import DoneReport
 from lerobot_roboscape.reward.done_report import (
     DoneChoice,
     DoneReportConfig,
@@ -175,8 +176,8 @@ def run_pack(cfg: RunPackConfig) -> PackResults:
         output_dir=out / "done_report",
         device=device,
     )
-    chosen = evaluate_done(report)["chosen"]
-    done = DoneChoice.read(report.output_dir)
+    chosen = DoneReport.from_json(evaluate_done(report))
+    done = DoneChoice(chosen.source, chosen.theta)
     # Without members (none was given, or none saved in its budget) the ensemble's runs fail alone, as a failed run.
     runs = {
         tag: RunRecord(run.method, Path("rl", tag), error="no ensemble member was given")
@@ -219,7 +220,7 @@ def run_pack(cfg: RunPackConfig) -> PackResults:
             runs[tag] = RunRecord(method, folder, finals[tag].relative_to(out), stage_seconds(out / folder))
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
     budget = next(iter(jobs.values())).time_budget_s if jobs else None
-    results = PackResults(chosen, gpu, budget, runs)
+    results = PackResults(chosen.choice(), gpu, budget, runs)
     if plan.replay and plan.replay.tag in finals:
         tag = plan.replay.tag
         save_rollouts(roll_out(jobs[tag].env, finals[tag], plan.replay.episodes, device), out / ROLLOUTS)

@@ -8,6 +8,7 @@ from lerobot_roboscape.io.templates import number
 from lerobot_roboscape.pipeline.methods import REWARD_BASELINES
 from lerobot_roboscape.pipeline.target_row import target_row
 from lerobot_roboscape.reward.done_readings import DoneReport
+from lerobot_roboscape.training.loop import TrainingTime
 from lerobot_roboscape.world_model.fidelity_readings import ArmReading, FidelityReadings
 
 # The world models', done and reward, on held-out OOD episodes with failures (issue 28).
@@ -122,23 +123,23 @@ def world_model_targets(
     fidelity: dict,
     done: dict,
     rewards: "RewardReadings | dict",
-    action_curve: list[dict] | None = None,
+    action_time: TrainingTime | None = None,
     fidelity_ind: dict | None = None,
     done_ind: dict | None = None,
 ) -> dict:
     """The world models' targets: controllability and open-loop fidelity in domain (`fidelity_ind`, when the scale
     has new starts of the training scenes) and out of domain (`fidelity`), the done signal (and, `done_ind`, on the
     validation episodes that did not choose its threshold), the goals and the reward on held-out OOD episodes; with
-    the action model's held-out curve (world_model/train.py's heldout_curve.jsonl), its training minutes."""
+    the action model's training time (read from its held-out curve), its minutes."""
     targets = fidelity_targets(fidelity_ind, "ind") if fidelity_ind is not None else {}
     targets |= fidelity_targets(fidelity, "ood")
-    if action_curve:
-        minutes = action_curve[-1]["seconds"] / 60
+    if action_time is not None:
+        minutes = action_time.seconds / 60
         targets["bench action WM training minutes on this machine"] = target_row(
             minutes,
             f"<= {ACTION_WM_TRAIN_MINUTES}",
             minutes <= ACTION_WM_TRAIN_MINUTES,
-            f"{action_curve[-1]['step']} steps; evaluations excluded",
+            f"{action_time.step} steps; evaluations excluded",
         )
     targets |= done_targets(DoneReport.from_json(done))
     if done_ind is not None:

@@ -75,6 +75,10 @@ class DoneReport:
     def chosen(self) -> SourceReport:
         return self.sources[self.source]
 
+    def choice(self) -> dict:
+        """The report's choice as its JSON keeps it: the source, its threshold and where the threshold came from."""
+        return {"source": self.source, "theta": self.theta, "theta_from": self.chosen.theta_from}
+
     @classmethod
     def from_json(cls, data: dict) -> "DoneReport":
         sources = {

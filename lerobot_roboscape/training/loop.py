@@ -373,6 +373,21 @@ def read_curve(output_dir: str | Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
 
 
+@dataclass(frozen=True)
+class TrainingTime:
+    """How far a run had trained at its last held-out reading: the step, and the seconds of training alone (the
+    readings excluded)."""
+
+    step: int
+    seconds: float
+
+    @classmethod
+    def read(cls, output_dir: str | Path) -> "TrainingTime | None":
+        """From the run's held-out curve; None when it has none."""
+        curve = read_curve(output_dir)
+        return cls(curve[-1]["step"], curve[-1]["seconds"]) if curve else None
+
+
 def save_atomically(model, path: Path) -> None:
     """`model.save_pretrained(path)`, replacing `path` only once the new files are complete."""
     tmp = make_tmp_dir(path.parent, path.name)

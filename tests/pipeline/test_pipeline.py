@@ -141,7 +141,9 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met["roboscape_mlp PPO in WM vs RL w. ManiSkill, OOD (all families)"]
 
 
-def test_the_action_model_training_minutes_are_read_from_its_curve():
+def test_the_action_model_training_minutes_are_read_from_its_curve(tmp_path):
+    from lerobot_roboscape.training.loop import HELDOUT_CURVE, TrainingTime
+
     fidelity = {"config": {"horizon": 16}, "per_step": {"prediction_psnr": [20.0], "reconstruction_psnr": [27.0]}}
     done = {"chosen": {"source": "world_model", "theta": 0.5}, "sources": {"world_model": {}}}
     done["sources"]["world_model"] = {"teacher_forced": None, "open_loop": None}
@@ -157,8 +159,11 @@ def test_the_action_model_training_minutes_are_read_from_its_curve():
         "done_source": "world_model",
         "theta": 0.5,
     }
-    curve = [{"step": 150, "seconds": 600.0}, {"step": 3000, "seconds": 3900.0}]
-    minutes = world_model_targets(fidelity, done, rewards, curve)["bench action WM training minutes on this machine"]
+    curve = [{"step": 150, "seconds": 600.0, "retrieval": 0.3}, {"step": 3000, "seconds": 3900.0, "retrieval": 0.5}]
+    (tmp_path / HELDOUT_CURVE).write_text("".join(json.dumps(point) + "\n" for point in curve))
+    assert TrainingTime.read(tmp_path / "no run") is None
+    time = TrainingTime.read(tmp_path)
+    minutes = world_model_targets(fidelity, done, rewards, time)["bench action WM training minutes on this machine"]
     assert minutes["value"] == 65.0 and not minutes["met"] and minutes["detail"].startswith("3000 steps")
 
 

@@ -44,7 +44,9 @@ def test_the_claim_report_renders_again_from_its_json():
 def test_the_world_models_done_and_goal_targets_render_again_from_their_stored_reports():
     stored = json.loads((RESULTS / "world_model" / "results.json").read_text())
     for results in (stored, stored["bench_on_gpu"]):
-        targets = done_targets(DoneReport.from_json(results["done"]))
+        done = DoneReport.from_json(results["done"])
+        assert done.choice() == results["done"]["chosen"]
+        targets = done_targets(done)
         assert targets == {name: t for name, t in results["targets"].items() if name.startswith("done")}
         readings = {"summary": results["reward"], "goals": results["goals"], "similarity": results["similarity"]}
         targets = goal_targets(RewardReadings.from_json(readings | {"done_source": "world_model", "theta": 0.5}))
