@@ -175,18 +175,14 @@ def demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> Datasets
         ),
         fresh,
     )
-    record = {
-        "family": data.families[0],
-        "scene": select_scenes("ind")[0].id,
-        "image_size": data.image_size,
-        "seed": HELDOUT_SEED,
-    }
+    family, scene = data.families[0], select_scenes("ind")[0].id
+    record = {"family": family, "scene": scene, "image_size": data.image_size, "seed": HELDOUT_SEED}
     converted = out / CONVERTED_DIR
     h5_dir = out / TRAJECTORIES_DIR
     if not is_done(converted, record, fresh):
         start(h5_dir)
         h5 = record_maniskill_trajectories(
-            h5_dir, record["family"], record["scene"], episodes=1, image_size=data.image_size, seed=HELDOUT_SEED
+            h5_dir, family, scene, episodes=1, image_size=data.image_size, seed=HELDOUT_SEED
         )
         start(converted)
         convert(ConvertConfig(h5=str(h5), root=str(converted), repo_id="local/maniskill_converted", overwrite=True))
