@@ -56,6 +56,15 @@ class EpisodeStart:
     episode_first_state: torch.Tensor | None = None  # (D,) in its episode's first frame, for a branched start
 
     @property
+    def family(self) -> str | None:
+        """Its episode's task family, as recorded (None for a dataset without roboscape facts)."""
+        return self.facts.get("task_family")
+
+    @property
+    def scene(self) -> str | None:
+        return self.facts.get("scene")
+
+    @property
     def goal_prompt(self) -> torch.Tensor:
         """The frame the start's goal is generated from: its episode's first, so every start of an episode shares
         the episode's goal."""

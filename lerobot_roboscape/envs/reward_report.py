@@ -203,10 +203,10 @@ def other_family_starts(env: RoboscapeWorldModelEnv, indices: list[int]) -> dict
     in the dataset; none when the env holds one family)."""
     by_family = {}
     for s in env.starts:
-        by_family.setdefault(s.facts.get("task_family"), s)
+        by_family.setdefault(s.family, s)
     out = {}
     for s in (s for s in env.starts if s.episode_index in indices):
-        other = next((o for family, o in by_family.items() if family != s.facts.get("task_family")), None)
+        other = next((o for family, o in by_family.items() if family != s.family), None)
         if other is not None:
             out[s.episode_index] = dataclasses.replace(s, task=other.task)
     return out

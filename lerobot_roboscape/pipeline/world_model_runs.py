@@ -275,8 +275,7 @@ class RolloutStart:
     @classmethod
     def of(cls, start) -> "RolloutStart":
         """From one of `roboscape_wm`'s starts."""
-        facts = start.facts
-        return cls(start.episode_index, facts["task_family"], facts["scene"], int(facts["seed"]))
+        return cls(start.episode_index, start.family, start.scene, int(start.facts["seed"]))
 
 
 @dataclass
