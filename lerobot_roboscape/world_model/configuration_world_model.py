@@ -79,6 +79,12 @@ class WorldModelConfig(draccus.ChoiceRegistry):
             what it moves), and copying the previous frame already scores two thirds of the tokens without reading
             the action: weighting the changed ones makes the dynamics, and so the action, carry the loss. Measured
             on the robot's data (docs/results/world_model/report.md): 5x is the bench preset's.
+        masked_head: the output head reads the masked positions only (True), or every position with the loss
+            weighing the masked codes (False), which keeps a training step from waiting on the device (boolean
+            indexing would); null: True on the CPU, False elsewhere. The head's vocab_size outputs per code are
+            most of a step's FLOPs at d_model 128, and about half the positions are masked: on the 2 CPU cores it
+            gives the bench preset 1.5-1.6x the clips/s (scripts/benchmarks/benchmark_wm_training.py). The loss is
+            the same either way.
         done_hidden: hidden width of the done head.
         done_weight: weight of the done loss.
         done_loss: "balanced_bce" (binary cross-entropy averaged over done frames and over the others separately,
@@ -122,6 +128,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     clean_frame_prob: float = 0.25
     corrupt_max: float = 0.0
     changed_weight: float = 1.0
+    masked_head: bool | None = None
     done_hidden: int = 128
     done_weight: float = 1.0
     done_loss: str = "balanced_bce"

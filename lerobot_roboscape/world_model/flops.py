@@ -8,7 +8,9 @@ from lerobot_roboscape.world_model.control_encoders import ACTION_TOKENS
 def forward_flops_per_clip(c: WorldModelConfig, text_width: int | None = None) -> float:
     """Matmul FLOPs (2 per multiply-add) of the forward pass over one training clip of `window` frames, attention
     included, as nanoGPT's estimate_mfu counts them; a training step costs 3x (the backward pass twice the
-    forward's). The frozen T5 is left out: its states are computed once per instruction."""
+    forward's). The frozen T5 is left out: its states are computed once per instruction. The output head is
+    counted on every position, as where it reads them all (masked_head false); on the masked positions only it
+    costs about half of that."""
     T, S, C, V = c.window, c.positions_per_frame, c.d_model, c.vocab_size
     L = ACTION_TOKENS if c.control == "action" else c.text_max_length
     per_token = 8 * C * C + 8 * C * C + 4 * C * C + 4 * c.mlp_ratio * C * C  # spatial, temporal, cross, MLP

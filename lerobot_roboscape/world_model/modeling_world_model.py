@@ -22,7 +22,7 @@ from lerobot_roboscape.training.losses import balanced_bce
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
 from lerobot_roboscape.world_model.flops import forward_flops_per_clip
-from lerobot_roboscape.world_model.objective import masked_inputs, masked_token_loss
+from lerobot_roboscape.world_model.objective import changed_codes, masked_inputs, masked_token_loss
 from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
 from lerobot_roboscape.world_model.saved import refuse_unusable
@@ -189,6 +189,21 @@ class STWorldModel(
         hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states)
         return self.token_logits(hidden_BTNC), self.done_logits(hidden_BTNC), kvs
 
+    def token_loss(self, hidden_BTNC, tokens_BTS, mask_BTS) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The masked codes' loss (objective.py), the head reading the masked positions only or every position
+        (config.masked_head); a position's codes are masked together."""
+        grouped = [self.group(x) for x in (tokens_BTS, mask_BTS, changed_codes(tokens_BTS))]
+        select = self.config.masked_head
+        if select is None:  # FLOPs are what counts on the CPU; elsewhere, that a step never waits on the device
+            select = hidden_BTNC.device.type == "cpu"
+        if select:
+            rows_BTN = grouped[1][..., 0]
+            hidden_RC, grouped = hidden_BTNC[rows_BTN], [x[rows_BTN] for x in grouped]
+        else:
+            hidden_RC, grouped = hidden_BTNC.flatten(0, 2), [x.flatten(0, 2) for x in grouped]
+        logits_RGV = self.head(hidden_RC).view(len(hidden_RC), self.config.codes_per_position, -1)
+        return masked_token_loss(logits_RGV, *grouped, self.config.changed_weight)
+
     def done_logits(self, hidden_BTNC) -> torch.Tensor:
         """The done head reads the whole current frame: (B, T, N, C) -> (B, T)."""
         return self.done_head(hidden_BTNC.mean(dim=2)).squeeze(-1)
@@ -216,9 +231,8 @@ class STWorldModel(
         inputs, mask = masked_inputs(tokens, c, self.ungroup)
         states = batch.get("state")
         hidden, _ = self.compute_hidden(inputs, control, states=states)
-        logits, done_logits = self.token_logits(hidden), self.done_logits(hidden)
-        token_loss, token_logs = masked_token_loss(logits, tokens, mask, c.changed_weight)
-        done_loss = self.done_loss(done_logits.float(), done)
+        token_loss, token_logs = self.token_loss(hidden, tokens, mask)
+        done_loss = self.done_loss(self.done_logits(hidden).float(), done)
         loss = token_loss + c.done_weight * done_loss
         logs = {"loss": loss, **token_logs, "done_loss": done_loss}  # tensors: the loop reads them when it logs
         if self.robot_state is not None:

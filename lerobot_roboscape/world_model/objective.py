@@ -33,19 +33,30 @@ def masked_inputs(
     return inputs.masked_fill(mask, c.mask_token_id), mask
 
 
-def masked_token_loss(
-    logits: torch.Tensor, tokens_BTS: torch.Tensor, mask: torch.Tensor, changed_weight: float
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The cross-entropy of the masked codes, those that changed since the previous frame weighing changed_weight,
-    and its logs (the loss, the accuracy on masked codes and on changed ones: copying the previous frame scores 0
-    there). Weights, not boolean indexing, so that a training step never waits on the device."""
-    changed = torch.zeros_like(mask)
+def changed_codes(tokens_BTS: torch.Tensor) -> torch.Tensor:
+    """(B, T, S) bool: the codes that differ from the previous frame's at the same place (none in the first)."""
+    changed = torch.zeros_like(tokens_BTS, dtype=torch.bool)
     changed[:, 1:] = tokens_BTS[:, 1:] != tokens_BTS[:, :-1]
-    masked, masked_changed = mask.float(), (mask & changed).float()
+    return changed
+
+
+def masked_token_loss(
+    logits_RGV: torch.Tensor,
+    tokens_RG: torch.Tensor,
+    masked_RG: torch.Tensor,
+    changed_RG: torch.Tensor,
+    changed_weight: float,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The cross-entropy of the masked codes of R positions (G codes each), those that changed since the previous
+    frame weighing changed_weight, and its logs (the loss, the accuracy on masked codes and on changed ones:
+    copying the previous frame scores 0 there). Weights, not boolean indexing, so that it never waits on the
+    device; the caller may pass the masked positions only (masked_RG then all true)."""
+    masked, masked_changed = masked_RG.float(), (masked_RG & changed_RG).float()
     weight = masked + (changed_weight - 1) * masked_changed
-    token_ce = F.cross_entropy(logits.flatten(0, 2).float(), tokens_BTS.flatten(), reduction="none").view_as(weight)
+    token_ce = F.cross_entropy(logits_RGV.flatten(0, 1).float(), tokens_RG.flatten(), reduction="none")
+    token_ce = token_ce.view_as(weight)
     loss = (weight * token_ce).sum() / weight.sum().clamp(min=1e-6)
-    hits = (logits.argmax(-1) == tokens_BTS).float()
+    hits = (logits_RGV.argmax(-1) == tokens_RG).float()
     n_masked, n_changed = masked.sum(), masked_changed.sum()
     accuracy = (hits * masked).sum() / n_masked.clamp(min=1)
     changed_accuracy = torch.where(n_changed > 0, (hits * masked_changed).sum() / n_changed.clamp(min=1), accuracy)

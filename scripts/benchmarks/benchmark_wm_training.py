@@ -15,6 +15,8 @@ clip (STWorldModel.training_flops_per_clip: matmuls, attention included, the bac
 
     # on the 2 CPU cores: a smoke figure of the bench preset, a code or 2x2 codes per position
     python scripts/benchmarks/benchmark_wm_training.py --presets bench --patches 1 2 --batch-sizes 4 --steps 6
+    # on the 2 CPU cores: the head on every position (weighted) against the masked positions only
+    python scripts/benchmarks/benchmark_wm_training.py --paths today --masked-heads false true --steps 12
     # on a GPU: both presets over a batch sweep
     python scripts/benchmarks/benchmark_wm_training.py --presets bench gpu --batch-sizes 16 64 256 --steps 40
 """
@@ -65,12 +67,24 @@ def random_token_cache(episodes: int, length: int, cameras: int = 2, side: int =
 
 
 def run(
-    preset: str, patch: int | None, batch: int, path: str, steps: int, cache: TokenCache, device: torch.device
+    preset: str,
+    patch: int | None,
+    batch: int,
+    path: str,
+    steps: int,
+    cache: TokenCache,
+    device: torch.device,
+    masked_head: bool | None = None,
 ) -> dict:
     settings = PATHS[path]
     patched = {} if patch is None else {"patch": patch}  # the preset's own by default, checked as any --wm.patch
     config = WorldModelConfig.get_choice_class(preset)(
-        control="action", action_mean=[0.0] * 7, action_std=[1.0] * 7, **UNIT_STATE_STATS, **patched
+        control="action",
+        action_mean=[0.0] * 7,
+        action_std=[1.0] * 7,
+        masked_head=masked_head,
+        **UNIT_STATE_STATS,
+        **patched,
     )
     torch.manual_seed(0)
     model = STWorldModel(config)
@@ -122,31 +136,43 @@ def main():
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[4])
     parser.add_argument("--steps", type=int, default=6, help="steps per run; the first (compilation) is not timed")
     parser.add_argument("--episodes", type=int, default=64, help="episodes of the random token cache")
+    parser.add_argument("--paths", nargs="+", default=list(PATHS), choices=list(PATHS))
+    parser.add_argument(
+        "--masked-heads",
+        nargs="+",
+        type=lambda v: {"null": None, "true": True, "false": False}[v.lower()],
+        default=[None],
+        help="--wm.masked_head values (null: by device)",
+    )
     parser.add_argument("--json", type=Path, help="also write the figures here")
     args = parser.parse_args()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     cache = random_token_cache(args.episodes, 80)
     print(f"device: {name}, torch {torch.__version__}; {args.steps} steps per run, the first not timed")
-    header = ["preset", "patch", "batch", "today clips/s", "new clips/s", "speed-up", "today MFU", "new MFU"]
-    print("| " + " | ".join([*header, "new TFLOP/s", "new GiB"]) + " |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| preset | patch | batch | masked head | path | clips/s | speed-up | MFU | TFLOP/s | GiB |")
+    print("|---|---:|---:|---|---|---:|---:|---:|---:|---:|")
     rows = []
     for preset, patch, batch in itertools.product(args.presets, args.patches, args.batch_sizes):
-        today, new = (run(preset, patch, batch, path, args.steps, cache, device) for path in ("today", "new"))
-        rows.append({"preset": preset, "patch": patch, "batch": batch, "today": today, "new": new, "device": name})
+        reference = None  # the first run of each (preset, patch, batch): the speed-ups are against it
+        for masked_head, path in itertools.product(args.masked_heads, args.paths):
+            figures = run(preset, patch, batch, path, args.steps, cache, device, masked_head)
+            rows.append(
+                {"preset": preset, "patch": patch, "batch": batch, "masked_head": masked_head, "path": path}
+                | {"device": name, **figures}
+            )
+            reference = reference or figures
 
-        def cell(figures, key, fmt):
-            return figures.get("error", "-") if key not in figures else format(figures[key], fmt)
+            def cell(key, fmt, figures=figures):
+                return figures.get("error", "-") if key not in figures else format(figures[key], fmt)
 
-        ratio = f"{new['clips_per_s'] / today['clips_per_s']:.1f}x" if "error" not in today | new else "-"
-        print(
-            f"| {preset} | {patch} | {batch} | {cell(today, 'clips_per_s', '.3g')} | "
-            f"{cell(new, 'clips_per_s', '.3g')} | "
-            f"{ratio} | {cell(today, 'mfu', '.1%')} | {cell(new, 'mfu', '.1%')} | {cell(new, 'tflops', '.3g')} | "
-            f"{cell(new, 'peak_gib', '.1f')} |",
-            flush=True,
-        )
+            ok = "error" not in reference | figures
+            ratio = f"{figures['clips_per_s'] / reference['clips_per_s']:.2f}x" if ok else "-"
+            print(
+                f"| {preset} | {patch} | {batch} | {masked_head} | {path} | {cell('clips_per_s', '.3g')} | {ratio} | "
+                f"{cell('mfu', '.1%')} | {cell('tflops', '.3g')} | {cell('peak_gib', '.1f')} |",
+                flush=True,
+            )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
 

@@ -43,6 +43,6 @@ def test_a_gpu_is_a_scale_the_user_names():
     assert (gpu.wm_train.steps, gpu.ppo.time_budget_s) == (6000, 900) and (
         bench.wm_train.steps,
         bench.ppo.time_budget_s,
-    ) == (5000, 480)
+    ) == (7500, 480)
     assert gpu.data == bench.data and gpu.eval == bench.eval and type(gpu.wm) is type(bench.wm)
     assert (bench.wm.patch, gpu.wm.patch) == (2, 1)  # 2x2 codes a position on the CPU, as its curves chose

@@ -401,12 +401,14 @@ def test_bad_inputs_are_named():
         TinyWorldModelConfig(control="audio")
 
 
+@pytest.mark.parametrize("masked_head", [True, False])
 @pytest.mark.parametrize("control", ["action", "text"])
-def test_loss_is_the_masked_mean_without_waiting_on_the_device(control):
-    """The weighted loss (no boolean indexing, so no host sync) equals its definition: the token cross-entropy
-    averaged over the masked tokens, changed ones weighing changed_weight, plus the class-balanced done loss; its
-    logs are tensors the training loop reads on logging steps only."""
-    model = make_model(control, changed_weight=3.0, clean_frame_prob=0.0).train()
+def test_loss_is_the_masked_mean_whether_the_head_reads_the_masked_positions_or_all(control, masked_head):
+    """The loss equals its definition, the head run on the masked positions only (the CPU's path) or on every
+    position with weights (no boolean indexing, so no host sync): the token cross-entropy averaged over the masked
+    tokens, changed ones weighing changed_weight, plus the class-balanced done loss; its logs are tensors the
+    training loop reads on logging steps only."""
+    model = make_model(control, changed_weight=3.0, clean_frame_prob=0.0, masked_head=masked_head).train()
     batch = random_batch(B=4, T=4, S=8)
     batch["done"][:] = 0.0
     batch["done"][0, 3] = 1.0  # one rare positive
@@ -437,6 +439,22 @@ def test_loss_is_the_masked_mean_without_waiting_on_the_device(control):
     torch.testing.assert_close(logs["changed_acc"], hits[changed[mask]].float().mean())
 
 
+def test_both_head_paths_give_the_same_gradients():
+    """The masked positions' head (the CPU's default) trains the model as the weighted one does."""
+    grads = []
+    for masked_head in (True, False):
+        torch.manual_seed(0)
+        model = make_model(changed_weight=5.0, patch=2, tokens_per_side=4, masked_head=masked_head).train()
+        batch = random_batch(B=3, T=4, S=32)
+        torch.manual_seed(1)
+        loss, _ = model(batch)
+        loss.backward()
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys()
+    for name, grad in grads[0].items():
+        torch.testing.assert_close(grad, grads[1][name], msg=name)
+
+
 @pytest.mark.parametrize("control", ["action", "text"])
 def test_flops_per_clip_are_the_matmuls_counted(control):
     """The analytic FLOPs behind MFU equal what PyTorch's FLOP counter sees in a forward pass (attention by the
@@ -444,7 +462,7 @@ def test_flops_per_clip_are_the_matmuls_counted(control):
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
-    model = make_model(control, tokens_per_side=4, d_model=64, window=5, frame_skip=2)
+    model = make_model(control, tokens_per_side=4, d_model=64, window=5, frame_skip=2, masked_head=False)
     batch = random_batch(B=2, T=5, S=32)
     batch["actions"] = torch.rand(2, 5, 2, 7)
     model.encode_control(instructions=batch["task"]) if control == "text" else None  # T5 states cached first
