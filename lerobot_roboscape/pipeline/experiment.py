@@ -64,7 +64,8 @@ class ExperimentConfig:
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     curve_points: points of each such curve: the SFT checkpoint and checkpoints evenly spread over the run (at least
         2: SFT and the last).
-    replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator.
+    replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator
+        (16: the share of its successes the simulator confirms rests on at least that many starts).
     world_model_runs: a folder: PPO in the world model runs where its models were trained (a lent GPU, when they
         are too slow for this machine's CPUs: pipeline/world_model_runs.py). The first run of the experiment
         writes DIR/pack (the SFT checkpoint, the starts, each run's settings) and stops; once the runs are brought
@@ -84,7 +85,7 @@ class ExperimentConfig:
     lever: LeverSettings = field(default_factory=LeverSettings)
     curve_episodes: int = 10
     curve_points: int = 6
-    replay_episodes: int = 8
+    replay_episodes: int = 16
     world_model_runs: str | None = None
     report_dir: str = "docs/results/bench"
     readme: str | None = "README.md"

@@ -36,7 +36,7 @@ from lerobot_roboscape.pipeline.pack_format import PackResults
 from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
 from lerobot_roboscape.pipeline.report import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
-from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval
+from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval, signal_targets
 from lerobot_roboscape.pipeline.world_model_runs import GOALS, RUNS_DIR
 from lerobot_roboscape.rl.history import read_ppo_history
 
@@ -114,10 +114,10 @@ def write_experiment_report(
     table = results.where(lambda m: not Method.named(m).ood_only)
     ablation = results.where(lambda m: m in REWARD_ABLATION)
     levers = results.where(lambda m: m in lever_curves)
-    targets = claim_targets(table, p.data.families, curve)
     policies = table.policies
     methods = [RL_WORLD_MODEL, RL_MANISKILL_ONE_SCENE, RL_MANISKILL, *REWARD_ABLATION, *lever_curves]
     runs = ppo_runs(out, policies, methods)
+    targets = claim_targets(table, p.data.families, curve) | signal_targets(runs, replays)
     elsewhere = world_model_runs_record(cfg, brought_back)
     times = step_times(out, runs, Path(elsewhere.goals) if elsewhere else Path(p.output_dir).resolve() / GOAL_FILE)
     summary = ClaimSummary(

@@ -2,6 +2,8 @@
 it, from the reports the stages wrote (the tokenizer's, the world models', SFT's, the agreement with the
 simulator's, and the claim's Table 1). A target row is {"value", "goal", "met"} and, where it helps, "detail"."""
 
+from typing import TYPE_CHECKING
+
 from lerobot_roboscape.evaluation.results import (
     ALL,
     Cell,
@@ -20,12 +22,20 @@ from lerobot_roboscape.pipeline.methods import (
 from lerobot_roboscape.pipeline.target_row import target_row
 from lerobot_roboscape.tokenizer.report import view_readings
 
+if TYPE_CHECKING:  # the claim's records, whose modules reach the simulator and the world models
+    from lerobot_roboscape.pipeline.claim_summary import PpoRun
+    from lerobot_roboscape.pipeline.replay import Replay
+
 # The tokenizer's, on held-out OOD frames, each view (issue 26): the object must survive where it covers >= 4 px.
 TOKENIZER_OBJECT_SURVIVAL = 0.95
 TOKENIZER_OBJECT_PSNR_DB = 20.0
 TOKENIZER_PSNR_DB = 27.0
 # SFT, in domain, per family (issue 27): a policy PPO can improve must already succeed sometimes.
 SFT_IND_SUCCESS = {"push": 0.6, "pick_place": 0.15}
+# The signal PPO gets in the world model (issue 72): its done fires in a share of the episodes by the end of the
+# run (there, an episode's success), and the successes it calls are the simulator's too.
+DONE_FIRED_SHARE = 0.2
+REPLAYED_SUCCESS_SHARE = 0.6
 
 
 def tokenizer_targets(report: dict) -> dict:
@@ -134,6 +144,31 @@ def claim_targets(table: Results | dict, families: list[str], curve: list[dict] 
                 last.cell.success_rate >= first.cell.ci95[0],
                 f"iteration {last.iteration}, {last.cell.episodes} episodes",
             )
+        )
+    return targets
+
+
+def signal_targets(runs: "list[PpoRun]", replays: "list[Replay]") -> dict:
+    """What PPO in the world model is told: per policy, the share of its last iterations' episodes in which the
+    world model's done fired (its success in its own env), and, of the replayed rollouts the world model called
+    successes, the share the simulator called successes too."""
+    targets = {}
+    for run in (r for r in runs if r.method == RL_WORLD_MODEL):
+        targets[f"{run.policy}: PPO in WM, episodes the done fired in (last iterations)"] = target_row(
+            run.last_success,
+            f">= {DONE_FIRED_SHARE}",
+            run.last_success >= DONE_FIRED_SHARE,
+            f"first iteration {run.first_success:.2f}, iteration {run.iterations} at the end",
+        )
+    if replays:
+        called = [r for r in replays if r.world_model_success]
+        confirmed = sum(r.simulator_success for r in called)
+        share = confirmed / len(called) if called else None
+        targets["PPO in WM: its world-model successes that replay as simulator successes"] = target_row(
+            share,
+            f">= {REPLAYED_SUCCESS_SHARE}",
+            share is not None and share >= REPLAYED_SUCCESS_SHARE,
+            f"{confirmed} of {len(called)} world-model successes, {len(replays)} replays",
         )
     return targets
 

@@ -221,3 +221,25 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
     del results["mlp"][SFT]["scene"]
     assert Results.of(results).splits() == ["ind", "ood"]
     assert "Scene" not in format_table(results, ["push"], "t")
+
+
+def test_the_signal_targets_read_the_done_share_and_the_replayed_successes():
+    from lerobot_roboscape.pipeline.claim_summary import PpoRun
+    from lerobot_roboscape.pipeline.replay import Replay
+    from lerobot_roboscape.pipeline.targets import signal_targets
+
+    def run(method, last_success):
+        return PpoRun("mlp", method, 40, 360.0, 8600, 0.1, 0.5, 0.0, last_success, 400.0)
+
+    def replay(world_model, simulator):
+        return Replay(0, "push", "s0", 1.0, world_model, simulator, "replay_0.mp4")
+
+    replays = [replay(True, True)] * 3 + [replay(True, False)] * 2 + [replay(False, False)] * 11
+    targets = signal_targets([run(RL_WORLD_MODEL, 0.25), run(RL_MANISKILL, 0.9)], replays)
+    fired = targets["mlp: PPO in WM, episodes the done fired in (last iterations)"]
+    assert fired["value"] == 0.25 and fired["met"] and len(targets) == 2  # the simulator's run has no done
+    confirmed = targets["PPO in WM: its world-model successes that replay as simulator successes"]
+    assert confirmed["value"] == 0.6 and confirmed["met"] and confirmed["detail"].startswith("3 of 5")
+    silent = signal_targets([run(RL_WORLD_MODEL, 0.0)], [replay(False, True)] * 16)
+    assert [t["met"] for t in silent.values()] == [False, False]
+    assert silent["PPO in WM: its world-model successes that replay as simulator successes"]["value"] is None
