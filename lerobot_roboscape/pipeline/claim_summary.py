@@ -68,7 +68,8 @@ class OtherProtocol:
 class ClaimSummary:
     """protocol: "paper" or "all-scene"; table: Table 1 (the methods every split runs); differences: PPO in the world
     model minus each other method; reward_ablation and levers: their methods' cells; ppo_runs: what each PPO run
-    did in its budget; curve and lever_curves: the world-model runs' checkpoint curves of simulator success;
+    did in its budget; curve and lever_curves: the world-model runs' checkpoint curves of simulator success, and
+    baseline_curves the runs' in the simulator, on the same clock;
     lever_settings: each lever's description; replays: the world-model policy's rollouts replayed in the simulator;
     seconds: each step's; world_model_runs: where the world-model runs ran when elsewhere; other_protocol: the other
     protocol's Table 1 on the same run."""
@@ -90,6 +91,7 @@ class ClaimSummary:
     levers: Results = field(default_factory=lambda: Results({}))
     lever_curves: dict[str, list[dict]] = field(default_factory=dict)
     lever_settings: dict[str, str] = field(default_factory=dict)
+    baseline_curves: dict[str, list[dict]] = field(default_factory=dict)
     world_model_runs: WorldModelRunsRecord | None = None
     other_protocol: OtherProtocol | None = None
 
@@ -131,6 +133,8 @@ class ClaimSummary:
             "replays": [dataclasses.asdict(r) for r in self.replays],
             "seconds": self.seconds,
         }
+        if self.baseline_curves:  # none in the reports made before they were drawn
+            data["baseline_curves"] = self.baseline_curves
         if self.world_model_runs is not None:
             data["world_model_runs"] = dataclasses.asdict(self.world_model_runs)
         if self.other_protocol is not None:

@@ -17,11 +17,10 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.evaluation.results import ALL, CurvePoint
-from lerobot_roboscape.evaluation.success_rate import read_cells
 from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages, world_model_runs
 from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.pipeline.curves import Curves, checkpoint_curves
 from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
 from lerobot_roboscape.pipeline.levers import BY_METHOD, LEVERS, LeverContext, LeverSettings, lever_runs
 from lerobot_roboscape.pipeline.methods import Method
@@ -30,14 +29,11 @@ from lerobot_roboscape.pipeline.policy_stages import RLRun
 from lerobot_roboscape.pipeline.replay import replay_in_simulator
 from lerobot_roboscape.pipeline.trained import TrainedStages, trained_stages
 from lerobot_roboscape.reward.done_report import token_episodes
-from lerobot_roboscape.rl.ppo_state import checkpoint_seconds
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.training.checkpoints import FINAL, spread_checkpoints
 from lerobot_roboscape.training.loop import resolve_device
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
-CURVE_SEED = 200_000  # the curve's initial states, apart from Table 1's (EvalConfig's default seed)
 
 
 @dataclass
@@ -219,46 +215,6 @@ def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy
     return TakenRuns(runs, results, folder / results.replay_rollouts)
 
 
-def checkpoint_curve(
-    cfg: ExperimentConfig,
-    out: Path,
-    demonstrations: DatasetConfig,
-    policy: str,
-    sft: Path,
-    method: str = methods.RL_WORLD_MODEL,
-) -> list[dict]:
-    """OOD simulator success of the SFT checkpoint (iteration 0) and of `curve_points` - 1 checkpoints the PPO run
-    of `method` saved (evenly spread, its last among them), `curve_episodes` per family, on initial states apart
-    from Table 1's: [{iteration, seconds, cell}]."""
-    points = [(0, 0.0, sft)]
-    for folder in spread_checkpoints(out / layout.rl_dir(policy, method), cfg.curve_points - 1):
-        points.append((int(folder.name), checkpoint_seconds(folder), folder / FINAL))
-    jobs = [
-        policy_stages.eval_job(
-            cfg.pipeline,
-            demonstrations,
-            path,
-            ("ood",),
-            # the SFT checkpoint's point (iteration 0) is every run's: evaluated once, in the plain run's folder
-            out / layout.CURVE_DIR / policy / (curve_tag(method) if iteration else "") / f"{iteration:08d}",
-            episodes=cfg.curve_episodes,
-            seed=CURVE_SEED,
-            videos=0,
-        )
-        for iteration, _, path in points
-    ]
-    policy_stages.run_evaluations(cfg.pipeline, jobs)
-    return [
-        CurvePoint(iteration, seconds, read_cells(job.output_dir, "ood")[ALL]).to_json()
-        for (iteration, seconds, _), job in zip(points, jobs, strict=True)
-    ]
-
-
-def curve_tag(method: str) -> str:
-    """The folder of a method's checkpoint curve (PPO in the world model's: the curve folder itself, as before)."""
-    return "" if method == methods.RL_WORLD_MODEL else Method.named(method).tag
-
-
 # The experiment's steps, in order; each header names one.
 STEPS = ("world-model env", "SFT", "levers", "PPO", "Table 1", "checkpoint curve", "replay", "report")
 
@@ -381,14 +337,16 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     checkpoints = policy_stages.every_checkpoint(sft, rl)
     clock("Table 1", f"success in the simulator, {e.splits()} (Table 1)")
     results = policy_stages.simulator_eval(p, e.out, trained.demonstrations, checkpoints, e.scene)
-    clock("checkpoint curve", "simulator success of PPO's checkpoints in the world model, OOD")
-    curve = checkpoint_curve(cfg, e.out, trained.demonstrations, policy, sft[policy])
-    lever_curves = {m: checkpoint_curve(cfg, e.out, trained.demonstrations, policy, sft[policy], m) for m in levers}
+    clock("checkpoint curve", "simulator success of PPO's checkpoints, OOD, in the world model and in ManiSkill")
+    baselines = [m for m in (methods.RL_MANISKILL_ONE_SCENE, methods.RL_MANISKILL) if m in rl[policy]]
+    runs = [methods.RL_WORLD_MODEL, *levers, *baselines]
+    by_run = checkpoint_curves(cfg, e.out, trained.demonstrations, policy, sft[policy], runs)
+    curves = Curves(by_run[runs[0]], {m: by_run[m] for m in levers}, {m: by_run[m] for m in baselines})
     clock("replay", "world-model rollouts replayed in the simulator")
     ppo_env = None if context is None else context.world_model
     replays = replay_in_simulator(p, cfg.replay_episodes, e.out, ppo_env, rl[policy][methods.RL_WORLD_MODEL], rollouts)
     clock("report", "the claim's report")
-    report = write_experiment_report(cfg, e.out, results, curve, replays, lever_curves, taken and taken.results)
+    report = write_experiment_report(cfg, e.out, results, curves, replays, taken and taken.results)
     clock.done()
     return report
 

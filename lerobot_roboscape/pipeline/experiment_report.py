@@ -19,6 +19,7 @@ from lerobot_roboscape.evaluation.tables import (
 )
 from lerobot_roboscape.pipeline.claim_markdown import markdown, readme_block, update_readme
 from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, OtherProtocol, PpoRun, WorldModelRunsRecord
+from lerobot_roboscape.pipeline.curves import Curves
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import CURVE_DIR, EVAL_DIR, GOAL_FILE, REPLAY_DIR, protocol_dir, rl_dir
@@ -100,17 +101,16 @@ def write_experiment_report(
     cfg,
     out: Path,
     results: Results,
-    curve: list[dict],
+    curves: Curves,
     replays: list[Replay],
-    lever_curves: dict | None = None,
     brought_back: PackResults | None = None,
 ) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
-    results block; returns report.md. `lever_curves`: {lever's method: its checkpoint curve}; `brought_back`: what
-    the device reported of the runs in the world model, where they ran elsewhere."""
+    results block; returns report.md. `brought_back`: what the device reported of the runs in the world model,
+    where they ran elsewhere."""
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    lever_curves = lever_curves or {}
+    curve, lever_curves = curves.world_model, curves.levers
     table = results.where(lambda m: not Method.named(m).ood_only)
     ablation = results.where(lambda m: m in REWARD_ABLATION)
     levers = results.where(lambda m: m in lever_curves)
@@ -136,6 +136,7 @@ def write_experiment_report(
         curve=curve,
         lever_curves=lever_curves,
         lever_settings=lever_descriptions(lever_curves, cfg.lever),
+        baseline_curves=curves.baselines,
         replays=replays,
         seconds=times,
         world_model_runs=elsewhere,

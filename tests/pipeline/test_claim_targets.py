@@ -8,6 +8,7 @@ import pytest
 from lerobot_roboscape.evaluation.results import Cell, Results
 from lerobot_roboscape.evaluation.tables import format_table
 from lerobot_roboscape.pipeline.claim_markdown import command, markdown, paper_methods
+from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
 from lerobot_roboscape.pipeline.experiment_report import differences
@@ -182,7 +183,15 @@ def test_the_report_says_which_protocol_ran_and_gives_each_lever_its_row_and_cur
     assert "2 more (its last 1 block(s) and heads drawn afresh and retrained alone, 25% of its steps each)" in row
     assert "reward - 1.0 x their disagreement |" in row  # no threshold: no halt
     assert f"({ENSEMBLE}), in nats per decision: 0.0120 at its first iteration, 0.0340 over its last 3 (25%" in text
-    assert "The other protocol" not in text
+    assert "The other protocol" not in text and "The runs in the simulator" not in text
+    # The runs in the simulator's checkpoint curves, where they were drawn: a row each, and kept by results.json.
+    baselines = {RL_MANISKILL_ONE_SCENE: curve}
+    text = markdown(cfg, summary | {"baseline_curves": baselines})
+    row = next(line for line in text.splitlines() if line.startswith(f"| {RL_MANISKILL_ONE_SCENE} | 0.0: "))
+    assert "0.0: 4/20 (20% [" in row and "10.0: 9/20 (45% [" in row
+    stored = ClaimSummary.from_json(summary | {"baseline_curves": baselines, "protocol": "paper"}).to_json()
+    assert stored["baseline_curves"] == baselines
+    assert "baseline_curves" not in ClaimSummary.from_json(summary | {"protocol": "paper"}).to_json()
     # The all-scene protocol's report, where the paper protocol's Table 1 was found: both tables.
     cfg = ExperimentConfig(pipeline=scale_config("smoke"), protocol="all_scenes", readme=None)
     other = {"protocol": "paper", "table": table(5, 1, 30, 25, 3)}
