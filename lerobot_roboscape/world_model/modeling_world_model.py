@@ -201,7 +201,8 @@ class STWorldModel(
             hidden_RC, grouped = hidden_BTNC[rows_BTN], [x[rows_BTN] for x in grouped]
         else:
             hidden_RC, grouped = hidden_BTNC.flatten(0, 2), [x.flatten(0, 2) for x in grouped]
-        logits_RGV = self.head(hidden_RC).view(len(hidden_RC), self.config.codes_per_position, -1)
+        G = self.config.codes_per_position
+        logits_RGV = self.head(hidden_RC).view(len(hidden_RC), G, self.head.out_features // G)  # R may be 0
         return masked_token_loss(logits_RGV, *grouped, self.config.changed_weight)
 
     def done_logits(self, hidden_BTNC) -> torch.Tensor:
