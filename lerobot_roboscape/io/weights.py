@@ -5,9 +5,12 @@ dtype is refused with the file and the tensor named, instead of loading half a m
 LeRobot's loaders are not strict by default) or unpickling a `pytorch_model.bin`.
 """
 
+import hashlib
+import json
 from pathlib import Path
 
 import safetensors.torch
+import torch
 from huggingface_hub import PyTorchModelHubMixin, constants
 from huggingface_hub.errors import EntryNotFoundError, HfHubHTTPError, LocalEntryNotFoundError
 from safetensors import safe_open
@@ -29,6 +32,16 @@ _DTYPES = {
     "U8": "uint8",
     "BOOL": "bool",
 }
+
+
+def weights_digest(module: nn.Module, config: dict) -> str:
+    """A digest of a model's config and every tensor of its state: what a file made from the model (a token cache,
+    a goal bank) records, so that a model retrained in the same folder is not taken for the one it replaced."""
+    digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=list).encode())
+    for name, tensor in sorted(module.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 def looks_like_repo_id(ref: str) -> bool:

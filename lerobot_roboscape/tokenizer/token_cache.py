@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
 from lerobot_roboscape.dataset.writer import DATASET_FOLDERS
+from lerobot_roboscape.io.weights import weights_digest
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from roboscape_core.errors import InvalidInputError, require_finite
 
@@ -49,11 +50,7 @@ class TokenCacheMismatchError(InvalidInputError):
 
 
 def tokenizer_fingerprint(tokenizer: VisualTokenizer) -> str:
-    digest = hashlib.sha256(json.dumps(tokenizer.config.__dict__, sort_keys=True, default=list).encode())
-    for name, tensor in sorted(tokenizer.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
-    return digest.hexdigest()
+    return weights_digest(tokenizer, tokenizer.config.__dict__)
 
 
 def dataset_fingerprint(root: str | Path) -> str:

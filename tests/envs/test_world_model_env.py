@@ -129,6 +129,16 @@ def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monk
     np.testing.assert_array_equal(info_again["goal"]["wrist"], info["goal"]["wrist"])
     with pytest.raises(InvalidInputError, match=r"goals.safetensors was made with other settings \{'theta'"):
         RoboscapeWorldModelEnv(env_config(goal_file=str(path), theta=0.5), num_envs=2)
+    # A text model retrained in the same folder: its weights differ, so the goals of the one it replaced are refused.
+    retrained = again.text_model
+    with torch.no_grad():
+        next(retrained.parameters()).add_(1.0)
+    monkeypatch.setattr(
+        "lerobot_roboscape.envs.world_model_env.load_models",
+        lambda *args, **kwargs: (again.tokenizer, again.action_model, retrained),
+    )
+    with pytest.raises(InvalidInputError, match=r"goals.safetensors was made with other settings \{'weights'"):
+        RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
 
 
 def test_starts_per_scene_keeps_the_first_episodes_of_each_scene(env_config, demo_dataset):
