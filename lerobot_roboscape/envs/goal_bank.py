@@ -15,6 +15,7 @@ from typing import NamedTuple
 import torch
 
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
+from lerobot_roboscape.io.weights import weights_digest
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
@@ -113,8 +114,12 @@ class GoalBank:
         return self.cache[start.episode_index]
 
     def use_file(self, path: Path, starts: list[EpisodeStart]) -> None:
-        """Read the goals of `path`, generate every start's missing one and write them all back (atomically)."""
-        settings = self.settings
+        """Read the goals of `path`, generate every start's missing one and write them all back (atomically). The
+        file records the text model's weights beside the settings, so that a model retrained in the same folder does
+        not read the goals of the one it replaced (a retrained tokenizer means a retrained text model too). Hashed
+        here, once per file, not at every env's start."""
+        model = self.text_model
+        settings = self.settings | {"weights": model and weights_digest(model, vars(model.config))}
         if path.is_file():
             metadata, tensors = load_tensors(path, "the goal bank (--env.goal_file)", ("settings",), self.device)
             made_with = json.loads(metadata["settings"])

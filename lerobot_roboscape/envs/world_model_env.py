@@ -34,7 +34,6 @@ from lerobot_roboscape.envs.ensemble import Ensemble
 from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
 from lerobot_roboscape.envs.loading import load_ensemble, load_models, load_rewards, model_refs
 from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts, file_starts
-from lerobot_roboscape.io.weights import weights_digest
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
 
@@ -217,14 +216,11 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return self.success_classifier.success_probability(self.decode(tokens_BS) if images is None else images)
 
     def _goal_settings(self) -> dict:
-        """What a start's generated goal depends on, besides the start: the models by their weights too, so that a
-        model retrained in the same folder does not read the goals of the one it replaced."""
+        """What a start's generated goal depends on, besides the start (the goal bank adds the text model's weights)."""
         cfg = self.config
-        models = {"text_world_model": self.text_model, "tokenizer": self.tokenizer}
         return {
             "text_world_model": str(cfg.text_world_model),
             "tokenizer": str(cfg.tokenizer),
-            "weights": {name: None if m is None else weights_digest(m, vars(m.config)) for name, m in models.items()},
             "dataset": self.starts_source,
             "done_source": cfg.done_source,
             "success_classifier": str(cfg.success_classifier),
