@@ -147,6 +147,8 @@ class Results:
             }
         )
 
+    from_json = of  # its JSON form is what `of` reads
+
     def to_json(self) -> dict:
         return {
             policy: {

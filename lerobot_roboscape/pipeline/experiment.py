@@ -212,7 +212,7 @@ def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy
             world_model_runs.copy_run(run.folder, dest)
             resume.mark_done(dest, settings, seconds=run.seconds)
         runs[run.method] = dest / run.final.relative_to(run.folder)
-    return TakenRuns(runs, results, folder / results.replay_rollouts)
+    return TakenRuns(runs, results, folder / results.replay.file)
 
 
 # The experiment's steps, in order; each header names one.

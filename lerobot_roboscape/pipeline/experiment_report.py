@@ -17,6 +17,7 @@ from lerobot_roboscape.evaluation.tables import (
     TABLES_JSON,
     write_table,
 )
+from lerobot_roboscape.io.records import from_record
 from lerobot_roboscape.pipeline.claim_markdown import markdown, readme_block, update_readme
 from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, OtherProtocol, PpoRun, WorldModelRunsRecord
 from lerobot_roboscape.pipeline.curves import Curves
@@ -182,7 +183,7 @@ def other_protocol(cfg, out: Path) -> OtherProtocol | None:
     for name in PROTOCOLS:
         path = run / protocol_dir(name) / PROTOCOL_TABLE
         if name != cfg.protocol and path.is_file():
-            return OtherProtocol.from_json(json.loads(path.read_text()))
+            return from_record(OtherProtocol, json.loads(path.read_text()))
     return None
 
 

@@ -2,11 +2,13 @@
 plan of the runs the pack holds, and the record of each run that came back, as types read from and written to their
 JSON (plan.json, results.json)."""
 
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lerobot_roboscape.io.records import OMIT_EMPTY, from_record, to_record
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
@@ -43,16 +45,11 @@ class Plan:
 
     runs: dict[str, PlannedRun]
     curve_checkpoints: int
-    replay: ReplayPlan | None = None
-    ensemble: dict = field(default_factory=dict)
+    replay: ReplayPlan | None = field(default=None, metadata=OMIT_EMPTY)
+    ensemble: dict = field(default_factory=dict, metadata=OMIT_EMPTY)
 
     def to_json(self) -> dict:
-        data = {"format": PLAN_FORMAT, "runs": {tag: vars(run) for tag, run in self.runs.items()}}
-        if self.replay is not None:
-            data["replay"] = vars(self.replay)
-        if self.ensemble:
-            data["ensemble"] = self.ensemble
-        return data | {"curve_checkpoints": self.curve_checkpoints}
+        return {"format": PLAN_FORMAT} | to_record(self)
 
 
 def read_plan(folder: Path) -> Plan:
@@ -62,12 +59,7 @@ def read_plan(folder: Path) -> Plan:
     data = json.loads(path.read_text())
     if data.get("format") != PLAN_FORMAT:
         raise InvalidInputError(f"{path} has format {data.get('format')}; this version reads {PLAN_FORMAT}")
-    return Plan(
-        {tag: PlannedRun(**run) for tag, run in data["runs"].items()},
-        data["curve_checkpoints"],
-        ReplayPlan(**data["replay"]) if data.get("replay") else None,
-        data.get("ensemble", {}),
-    )
+    return from_record(Plan, data)
 
 
 @dataclass(frozen=True)
@@ -77,62 +69,54 @@ class RunRecord:
 
     method: str
     folder: Path
-    final: Path | None = None
-    seconds: float | None = None
-    error: str | None = None
+    final: Path | None = field(default=None, metadata=OMIT_EMPTY)
+    seconds: float | None = field(default=None, metadata=OMIT_EMPTY)
+    error: str | None = field(default=None, metadata=OMIT_EMPTY)
 
-    def to_json(self) -> dict:
-        data = {"method": self.method, "folder": str(self.folder)}
-        if self.error is not None:
-            return data | {"error": self.error}
-        return data | {"seconds": self.seconds, "final": str(self.final)}
+    def under(self, root: Path) -> "RunRecord":
+        return dataclasses.replace(self, folder=root / self.folder, final=self.final and root / self.final)
 
-    @classmethod
-    def from_json(cls, data: dict, root: Path) -> "RunRecord":
-        final = data.get("final")
-        return cls(
-            data["method"], root / data["folder"], final and root / final, data.get("seconds"), data.get("error")
-        )
+
+@dataclass(frozen=True)
+class ReplayRollouts:
+    """The replay's run and the file of its policy's rollouts in the world model."""
+
+    tag: str
+    file: str
 
 
 @dataclass
 class PackResults:
     """What `run_pack` reports: the done threshold chosen there, its GPU, PPO's budget, every run, and the replay's
-    rollouts' file (None where the replay's run failed)."""
+    rollouts (None where the replay's run failed)."""
 
     done: dict
     gpu: str | None
     time_budget_s: float | None
     runs: dict[str, RunRecord]
-    replay_rollouts: str | None = None
-    replay_tag: str | None = None
+    replay: ReplayRollouts | None = field(default=None, metadata=OMIT_EMPTY)
 
     def to_json(self) -> dict:
-        data = {"done": self.done, "gpu": self.gpu, "time_budget_s": self.time_budget_s}
-        data["runs"] = {tag: run.to_json() for tag, run in self.runs.items()}
-        if self.replay_rollouts is not None:
-            data["replay"] = {"tag": self.replay_tag, "file": self.replay_rollouts}
-        return data
+        return to_record(self)
 
 
 def read_results(folder: Path) -> PackResults:
     """What `run_pack` wrote into `folder` (brought back here): the runs that completed, their folders absolute (a
     failed one is left out, with a warning naming its error); the plain run and its rollouts must be there."""
-    path = Path(folder) / RESULTS
+    folder, path = Path(folder), Path(folder) / RESULTS
     if not path.is_file():
         raise MissingInputError(f"{path} is missing: the world-model runs have not been brought back into {folder}")
-    data = json.loads(path.read_text())
-    runs = {tag: RunRecord.from_json(run, Path(folder)) for tag, run in data["runs"].items()}
-    for tag, run in list(runs.items()):
+    results = from_record(PackResults, json.loads(path.read_text()))
+    results.runs = {tag: run.under(folder) for tag, run in results.runs.items()}
+    for tag, run in list(results.runs.items()):
         if run.error is not None:
             logger.warning("%s: the run %r failed where it ran (%s); it is left out", path, run.method, run.error)
-            del runs[tag]
+            del results.runs[tag]
         elif not run.final.is_dir():
             raise MissingInputError(f"{path}: the final checkpoint {run.final} of {run.method!r} is missing")
-    replay = data.get("replay") or {}
-    if not replay or not (Path(folder) / replay["file"]).is_file():
+    if results.replay is None or not (folder / results.replay.file).is_file():
         raise MissingInputError(
             f"{path}: the plain run in the world model or the rollouts of its replay ({ROLLOUTS}) did not come back "
             f"into {folder}"
         )
-    return PackResults(data["done"], data["gpu"], data["time_budget_s"], runs, replay["file"], replay["tag"])
+    return results

@@ -11,13 +11,27 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.records import from_record, to_record
 from lerobot_roboscape.training.checkpoints import FINAL
 
 STAGE_FILE = "stage.json"
+
+
+@dataclass(frozen=True)
+class StageRecord:
+    """A completed stage's stage.json: the settings it ran with and the seconds its (last) run took."""
+
+    settings: object  # the stage's config as JSON
+    seconds: float | None = None
+
+    @classmethod
+    def read(cls, folder: Path) -> "StageRecord | None":
+        marker = Path(folder) / STAGE_FILE
+        return from_record(cls, json.loads(marker.read_text())) if marker.is_file() else None
 
 
 def _jsonable(settings) -> dict:
@@ -39,10 +53,10 @@ def _strings(value) -> set[str]:
 def _model_digest(path: str) -> str | None:
     """A digest of the settings of the stage that made the model at `path` (a pretrained_model folder beside a
     stage.json); None for any other string."""
-    record = Path(path).parent / STAGE_FILE
-    if Path(path).name != FINAL or not record.is_file():
+    record = StageRecord.read(Path(path).parent) if Path(path).name == FINAL else None
+    if record is None:
         return None
-    made_with = json.dumps(json.loads(record.read_text())["settings"], sort_keys=True)
+    made_with = json.dumps(record.settings, sort_keys=True)
     return hashlib.sha256(made_with.encode()).hexdigest()[:16]
 
 
@@ -53,10 +67,10 @@ def is_done(folder: Path, settings, fresh: bool) -> bool:
     """The stage in `folder` completed with these settings (then its outputs are kept and the stage skipped). A
     setting added to the stage's config after it ran counts as unchanged while empty (None, [], 0 or false): new
     options leave the old behaviour at those defaults, and a finished evaluation or training stays finished."""
-    marker = Path(folder) / STAGE_FILE
-    if fresh or not marker.is_file():
+    record = None if fresh else StageRecord.read(folder)
+    if record is None:
         return False
-    recorded, now = json.loads(marker.read_text())["settings"], _jsonable(settings)
+    recorded, now = record.settings, _jsonable(settings)
     if isinstance(recorded, dict) and isinstance(now, dict):
         now = {k: v for k, v in now.items() if k in recorded or v not in (None, [], 0)}  # 0 == False
     return recorded == now
@@ -88,13 +102,13 @@ def mark_done(folder: Path, settings, seconds: float | None = None) -> None:
     began = _began.pop(folder, time.time())
     seconds = time.time() - began if seconds is None else seconds
     write_text_atomically(
-        folder / STAGE_FILE, json.dumps({"settings": _jsonable(settings), "seconds": seconds}, indent=2)
+        folder / STAGE_FILE, json.dumps(to_record(StageRecord(_jsonable(settings), seconds)), indent=2)
     )
 
 
 def stage_seconds(folder: Path) -> float | None:
-    marker = Path(folder) / STAGE_FILE
-    return json.loads(marker.read_text())["seconds"] if marker.is_file() else None
+    record = StageRecord.read(folder)
+    return record and record.seconds
 
 
 def run_once(folder: Path, settings, fresh: bool, work: Callable[[], object]) -> bool:

@@ -38,6 +38,7 @@ from lerobot_roboscape.pipeline.pack_format import (
     Plan,
     PlannedRun,
     ReplayPlan,
+    ReplayRollouts,
     RunRecord,
     read_plan,
 )
@@ -224,7 +225,7 @@ def run_pack(cfg: RunPackConfig) -> PackResults:
     if plan.replay and plan.replay.tag in finals:
         tag = plan.replay.tag
         save_rollouts(roll_out(jobs[tag].env, finals[tag], plan.replay.episodes, device), out / ROLLOUTS)
-        results.replay_rollouts, results.replay_tag = ROLLOUTS, tag
+        results.replay = ReplayRollouts(tag, ROLLOUTS)
     slim([out / "rl" / tag for tag in finals], plan.curve_checkpoints)
     write_text_atomically(out / RESULTS, json.dumps(results.to_json(), indent=2))
     return results
