@@ -214,6 +214,19 @@ class Difference:
     ci95: tuple[float, float]
     paired_ci95: tuple[float, float] | None = None
 
+    @classmethod
+    def between(cls, ours: Cell, theirs: Cell, policy: str, against: str, split: str, family: str) -> "Difference":
+        """`ours` minus `theirs`, with the paired interval where both cells kept their episodes' outcomes (then they
+        ran on the same initial states)."""
+        d, low, high = difference_interval(ours, theirs)
+        paired = None
+        if ours.outcomes is not None and theirs.outcomes is not None:
+            _, paired_low, paired_high = paired_difference_interval(
+                list(map(bool, ours.outcomes)), list(map(bool, theirs.outcomes))
+            )
+            paired = (round(paired_low, 4), round(paired_high, 4))
+        return cls(policy, against, split, family, round(d, 4), (round(low, 4), round(high, 4)), paired)
+
     @property
     def key(self) -> tuple[str, str, str, str]:
         return self.policy, self.against, self.split, self.family

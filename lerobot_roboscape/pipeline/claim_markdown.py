@@ -215,15 +215,24 @@ def markdown(cfg, summary: "ClaimSummary | dict") -> str:
 
 
 def lever_rows(summary: ClaimSummary, families: list[str]) -> list[tuple]:
-    """Each lever's row: its method, its description, its OOD cells, its checkpoint curve and the simulator steps
-    that ran beside its PPO (the done refresh's)."""
+    """Each lever's row: its method, its description, its OOD cells, its OOD difference from PPO in the world model
+    without a lever (the same initial states: paired), its checkpoint curve and the simulator steps that ran beside
+    its PPO (the done refresh's)."""
     beside = {(r.policy, r.method): r.simulator_steps_beside_ppo or 0 for r in summary.ppo_runs}
-    levers = summary.levers
+    levers, table = summary.levers, summary.table
     return [
         (
             method,
             summary.lever_settings.get(method, ""),
             [levers.cell(policy, method, "ood", f) for f in families],
+            Difference.between(
+                levers.cell(policy, method, "ood"),
+                table.cell(policy, RL_WORLD_MODEL, "ood"),
+                policy,
+                RL_WORLD_MODEL,
+                "ood",
+                ALL,
+            ),
             summary.lever_curves[method],
             beside.get((policy, method), 0),
         )

@@ -12,7 +12,7 @@ import matplotlib
 import numpy as np
 
 from lerobot_roboscape.envs.goal_bank import goal_generation_seconds
-from lerobot_roboscape.evaluation.results import ALL, Difference, Results, difference_interval
+from lerobot_roboscape.evaluation.results import ALL, Difference, Results
 from lerobot_roboscape.evaluation.tables import (
     TABLES_JSON,
     write_table,
@@ -38,7 +38,7 @@ from lerobot_roboscape.pipeline.pack_format import PackResults
 from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
 from lerobot_roboscape.pipeline.report import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
-from lerobot_roboscape.pipeline.targets import claim_targets, paired_interval, signal_targets
+from lerobot_roboscape.pipeline.targets import claim_targets, signal_targets
 from lerobot_roboscape.pipeline.world_model_runs import GOALS, RUNS_DIR
 from lerobot_roboscape.rl.history import read_ppo_history
 
@@ -55,12 +55,7 @@ def differences(table: Results | dict, families: list[str]) -> list[Difference]:
             for split in table.splits():
                 for family in [*families, ALL]:
                     ours, theirs = (table.cell(policy, m, split, family) for m in (RL_WORLD_MODEL, other))
-                    d, low, high = difference_interval(ours, theirs)
-                    paired = paired_interval(ours, theirs)
-                    paired = paired and (round(paired[1], 4), round(paired[2], 4))
-                    rows.append(
-                        Difference(policy, other, split, family, round(d, 4), (round(low, 4), round(high, 4)), paired)
-                    )
+                    rows.append(Difference.between(ours, theirs, policy, other, split, family))
     return rows
 
 

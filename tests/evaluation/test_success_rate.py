@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -7,6 +9,7 @@ from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig, RoboscapeMLPPolicy
 
 from lerobot_roboscape.evaluation.results import (
     Cell,
+    Difference,
     Results,
     difference_interval,
     paired_difference_interval,
@@ -68,6 +71,19 @@ def test_paired_interval_is_narrower_when_the_methods_fail_on_the_same_starts():
     assert low > 0 > u_low  # paired: above 0; unpaired: straddles it
     assert high - low < u_high - u_low
     assert paired_difference_interval(b, a) == pytest.approx((-0.1, -high, -low))  # swapped sides mirror it
+
+
+def test_a_difference_is_paired_only_where_both_cells_kept_their_episodes():
+    a, b = [True] * 35 + [False] * 15, [True] * 30 + [False] * 20
+    paired = Difference.between(Cell.of(a), Cell.of(b), "mlp", "SFT", "ood", "all")
+    _, low, high = paired_difference_interval(a, b)
+    assert (
+        paired.difference == 0.1 and paired.paired_ci95 == (round(low, 4), round(high, 4)) and paired.kind == "paired"
+    )
+    unpaired = Difference.between(
+        Cell.of(a), dataclasses.replace(Cell.of(b), outcomes=None), "mlp", "SFT", "ood", "all"
+    )
+    assert unpaired.paired_ci95 is None and unpaired.interval == unpaired.ci95 == paired.ci95
 
 
 def test_paired_interval_of_identical_outcomes_holds_zero():
