@@ -12,12 +12,14 @@ from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 
 
 def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
-    """One PPO run (resumed from its last checkpoint when interrupted); returns its final checkpoint."""
+    """One PPO run (resumed from its last checkpoint when interrupted, or when it ran before with a smaller time
+    budget: PPO's clock goes on from where it stopped); returns its final checkpoint."""
     folder = Path(cfg.output_dir)
     train_once(
         folder,
         cfg,
         fresh,
         lambda resume: train_ppo(replace(cfg, resume=resume and last_checkpoint(folder) is not None)),
+        budgets=("time_budget_s",),
     )
     return last_checkpoint(folder) / FINAL

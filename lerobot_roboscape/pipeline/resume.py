@@ -83,16 +83,30 @@ def start(folder: Path) -> Path:
     return Path(folder)
 
 
-def prepare(folder: Path, settings, fresh: bool) -> bool:
-    """Make `folder` ready for a training stage; True when it holds an interrupted run with the same settings to
-    resume from (its checkpoints), False when it was cleared for a new run."""
+def prepare(folder: Path, settings, fresh: bool, budgets: tuple[str, ...] = ()) -> bool:
+    """Make `folder` ready for a training stage; True when it holds a run to resume from (its checkpoints): an
+    interrupted one with the same settings, or one that differs only in a larger budget (a setting named in
+    `budgets`: the run goes on where it stopped); False when it was cleared for a new run."""
     folder, started = Path(folder), Path(folder) / "stage.started.json"
-    if not fresh and started.is_file() and json.loads(started.read_text()) == _jsonable(settings):
+    now = _jsonable(settings)
+    if not fresh and started.is_file() and _same_or_longer(json.loads(started.read_text()), now, budgets):
+        write_text_atomically(started, json.dumps(now, indent=2))
         _began[folder] = time.time()
         return True
     start(folder).mkdir(parents=True)
-    write_text_atomically(started, json.dumps(_jsonable(settings), indent=2))
+    write_text_atomically(started, json.dumps(now, indent=2))
     return False
+
+
+def _same_or_longer(before, now, budgets: tuple[str, ...]) -> bool:
+    """`now` asks for the run `before` started, or for the same run with larger budgets (None: no limit)."""
+    if before == now:
+        return True
+    if not budgets or not (isinstance(before, dict) and isinstance(now, dict)):
+        return False
+    rest = lambda settings: {k: v for k, v in settings.items() if k not in budgets}  # noqa: E731
+    longer = lambda old, new: old == new or new is None or (old is not None and new > old)  # noqa: E731
+    return rest(before) == rest(now) and all(longer(before.get(k), now.get(k)) for k in budgets)
 
 
 def mark_done(folder: Path, settings, seconds: float | None = None) -> None:
@@ -124,13 +138,15 @@ def run_once(folder: Path, settings, fresh: bool, work: Callable[[], object]) ->
     return True
 
 
-def train_once(folder: Path, settings, fresh: bool, train: Callable[[bool], object]) -> bool:
+def train_once(
+    folder: Path, settings, fresh: bool, train: Callable[[bool], object], budgets: tuple[str, ...] = ()
+) -> bool:
     """Run a training stage, `train(resume)`, unless it already completed with these settings: resume is True when
-    `folder` holds an interrupted run with the same settings (its checkpoints kept), False when it was cleared for
-    a new run. True when it ran."""
+    `folder` holds an interrupted run with the same settings, or a run that differs only in a larger budget (its
+    checkpoints kept: see `prepare`), False when it was cleared for a new run. True when it ran."""
     if is_done(folder, settings, fresh):
         return False
     asked = _jsonable(settings)  # as asked for: a trainer may fill fields of its config (the action statistics)
-    train(prepare(folder, settings, fresh))
+    train(prepare(folder, settings, fresh, budgets))
     mark_done(folder, asked)
     return True

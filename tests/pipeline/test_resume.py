@@ -82,6 +82,24 @@ def test_train_once_resumes_a_killed_run_and_skips_a_finished_one(tmp_path):
     assert resume.train_once(folder, Settings(10), False, seen.append) is False and seen == [False, True]
 
 
+def test_a_finished_run_given_a_larger_budget_goes_on_and_any_other_change_starts_again(tmp_path):
+    folder, seen, budgets = tmp_path / "ppo", [], ("time_budget_s",)
+
+    def train(resume_from_checkpoint):
+        seen.append(resume_from_checkpoint)
+        (folder / "checkpoints").mkdir(exist_ok=True)
+
+    settings = lambda budget, lr=1e-3: {"time_budget_s": budget, "lr": lr}  # noqa: E731
+    assert resume.train_once(folder, settings(60.0), False, train, budgets) and seen == [False]
+    assert resume.train_once(folder, settings(120.0), False, train, budgets) and seen == [False, True]
+    assert (folder / "checkpoints").is_dir()
+    assert not resume.train_once(folder, settings(120.0), False, train, budgets)  # done at that budget
+    assert resume.train_once(folder, settings(None), False, train, budgets) and seen[-1] is True  # no limit: longer
+    assert resume.train_once(folder, settings(30.0), False, train, budgets) and seen[-1] is False  # shorter: anew
+    assert resume.train_once(folder, settings(240.0, lr=3e-4), False, train, budgets) and seen[-1] is False
+    assert resume.train_once(folder, settings(480.0, lr=3e-4), False, train) and seen[-1] is False  # no budgets named
+
+
 def test_a_stage_that_fills_its_config_in_place_is_still_skipped_next_time(tmp_path):
     # The world-model trainer fills its config's action statistics: the record must hold what was asked for.
     folder, runs = tmp_path / "world_model", []

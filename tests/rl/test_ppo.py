@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -255,6 +256,21 @@ def test_time_budget_stops_the_run_and_history_records_each_iteration(fresh_mlp,
     history = read_ppo_history(tmp_path / "ppo")
     assert [row.iteration for row in history] == [1] and history[0].seconds == clock["seconds"]
     assert history[0].samples > 0 and 0 <= history[0].success <= 1 and history[0].disagreement is None
+
+
+def test_a_finished_run_given_a_larger_time_budget_goes_on_from_where_it_stopped(fresh_mlp, tmp_path):
+    from lerobot_roboscape.pipeline.ppo_run import ppo
+
+    cfg = ppo_config(fresh_mlp, tmp_path / "ppo", iterations=12, time_budget_s=1e-6)
+    first = ppo(cfg)
+    clock = json.loads((first.parent / "training_state" / "clock.json").read_text())["seconds"]
+    # The budget grows past the first iteration's clock: the second iteration spends it, on top of the first.
+    longer = ppo(replace(cfg, time_budget_s=clock + 1e-6))
+    assert json.loads((longer.parent / "training_state" / "iteration.json").read_text())["iteration"] == 2
+    assert [row.iteration for row in read_ppo_history(tmp_path / "ppo")] == [1, 2]
+    assert read_ppo_history(tmp_path / "ppo")[1].seconds > clock  # PPO's clock went on from the first run's
+    shorter = ppo(replace(cfg, time_budget_s=1e-7))  # a smaller budget is another run: it starts again
+    assert json.loads((shorter.parent / "training_state" / "iteration.json").read_text())["iteration"] == 1
 
 
 def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_path):
