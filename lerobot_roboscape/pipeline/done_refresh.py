@@ -20,6 +20,7 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.envs.maniskill_env import RoboscapeManiSkillEnv
 from lerobot_roboscape.evaluation.success_rate import record_episodes
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.records import from_record
 from lerobot_roboscape.pipeline.resume import is_done, mark_done, start, train_once
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
@@ -113,8 +114,7 @@ class RefreshRound:
 
     @classmethod
     def from_json(cls, data: dict) -> "RefreshRound":
-        fits = {k: SourceFit(**data[k]) for k in ("rollouts", "demonstrations")}
-        return cls(**{**data, **fits})
+        return from_record(cls, data)
 
 
 def refresh_rounds(folder: Path) -> list[RefreshRound]:

@@ -12,6 +12,7 @@ import numpy as np
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.records import from_record
 from lerobot_roboscape.pipeline import resume, world_model_runs
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.layout import REPLAY_DIR
@@ -37,7 +38,7 @@ class Replay:
 
     @classmethod
     def from_json(cls, data: "dict | Replay") -> "Replay":
-        return data if isinstance(data, Replay) else cls(**data)
+        return data if isinstance(data, Replay) else from_record(cls, data)
 
 
 def agreed(replays: list[Replay]) -> int:

@@ -4,6 +4,8 @@ at that threshold."""
 
 from dataclasses import dataclass
 
+from lerobot_roboscape.io.records import from_record
+
 MODES = ("teacher_forced", "open_loop")
 
 
@@ -41,10 +43,7 @@ class DoneReading:
 
     @classmethod
     def from_json(cls, data: dict | None) -> "DoneReading | None":
-        if data is None:
-            return None
-        confusion = data.get("confusion")
-        return cls(**{**data, "confusion": confusion and Confusion(**confusion)})
+        return None if data is None else from_record(cls, data)
 
 
 @dataclass(frozen=True)
@@ -81,14 +80,6 @@ class DoneReport:
 
     @classmethod
     def from_json(cls, data: dict) -> "DoneReport":
-        sources = {
-            name: SourceReport(
-                *(DoneReading.from_json(report.get(mode)) for mode in MODES),
-                report.get("theta"),
-                report.get("theta_from"),
-                DoneReading.from_json(report.get("validation")),
-            )
-            for name, report in data["sources"].items()
-        }
+        sources = {name: from_record(SourceReport, report) for name, report in data["sources"].items()}
         chosen = data["chosen"]
         return cls(chosen["source"], float(chosen["theta"]), sources)

@@ -2,9 +2,11 @@
 loop's measures per step, and the controllability summaries it holds (`controllability.evaluate_controllability`'s,
 at the fidelity horizon and the longer one). Reports written before a measure existed read it as None."""
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from lerobot_roboscape.io.records import from_record
 
 
 @dataclass(frozen=True)
@@ -27,12 +29,6 @@ class ArmReading:
     retrieval_state: float | None = None
     tcp_error_cm: float | None = None
     tcp_error_share_of_moved: float | None = None
-
-
-def _known(cls, data: dict) -> dict:
-    """The entries of `data` that are fields of `cls` (a report may hold more than a reader needs)."""
-    names = {f.name for f in fields(cls)}
-    return {k: v for k, v in data.items() if k in names}
 
 
 @dataclass(frozen=True)
@@ -61,16 +57,7 @@ class ControlReading:
 
     @classmethod
     def from_json(cls, data: dict | None) -> "ControlReading | None":
-        if not data:
-            return None
-        regions = lambda name: {r: RegionReading(**m) for r, m in data.get(name, {}).items()}  # noqa: E731
-        return cls(
-            regions("world_model"),
-            regions("ignoring_actions"),
-            data.get("action_gain_db"),
-            data.get("likelihood_retrieval"),
-            ArmReading(**_known(ArmReading, data.get("arm", {}))),
-        )
+        return from_record(cls, data) if data else None
 
 
 @dataclass(frozen=True)
