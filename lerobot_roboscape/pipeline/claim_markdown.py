@@ -211,6 +211,7 @@ def markdown(cfg, summary: "ClaimSummary | dict") -> str:
         lever_rows=lever_rows(summary, families),
         replays=summary.replays,
         agree=agreed(summary.replays),
+        signal_rows=signal_rows(summary) if summary.lever_replays else [],
     )
 
 
@@ -239,6 +240,22 @@ def lever_rows(summary: ClaimSummary, families: list[str]) -> list[tuple]:
         for policy in levers.policies
         for method in levers.methods(policy)
     ]
+
+
+def signal_rows(summary: ClaimSummary) -> list[tuple]:
+    """Per run in the world model (the plain one, then each lever's): its method, the share of episodes its done
+    fired in at its first and last iterations, and of its replayed rollouts: the world model's successes the
+    simulator confirmed, those successes, the outcomes both worlds agreed on, the replays, and its picture."""
+    runs = {r.method: r for r in summary.ppo_runs}
+    replays = {RL_WORLD_MODEL: summary.replays} | summary.lever_replays
+    rows = []
+    for method, replayed in replays.items():
+        run, called = runs.get(method), [r for r in replayed if r.world_model_success]
+        picture = "replay.png" if method == RL_WORLD_MODEL else f"replay_{Method.named(method).tag}.png"
+        fired = (run.first_success, run.last_success) if run else None
+        confirmed = sum(r.simulator_success for r in called)
+        rows.append((method, fired, confirmed, len(called), agreed(replayed), len(replayed), picture))
+    return rows
 
 
 def command(cfg) -> str:

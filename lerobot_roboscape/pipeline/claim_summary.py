@@ -58,10 +58,11 @@ class ClaimSummary:
     model minus each other method; reward_ablation and levers: their methods' cells; ppo_runs: what each PPO run
     did in its budget; curve and lever_curves: the world-model runs' checkpoint curves of simulator success, and
     baseline_curves the runs' in the simulator, on the same clock;
-    lever_settings: each lever's description; replays: the world-model policy's rollouts replayed in the simulator;
+    lever_settings: each lever's description; replays: the world-model policy's rollouts replayed in the simulator,
+    and lever_replays each lever's;
     seconds: each step's; world_model_runs: where the world-model runs ran when elsewhere; other_protocol: the other
-    protocol's Table 1 on the same run. The fields are in results.json's order; the last three are left out of it
-    when empty (none in the reports made before they existed)."""
+    protocol's Table 1 on the same run. The fields are in results.json's order; those marked OMIT_EMPTY are left out
+    of it when empty (none in the reports made before they existed)."""
 
     protocol: str = "all-scene"
     scale: str
@@ -79,6 +80,7 @@ class ClaimSummary:
     lever_curves: dict[str, list[dict]] = field(default_factory=dict)
     lever_settings: dict[str, str] = field(default_factory=dict)
     replays: list[Replay]
+    lever_replays: dict[str, list[Replay]] = field(default_factory=dict, metadata=OMIT_EMPTY)
     seconds: dict[str, float]
     baseline_curves: dict[str, list[dict]] = field(default_factory=dict, metadata=OMIT_EMPTY)
     world_model_runs: WorldModelRunsRecord | None = field(default=None, metadata=OMIT_EMPTY)

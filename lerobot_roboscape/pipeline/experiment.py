@@ -60,8 +60,9 @@ class ExperimentConfig:
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     curve_points: points of each such curve: the SFT checkpoint and checkpoints evenly spread over the run (at least
         2: SFT and the last).
-    replay_episodes: world-model rollouts of the policy after PPO in the world model replayed in the simulator
-        (16: the share of its successes the simulator confirms rests on at least that many starts).
+    replay_episodes: world-model rollouts of each policy after PPO in the world model (the plain run's and each
+        lever's) replayed in the simulator (16: the share of its successes the simulator confirms rests on at least
+        that many starts).
     world_model_runs: a folder: PPO in the world model runs where its models were trained (a lent GPU, when they
         are too slow for this machine's CPUs: pipeline/world_model_runs.py). The first run of the experiment
         writes DIR/pack (the SFT checkpoint, the starts, each run's settings) and stops; once the runs are brought
@@ -165,7 +166,7 @@ def pack_world_model_runs(
     data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
     sets = {"validation": data.validation, "heldout": stages.spread(data.heldout, p.data.report_episodes)}
     extra = {
-        "replay": {"tag": methods.RL_WORLD_MODEL.tag, "episodes": cfg.replay_episodes},
+        "replay": {"episodes": cfg.replay_episodes},
         "ensemble": {
             "members": cfg.lever.ensemble.members,
             "retrain_blocks": cfg.lever.ensemble.retrain_blocks,
@@ -191,17 +192,17 @@ def pack_world_model_runs(
 @dataclass(frozen=True)
 class TakenRuns:
     """The world-model runs taken back: the final checkpoint of each method's run here, what the device reported,
-    and the replay's rollouts."""
+    and each method's rollouts for the replay."""
 
     runs: dict[str, Path]
     results: PackResults
-    rollouts: Path
+    rollouts: dict[str, Path]
 
 
 def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy: str) -> TakenRuns:
     """The runs `run_pack` made, brought back into `folder`, taken as this protocol's own (each into the folder its
     method's run would have here, its seconds kept)."""
-    results = read_results(folder)
+    results = read_results(folder, methods.RL_WORLD_MODEL)
     record = hashlib.sha256((folder / RESULTS).read_bytes()).hexdigest()[:16]
     runs = {}
     for run in results.runs.values():
@@ -212,7 +213,8 @@ def take_world_model_runs(cfg: ExperimentConfig, out: Path, folder: Path, policy
             world_model_runs.copy_run(run.folder, dest)
             resume.mark_done(dest, settings, seconds=run.seconds)
         runs[run.method] = dest / run.final.relative_to(run.folder)
-    return TakenRuns(runs, results, folder / results.replay.file)
+    rollouts = {run.method: folder / results.replays[tag] for tag, run in results.runs.items()}
+    return TakenRuns(runs, results, rollouts)
 
 
 # The experiment's steps, in order; each header names one.
@@ -306,7 +308,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
             "them while they are not back)"
         )
     p, clock, trained = cfg.pipeline, StageClock(STEPS), e.trained
-    wm_env, levers, rollouts, taken = None, {}, None, None
+    wm_env, levers, rollouts, taken = None, {}, {}, None
     if e.runs_back:
         clock("world-model env", f"none here: the runs in roboscape_wm went where its models are ({e.elsewhere})")
     else:
@@ -342,9 +344,16 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     runs = [methods.RL_WORLD_MODEL, *levers, *baselines]
     by_run = checkpoint_curves(cfg, e.out, trained.demonstrations, policy, sft[policy], runs)
     curves = Curves(by_run[runs[0]], {m: by_run[m] for m in levers}, {m: by_run[m] for m in baselines})
-    clock("replay", "world-model rollouts replayed in the simulator")
-    ppo_env = None if context is None else context.world_model
-    replays = replay_in_simulator(p, cfg.replay_episodes, e.out, ppo_env, rl[policy][methods.RL_WORLD_MODEL], rollouts)
+    clock("replay", "each world-model run's rollouts replayed in the simulator")
+    envs = (
+        {} if context is None else {methods.RL_WORLD_MODEL: context.world_model} | {m: r.env for m, r in levers.items()}
+    )
+    replays = {
+        m: replay_in_simulator(
+            p, cfg.replay_episodes, e.out / layout.replay_dir(m), envs.get(m), rl[policy][m], rollouts.get(m)
+        )
+        for m in [methods.RL_WORLD_MODEL, *levers]
+    }
     clock("report", "the claim's report")
     report = write_experiment_report(cfg, e.out, results, curves, replays, taken and taken.results)
     clock.done()

@@ -23,7 +23,15 @@ from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, OtherProtocol
 from lerobot_roboscape.pipeline.curves import Curves
 from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
 from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
-from lerobot_roboscape.pipeline.layout import CURVE_DIR, EVAL_DIR, GOAL_FILE, REPLAY_DIR, protocol_dir, rl_dir
+from lerobot_roboscape.pipeline.layout import (
+    CURVE_DIR,
+    EVAL_DIR,
+    GOAL_FILE,
+    REPLAY_DIR,
+    protocol_dir,
+    replay_dir,
+    rl_dir,
+)
 from lerobot_roboscape.pipeline.levers import lever_descriptions
 from lerobot_roboscape.pipeline.methods import (
     PROTOCOLS,
@@ -98,12 +106,12 @@ def write_experiment_report(
     out: Path,
     results: Results,
     curves: Curves,
-    replays: list[Replay],
+    replays: dict[str, list[Replay]],
     brought_back: PackResults | None = None,
 ) -> Path:
     """Write report.md, results.json, the figures and the replay videos into cfg.report_dir, and the README's
-    results block; returns report.md. `brought_back`: what the device reported of the runs in the world model,
-    where they ran elsewhere."""
+    results block; returns report.md. `replays`: each world-model run's, by method; `brought_back`: what the device
+    reported of the runs in the world model, where they ran elsewhere."""
     p, folder = cfg.pipeline, Path(cfg.report_dir)
     folder.mkdir(parents=True, exist_ok=True)
     curve, lever_curves = curves.world_model, curves.levers
@@ -133,7 +141,8 @@ def write_experiment_report(
         lever_curves=lever_curves,
         lever_settings=lever_descriptions(lever_curves, cfg.lever),
         baseline_curves=curves.baselines,
-        replays=replays,
+        replays=replays[RL_WORLD_MODEL],
+        lever_replays={m: rows for m, rows in replays.items() if m != RL_WORLD_MODEL},
         seconds=times,
         world_model_runs=elsewhere,
         other_protocol=other_protocol(cfg, out),
@@ -146,12 +155,7 @@ def write_experiment_report(
     ppo_curves(out, policies, folder / "ppo_curves.png", methods)
     curve_figure(out, policies[0], curve, folder / "curve.png")
     gaming_figure(out, policies[0], {RL_WORLD_MODEL: curve} | lever_curves, folder / "gaming.png")
-    videos = folder / "videos"
-    shutil.rmtree(videos, ignore_errors=True)
-    videos.mkdir()
-    for row in replays:
-        shutil.copy2(out / REPLAY_DIR / row.video, videos / row.video)
-    shutil.copy2(out / REPLAY_DIR / REPLAY_PNG, folder / REPLAY_PNG)
+    copy_replays(out, replays, folder)
     text = markdown(cfg, summary)
     (folder / "report.md").write_text(text)
     if cfg.readme:
@@ -169,6 +173,20 @@ def world_model_runs_record(cfg, results: PackResults | None) -> WorldModelRunsR
 
 
 PROTOCOL_TABLE = "table1.json"  # each protocol's Table 1, in its folder of the run (layout.protocol_dir)
+
+
+def copy_replays(out: Path, replays: dict[str, list[Replay]], folder: Path) -> None:
+    """Each run's replay videos into folder/videos (a lever's under its tag) and its picture beside the report (the
+    plain run's as replay.png, a lever's as replay_<tag>.png)."""
+    videos = folder / "videos"
+    shutil.rmtree(videos, ignore_errors=True)
+    for method, rows in replays.items():
+        plain, tag = method == RL_WORLD_MODEL, Method.named(method).tag
+        dest = videos if plain else videos / tag
+        dest.mkdir(parents=True)
+        for row in rows:
+            shutil.copy2(out / replay_dir(method) / row.video, dest / row.video)
+        shutil.copy2(out / replay_dir(method) / REPLAY_PNG, folder / (REPLAY_PNG if plain else f"replay_{tag}.png"))
 
 
 def other_protocol(cfg, out: Path) -> OtherProtocol | None:
@@ -198,5 +216,6 @@ def step_times(out: Path, runs: list[PpoRun], goal_file: Path) -> dict[str, floa
     curves = (out / CURVE_DIR).glob("*/**/stage.json")  # a folder per policy (and per lever), then per checkpoint
     points = [stage_seconds(f.parent) or 0.0 for f in curves]
     times[f"simulator evaluation of PPO's checkpoints ({len(points)} points)"] = sum(points)
-    times["world-model rollouts replayed in the simulator"] = stage_seconds(out / REPLAY_DIR) or 0.0
+    replays = [stage_seconds(f.parent) or 0.0 for f in (out / REPLAY_DIR).glob("*/stage.json")]
+    times[f"world-model rollouts replayed in the simulator ({len(replays)} runs)"] = sum(replays)
     return {k: round(v, 1) for k, v in times.items()}

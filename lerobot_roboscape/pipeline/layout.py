@@ -79,6 +79,11 @@ def rl_dir(policy: str, method: str) -> Path:
     return Path(RL_DIR) / policy / Method.named(method).tag
 
 
+def replay_dir(method: str) -> Path:
+    """The replay in the simulator of a run in the world model's rollouts."""
+    return Path(REPLAY_DIR) / Method.named(method).tag
+
+
 def eval_dir(policy: str, method: str) -> Path:
     """The simulator evaluation of one checkpoint (a folder per split inside)."""
     return Path(EVAL_DIR) / policy / Method.named(method).tag

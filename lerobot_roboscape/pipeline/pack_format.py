@@ -13,8 +13,12 @@ from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 PLAN, RESULTS = "plan.json", "results.json"
-PLAN_FORMAT = 1
-ROLLOUTS = "replay_rollouts.safetensors"
+PLAN_FORMAT = 2  # 2: every run's policy is rolled out for the replay, not the plain run's alone
+
+
+def rollouts_file(tag: str) -> str:
+    """The file of a run's rollouts for the replay, in the results' folder."""
+    return f"replay_rollouts_{tag}.safetensors"
 
 
 @dataclass(frozen=True)
@@ -32,16 +36,15 @@ class PlannedRun:
 
 @dataclass(frozen=True)
 class ReplayPlan:
-    """The run whose policy is rolled out in the world model for the replay, and from how many starts."""
+    """From how many starts each run's policy is rolled out in the world model for the replay."""
 
-    tag: str
     episodes: int
 
 
 @dataclass
 class Plan:
     """runs: by tag; curve_checkpoints: the checkpoints of each run kept for the checkpoint curve; replay: the
-    replay's run; ensemble: the ensemble members' settings (the lever's)."""
+    replay's rollouts; ensemble: the ensemble members' settings (the lever's)."""
 
     runs: dict[str, PlannedRun]
     curve_checkpoints: int
@@ -77,32 +80,25 @@ class RunRecord:
         return dataclasses.replace(self, folder=root / self.folder, final=self.final and root / self.final)
 
 
-@dataclass(frozen=True)
-class ReplayRollouts:
-    """The replay's run and the file of its policy's rollouts in the world model."""
-
-    tag: str
-    file: str
-
-
 @dataclass
 class PackResults:
-    """What `run_pack` reports: the done threshold chosen there, its GPU, PPO's budget, every run, and the replay's
-    rollouts (None where the replay's run failed)."""
+    """What `run_pack` reports: the done threshold chosen there, its GPU, PPO's budget, every run, and the file of
+    each completed run's rollouts for the replay, by tag."""
 
     done: dict
     gpu: str | None
     time_budget_s: float | None
     runs: dict[str, RunRecord]
-    replay: ReplayRollouts | None = field(default=None, metadata=OMIT_EMPTY)
+    replays: dict[str, str] = field(default_factory=dict, metadata=OMIT_EMPTY)
 
     def to_json(self) -> dict:
         return to_record(self)
 
 
-def read_results(folder: Path) -> PackResults:
+def read_results(folder: Path, needed: str) -> PackResults:
     """What `run_pack` wrote into `folder` (brought back here): the runs that completed, their folders absolute (a
-    failed one is left out, with a warning naming its error); the plain run and its rollouts must be there."""
+    failed one is left out, with a warning naming its error), and their rollouts; the run of the method `needed`
+    (the plain run) must be there with its rollouts."""
     folder, path = Path(folder), Path(folder) / RESULTS
     if not path.is_file():
         raise MissingInputError(f"{path} is missing: the world-model runs have not been brought back into {folder}")
@@ -114,9 +110,12 @@ def read_results(folder: Path) -> PackResults:
             del results.runs[tag]
         elif not run.final.is_dir():
             raise MissingInputError(f"{path}: the final checkpoint {run.final} of {run.method!r} is missing")
-    if results.replay is None or not (folder / results.replay.file).is_file():
+    missing = [
+        tag for tag in results.runs if tag not in results.replays or not (folder / results.replays[tag]).is_file()
+    ]
+    if needed not in [run.method for run in results.runs.values()] or missing:
         raise MissingInputError(
-            f"{path}: the plain run in the world model or the rollouts of its replay ({ROLLOUTS}) did not come back "
-            f"into {folder}"
+            f"{path}: the run {needed!r} in the world model or the rollouts of the replay of {missing} did not come "
+            f"back into {folder}"
         )
     return results

@@ -15,7 +15,6 @@ from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.records import from_record
 from lerobot_roboscape.pipeline import resume, world_model_runs
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.layout import REPLAY_DIR
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.records import write_video
 
@@ -49,7 +48,7 @@ def agreed(replays: list[Replay]) -> int:
 def replay_in_simulator(
     p: PipelineConfig,
     episodes: int,
-    out: Path,
+    folder: Path,
     env_cfg: RoboscapeWorldModelEnvConfig | None,
     checkpoint: Path,
     rollouts_file: Path | None = None,
@@ -58,8 +57,7 @@ def replay_in_simulator(
     over the starts, so over families and scenes), or its rollouts made where the world models are
     (`rollouts_file`), and its actions replayed open loop in the simulator from the same scene and initial state.
     Writes side-by-side videos (world model | its goal | simulator) and returns, per start, what each world said:
-    the world model's return and success, the simulator's success."""
-    folder = out / REPLAY_DIR
+    the world model's return and success, the simulator's success. Written into `folder`."""
     if rollouts_file is None:
         settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": episodes}
     else:

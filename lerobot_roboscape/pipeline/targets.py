@@ -18,6 +18,7 @@ from lerobot_roboscape.pipeline.methods import (
     RL_MANISKILL_ONE_SCENE,
     RL_WORLD_MODEL,
     SFT,
+    Method,
 )
 from lerobot_roboscape.pipeline.target_row import target_row
 from lerobot_roboscape.tokenizer.report import view_readings
@@ -148,29 +149,35 @@ def claim_targets(table: Results | dict, families: list[str], curve: list[dict] 
     return targets
 
 
-def signal_targets(runs: "list[PpoRun]", replays: "list[Replay]") -> dict:
-    """What PPO in the world model is told: per policy, the share of its last iterations' episodes in which the
-    world model's done fired (its success in its own env), and, of the replayed rollouts the world model called
-    successes, the share the simulator called successes too."""
+def signal_targets(runs: "list[PpoRun]", replays: "dict[str, list[Replay]]") -> dict:
+    """What each PPO run in the world model is told: the share of its last iterations' episodes in which the world
+    model's done fired (its success in its own env), and, of its replayed rollouts the world model called
+    successes, the share the simulator called successes too (`replays`: by method)."""
     targets = {}
-    for run in (r for r in runs if r.method == RL_WORLD_MODEL):
-        targets[f"{run.policy}: PPO in WM, episodes the done fired in (last iterations)"] = target_row(
+    for run in (r for r in runs if r.method == RL_WORLD_MODEL or r.method in replays):
+        targets[f"{run.policy}: {_run_name(run.method)}, episodes the done fired in (last iterations)"] = target_row(
             run.last_success,
             f">= {DONE_FIRED_SHARE}",
             run.last_success >= DONE_FIRED_SHARE,
             f"first iteration {run.first_success:.2f}, iteration {run.iterations} at the end",
         )
-    if replays:
-        called = [r for r in replays if r.world_model_success]
+    for method, rows in replays.items():
+        called = [r for r in rows if r.world_model_success]
         confirmed = sum(r.simulator_success for r in called)
         share = confirmed / len(called) if called else None
-        targets["PPO in WM: its world-model successes that replay as simulator successes"] = target_row(
+        targets[f"{_run_name(method)}: its world-model successes that replay as simulator successes"] = target_row(
             share,
             f">= {REPLAYED_SUCCESS_SHARE}",
             share is not None and share >= REPLAYED_SUCCESS_SHARE,
-            f"{confirmed} of {len(called)} world-model successes, {len(replays)} replays",
+            f"{confirmed} of {len(called)} world-model successes, {len(rows)} replays",
         )
     return targets
+
+
+def _run_name(method: str) -> str:
+    """A run in the world model as the targets name it: "PPO in WM", and its lever's variant after it."""
+    variant = Method.named(method).variant
+    return "PPO in WM" + (f", {variant}" if method != RL_WORLD_MODEL and variant else "")
 
 
 def _deciding_interval(ours: Cell, theirs: Cell) -> tuple[float, float, float]:

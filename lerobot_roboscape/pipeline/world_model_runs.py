@@ -8,8 +8,8 @@ and come back as PPO runs:
 - here, `pack` writes the SFT checkpoint, the tokenizer, the env's starts (`envs/starts.py`), the validation and
   held-out episodes as tokens (the done report's) and each run's settings (`plan.json`);
 - there, `run_pack` reads the done report of the models trained there (its threshold is the env's), makes every
-  start's goal once, runs PPO in every world-model env at once (one process each, sharing the GPU) and rolls the
-  plain run's policy out in the world model for the replay;
+  start's goal once, runs PPO in every world-model env at once (one process each, sharing the GPU) and rolls each
+  run's policy out in the world model for the replay;
 - here again, the experiment takes the runs back (`read_results`) and evaluates their checkpoints in the simulator
   as it does its own (`roboscape-experiment --world_model_runs=DIR`).
 """
@@ -33,14 +33,13 @@ from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.pipeline.pack_format import (
     PLAN,
     RESULTS,
-    ROLLOUTS,
     PackResults,
     Plan,
     PlannedRun,
     ReplayPlan,
-    ReplayRollouts,
     RunRecord,
     read_plan,
+    rollouts_file,
 )
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
@@ -106,7 +105,7 @@ def pack(
     """Write into `dest` what `run_pack` needs: the SFT checkpoint, the tokenizer, each distinct start selection of
     the jobs' envs (read from their dataset), the done report's episodes as tokens at the world model's frame skip
     (`done_sets`: validation, heldout) and the plan: each job's settings, the checkpoints the curve reads, the
-    replay's run and episodes ({tag, episodes}) and the ensemble members' settings; returns `dest`."""
+    replay's starts per run ({episodes}) and the ensemble members' settings; returns `dest`."""
     dest = Path(dest)
     partial = dest.with_name(dest.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
@@ -163,8 +162,8 @@ class RunPackConfig:
 
 def run_pack(cfg: RunPackConfig) -> PackResults:
     """Run the pack's PPO runs in the world models into `output_dir`: the done report first (its threshold is every
-    env's), then every start's goal, then the runs, all at once, one process each, then the plain run's rollouts for
-    the replay. Returns the results (also `output_dir/results.json`)."""
+    env's), then every start's goal, then the runs, all at once, one process each, then each run's rollouts for the
+    replay. Returns the results (also `output_dir/results.json`)."""
     pack_dir, out, device, members = Path(cfg.pack).resolve(), Path(cfg.output_dir).resolve(), cfg.device, cfg.members
     action, text = cfg.action, cfg.text
     plan = read_plan(pack_dir)
@@ -222,10 +221,9 @@ def run_pack(cfg: RunPackConfig) -> PackResults:
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
     budget = next(iter(jobs.values())).time_budget_s if jobs else None
     results = PackResults(chosen.choice(), gpu, budget, runs)
-    if plan.replay and plan.replay.tag in finals:
-        tag = plan.replay.tag
-        save_rollouts(roll_out(jobs[tag].env, finals[tag], plan.replay.episodes, device), out / ROLLOUTS)
-        results.replay = ReplayRollouts(tag, ROLLOUTS)
+    for tag in finals if plan.replay else ():
+        save_rollouts(roll_out(jobs[tag].env, finals[tag], plan.replay.episodes, device), out / rollouts_file(tag))
+        results.replays[tag] = rollouts_file(tag)
     slim([out / "rl" / tag for tag in finals], plan.curve_checkpoints)
     write_text_atomically(out / RESULTS, json.dumps(results.to_json(), indent=2))
     return results

@@ -244,11 +244,16 @@ def test_the_signal_targets_read_the_done_share_and_the_replayed_successes():
         return Replay(0, "push", "s0", 1.0, world_model, simulator, "replay_0.mp4")
 
     replays = [replay(True, True)] * 3 + [replay(True, False)] * 2 + [replay(False, False)] * 11
-    targets = signal_targets([run(RL_WORLD_MODEL, 0.25), run(RL_MANISKILL, 0.9)], replays)
+    targets = signal_targets([run(RL_WORLD_MODEL, 0.25), run(RL_MANISKILL, 0.9)], {RL_WORLD_MODEL: replays})
     fired = targets["mlp: PPO in WM, episodes the done fired in (last iterations)"]
     assert fired["value"] == 0.25 and fired["met"] and len(targets) == 2  # the simulator's run has no done
     confirmed = targets["PPO in WM: its world-model successes that replay as simulator successes"]
     assert confirmed["value"] == 0.6 and confirmed["met"] and confirmed["detail"].startswith("3 of 5")
-    silent = signal_targets([run(RL_WORLD_MODEL, 0.0)], [replay(False, True)] * 16)
+    silent = signal_targets([run(RL_WORLD_MODEL, 0.0)], {RL_WORLD_MODEL: [replay(False, True)] * 16})
     assert [t["met"] for t in silent.values()] == [False, False]
     assert silent["PPO in WM: its world-model successes that replay as simulator successes"]["value"] is None
+    # Each lever's run is read the same way, under its variant's name.
+    kl = "RL w. World Model, KL to SFT"
+    both = signal_targets([run(RL_WORLD_MODEL, 0.25), run(kl, 0.1)], {RL_WORLD_MODEL: replays, kl: replays[3:]})
+    assert not both["mlp: PPO in WM, KL to SFT, episodes the done fired in (last iterations)"]["met"]
+    assert both["PPO in WM, KL to SFT: its world-model successes that replay as simulator successes"]["value"] == 0

@@ -183,7 +183,7 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
 
     from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, eval_dir, rl_dir, sft_dir
     from lerobot_roboscape.pipeline.levers import LEVERS
-    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, SFT, initial_scene
+    from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, SFT, Method, initial_scene
     from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
 
     run = demo[0] / "demo"
@@ -219,7 +219,9 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     assert claim["world_model_runs"]["folder"] == str(tmp_path / "runs") and "--world_model_runs" in report.read_text()
     kl = LEVERS["kl"].method
     assert {RL_WORLD_MODEL, kl, RL_MANISKILL} <= {r["method"] for r in claim["ppo_runs"]}
-    assert claim["replays"] and claim["lever_curves"][kl]
+    assert claim["replays"] and claim["lever_curves"][kl] and claim["lever_replays"][kl]  # every run is replayed
+    assert (tmp_path / "claim" / f"replay_{Method.named(kl).tag}.png").is_file()
+    assert "The signal each run in the world model got" in report.read_text()
     # The paper's IND, the scene SFT learned with new initial states, is a column of its own for every method.
     assert all(list(splits) == ["scene", "ind", "ood"] for splits in claim["table"]["roboscape_mlp"].values())
     scene_eval = json.loads((protocol / eval_dir("roboscape_mlp", SFT) / "scene" / STAGE_FILE).read_text())

@@ -13,7 +13,7 @@ from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.pipeline import world_model_runs
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig, take_world_model_runs
 from lerobot_roboscape.pipeline.layout import rl_dir
-from lerobot_roboscape.pipeline.pack_format import PLAN, RESULTS, ROLLOUTS, ReplayPlan, read_plan, read_results
+from lerobot_roboscape.pipeline.pack_format import PLAN, RESULTS, ReplayPlan, read_plan, read_results, rollouts_file
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.reward.done_report import (
     DoneReportConfig,
@@ -102,13 +102,13 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
         trained_tokenizer,
         done_sets,
         FRAME_SKIP,
-        replay={"tag": "plain", "episodes": 2},
+        replay={"episodes": 2},
         curve_checkpoints=2,
     )
     plan = read_plan(pack)
     assert sorted(p.name for p in pack.glob("starts_*")) == ["starts_0.safetensors", "starts_1.safetensors"]
     assert all("dataset_root" not in run.env and "tokenizer" not in run.env for run in plan.runs.values())
-    assert plan.replay == ReplayPlan("plain", 2) and plan.runs["ensemble"].ensemble and plan.curve_checkpoints == 2
+    assert plan.replay == ReplayPlan(2) and plan.runs["ensemble"].ensemble and plan.curve_checkpoints == 2
 
     out = tmp_path / "wm_runs" / "runs"
     results = world_model_runs.run_pack(
@@ -131,7 +131,8 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
         assert not list((out / "rl" / tag).rglob("optimizer_state.safetensors"))
     history = [json.loads(line) for line in (out / "rl" / "ensemble" / "history.jsonl").read_text().splitlines()]
     assert "charts/disagreement" in history[0]  # the members reached the ensemble's env
-    rollouts = world_model_runs.load_rollouts(out / ROLLOUTS)
+    assert results.replays == {tag: rollouts_file(tag) for tag in jobs}  # every run's policy, for its replay
+    rollouts = world_model_runs.load_rollouts(out / rollouts_file("plain"))
     assert rollouts.frames.shape[:2] == (rollouts.actions.shape[0] + 1, 2) and len(rollouts.starts) == 2
     assert rollouts.cameras and all(start.task_family and start.scene for start in rollouts.starts)
 
@@ -157,7 +158,7 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
     taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
     assert "RL w. World Model, KL to SFT" not in taken.runs and len(taken.runs) == 3
     assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns != written  # other results: taken again
-    (out / RESULTS).write_text(json.dumps({k: v for k, v in written_results.items() if k != "replay"}))
+    (out / RESULTS).write_text(json.dumps({k: v for k, v in written_results.items() if k != "replays"}))
     with pytest.raises(FileNotFoundError, match="did not come back"):
         take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
 
@@ -169,7 +170,7 @@ def test_a_pack_or_results_of_another_kind_are_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match="format 99"):
         read_plan(tmp_path)
     with pytest.raises(FileNotFoundError, match="have not been brought back"):
-        read_results(tmp_path)
+        read_results(tmp_path, "RL w. World Model")
     with pytest.raises(ValueError, match="refresh"):
         ExperimentConfig(world_model_runs=str(tmp_path), levers=["refresh"])
 
