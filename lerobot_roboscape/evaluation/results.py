@@ -62,6 +62,15 @@ def paired_difference_interval(a: list[bool], b: list[bool]) -> tuple[float, flo
     return d, low, high
 
 
+def paired_interval(ours: "Cell | dict", theirs: "Cell | dict") -> tuple[float, float, float] | None:
+    """The paired difference of two cells run on the same initial states, from their episodes' outcomes; None
+    for cells written before outcomes were kept."""
+    ours, theirs = Cell.from_json(ours), Cell.from_json(theirs)
+    if ours.outcomes is None or theirs.outcomes is None:
+        return None
+    return paired_difference_interval([bool(x) for x in ours.outcomes], [bool(x) for x in theirs.outcomes])
+
+
 @dataclass(frozen=True)
 class Cell:
     success_rate: float
@@ -219,12 +228,8 @@ class Difference:
         """`ours` minus `theirs`, with the paired interval where both cells kept their episodes' outcomes (then they
         ran on the same initial states)."""
         d, low, high = difference_interval(ours, theirs)
-        paired = None
-        if ours.outcomes is not None and theirs.outcomes is not None:
-            _, paired_low, paired_high = paired_difference_interval(
-                list(map(bool, ours.outcomes)), list(map(bool, theirs.outcomes))
-            )
-            paired = (round(paired_low, 4), round(paired_high, 4))
+        paired = paired_interval(ours, theirs)
+        paired = paired and (round(paired[1], 4), round(paired[2], 4))
         return cls(policy, against, split, family, round(d, 4), (round(low, 4), round(high, 4)), paired)
 
     @property

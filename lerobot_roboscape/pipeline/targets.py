@@ -10,7 +10,7 @@ from lerobot_roboscape.evaluation.results import (
     Results,
     curve_of,
     difference_interval,
-    paired_difference_interval,
+    paired_interval,
 )
 from lerobot_roboscape.evaluation.tables import SHORT, SPLIT_NAMES
 from lerobot_roboscape.pipeline.methods import (
@@ -183,15 +183,6 @@ def _run_name(method: str) -> str:
 def _deciding_interval(ours: Cell, theirs: Cell) -> tuple[float, float, float]:
     """The difference and the 95% interval that decides a target: paired where both cells kept their episodes."""
     return paired_interval(ours, theirs) or difference_interval(ours, theirs)
-
-
-def paired_interval(ours: Cell | dict, theirs: Cell | dict) -> tuple[float, float, float] | None:
-    """The paired difference of two cells run on the same initial states, from their episodes' outcomes; None
-    for cells written before outcomes were kept."""
-    ours, theirs = Cell.from_json(ours), Cell.from_json(theirs)
-    if ours.outcomes is None or theirs.outcomes is None:
-        return None
-    return paired_difference_interval([bool(x) for x in ours.outcomes], [bool(x) for x in theirs.outcomes])
 
 
 def _intervals(ours: Cell, theirs: Cell) -> str:
