@@ -13,10 +13,14 @@ world model judges policies as the simulator does join the targets.
 
 With --gpu-run-dir, the same reports of models trained on a GPU (BENCH_ON_GPU) and evaluated here join results.json
 under "bench_on_gpu", and the table gains their column.
+
+With --before (an earlier results.json of this script), the table gains its values as a column, matched by the
+target's name less its figures in brackets (a tokenizer's PSNR in the name changes between runs).
 """
 
 import argparse
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -51,6 +55,7 @@ def main():
     parser.add_argument("--agreement", type=Path, default=None)
     parser.add_argument("--agreement-ind", type=Path, default=None)
     parser.add_argument("--open-loop-rewards", type=Path, default=None)
+    parser.add_argument("--before", type=Path, default=None)
     args = parser.parse_args()
     run, out = args.run_dir, args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -79,6 +84,13 @@ def main():
         read_fidelity(run / FIDELITY_DIR)["prompt_frames"],
         out / "world_model_open_loop.png",
     )
+    if args.before is not None:
+        before = {_plain(name): t for name, t in json.loads(args.before.read_text())["targets"].items()}
+        print("| target | before | measured | goal | met | detail |\n|---|---:|---:|---|:---:|---|")
+        for name, t in targets.items():
+            was = _value(before[_plain(name)]) if _plain(name) in before else "-"
+            print(f"| {name} | {was} | {_value(t)} | {t['goal']} | {_met(t)} | {t.get('detail', '')} |")
+        return
     if gpu_targets is None:
         print("| target | measured | goal | met | detail |\n|---|---:|---|:---:|---|")
         for name, t in targets.items():
@@ -95,6 +107,11 @@ def read_run(run: Path) -> tuple[dict, dict]:
     """The targets and the measured results of the fidelity, done and reward reports under `run`."""
     reports = WorldModelReports.read(run)
     return reports.targets(), reports.results()
+
+
+def _plain(name: str) -> str:
+    """A target's name less a bracket with figures in it: "open-loop PSNR (dB; tokenizer 26.40)" -> "open-loop PSNR"."""
+    return re.sub(r" \([^()]*\d[^()]*\)", "", name)
 
 
 def _value(t: dict) -> str:
