@@ -12,6 +12,7 @@ STATE_NAMES = (
 )
 STATE_DIM = len(STATE_NAMES)
 TCP_POSITION = slice(STATE_NAMES.index("tcp_x"), STATE_NAMES.index("tcp_z") + 1)  # metres, in `observation.state`
+TCP_QUATERNION = slice(STATE_NAMES.index("tcp_qw"), STATE_NAMES.index("tcp_qz") + 1)  # q and -q: one orientation
 # `action` of the pd_ee_delta_pose controller, each in [-1, 1]: position and rotation deltas, gripper.
 ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 CONTROL_FREQ = 20  # Hz, ManiSkill's tabletop default: the fps of datasets, envs and videos

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lerobot_roboscape.robot import STATE_DIM
+from lerobot_roboscape.robot import STATE_DIM, TCP_QUATERNION
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 
 # Statistics that leave the robot's states as they are: models built without data (benchmarks, tests).
@@ -39,6 +39,7 @@ class RobotState(nn.Module):
         nn.init.zeros_(self.head[-1].bias)
 
     def normalise(self, state: torch.Tensor) -> torch.Tensor:
+        state = same_hemisphere(state, self.mean[TCP_QUATERNION])
         return (state - self.mean.to(state.dtype)) / self.std.to(state.dtype)
 
     def embedding(self, state_BTD: torch.Tensor) -> torch.Tensor:
@@ -62,3 +63,15 @@ class RobotState(nn.Module):
         pooled = pooled_BTC[:, 1:] if pooled_BTC.shape[1] > 1 else pooled_BTC.expand(-1, normalised.shape[1] - 1, -1)
         predicted = normalised[:, :-1] + self._delta(features_BTC[:, :-1], normalised[:, :-1], pooled)
         return F.mse_loss(predicted, normalised[:, 1:])
+
+
+def same_hemisphere(state: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """The state with its TCP quaternion's sign on the reference's side. q and -q are one orientation, and the
+    simulator reports either: 24 frames of the bench's exploration jump from one to the other, 56 std apart in
+    normalised units, and the batches that held one multiplied the state's loss by a thousand."""
+    if state.shape[-1] != STATE_DIM:  # a model of another layout (synthetic worlds) has no quaternion
+        return state
+    q = state[..., TCP_QUATERNION]
+    sign = torch.where((q * reference.to(q.dtype)).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
+    return torch.cat([state[..., : TCP_QUATERNION.start], q * sign, state[..., TCP_QUATERNION.stop :]], -1)
+

@@ -548,3 +548,22 @@ def test_training_corrupts_a_share_of_the_unmasked_context_drawn_per_clip():
     plain.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
     plain(batch)
     assert ((seen[0] == tokens) | (seen[0] == plain.config.mask_token_id)).all()  # corrupt_max=0: none
+
+
+def test_a_quaternion_and_its_negation_read_as_one_state():
+    """q and -q are one orientation, and the simulator reports either (24 jumps in the bench's exploration): the
+    state channel reads both alike, so such a frame costs the state's loss nothing."""
+    from lerobot_roboscape.robot import STATE_DIM, TCP_QUATERNION
+
+    mean = torch.zeros(STATE_DIM)
+    mean[TCP_QUATERNION] = torch.tensor([0.0, 0.707, 0.707, 0.0])  # the gripper pointing down
+    model = make_model(state_dim=STATE_DIM, state_mean=mean.tolist(), state_std=[0.02] * STATE_DIM)
+    state = mean + 0.01 * torch.randn(2, 4, STATE_DIM, generator=torch.Generator().manual_seed(0))
+    flipped = state.clone()
+    flipped[:, 2, TCP_QUATERNION] *= -1
+    robot = model.robot_state
+    assert torch.equal(robot.normalise(flipped), robot.normalise(state))
+    assert robot.normalise(state).abs().max() < 5  # near the mean: the unflipped sign was kept
+    features, pooled = torch.randn(2, 4, model.config.d_model), torch.randn(2, 4, model.config.d_model)
+    torch.nn.init.normal_(robot.head[-1].weight)  # a head that reads its input
+    assert robot.loss(features, flipped, pooled) == robot.loss(features, state, pooled)
