@@ -51,6 +51,7 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("docs/results/world_model"))
     parser.add_argument("--name", default="wm_curves")
     parser.add_argument("--x", choices=("minutes", "steps"), default="minutes", help="steps: for runs not timed alone")
+    parser.add_argument("--cores", default="one core", help="what each run trained on, for the minutes' label")
     args = parser.parse_args()
     curves = {run.name: read_curve(run) for run in args.runs}
     keys = {split(k) for c in curves.values() for p in c for k in p if split(k)[1] in MEASURES}
@@ -71,7 +72,7 @@ def main():
                 ax.axhline(0.25, color="grey", ls=":", lw=1)
             if measure in GOALS:
                 ax.axhline(GOALS[measure], color="grey", ls="--", lw=1)
-            ax.set_xlabel("training minutes (one core)" if args.x == "minutes" else "training steps")
+            ax.set_xlabel(f"training minutes ({args.cores})" if args.x == "minutes" else "training steps")
             ax.set_title(f"{subset.upper()} {MEASURES[measure]}".strip(), fontsize=9)
     axes[0][0].legend(fontsize=6)
     fig.tight_layout()
