@@ -74,4 +74,3 @@ def same_hemisphere(state: torch.Tensor, reference: torch.Tensor) -> torch.Tenso
     q = state[..., TCP_QUATERNION]
     sign = torch.where((q * reference.to(q.dtype)).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
     return torch.cat([state[..., : TCP_QUATERNION.start], q * sign, state[..., TCP_QUATERNION.stop :]], -1)
-
