@@ -30,6 +30,7 @@ class RobotState(nn.Module):
         std = torch.ones(D) if config.state_std is None else torch.tensor(config.state_std)
         self.register_buffer("mean", mean.float(), persistent=False)
         self.register_buffer("std", std.float().clamp(min=STATE_STD_FLOOR), persistent=False)
+        self.has_quaternion = D == STATE_DIM  # the robot's layout; a synthetic world's 2-D cell has none
         self.embed = nn.Sequential(nn.Linear(D, C), nn.GELU(), nn.Linear(C, C))
         self.head = nn.Sequential(nn.Linear(2 * C + D, config.done_hidden), nn.GELU(), nn.Linear(config.done_hidden, D))
 
@@ -39,7 +40,8 @@ class RobotState(nn.Module):
         nn.init.zeros_(self.head[-1].bias)
 
     def normalise(self, state: torch.Tensor) -> torch.Tensor:
-        state = same_hemisphere(state, self.mean[TCP_QUATERNION])
+        if self.has_quaternion:
+            state = same_hemisphere(state, self.mean[TCP_QUATERNION])
         return (state - self.mean.to(state.dtype)) / self.std.to(state.dtype)
 
     def embedding(self, state_BTD: torch.Tensor) -> torch.Tensor:
@@ -69,8 +71,6 @@ def same_hemisphere(state: torch.Tensor, reference: torch.Tensor) -> torch.Tenso
     """The state with its TCP quaternion's sign on the reference's side. q and -q are one orientation, and the
     simulator reports either: 24 frames of the bench's exploration jump from one to the other, 56 std apart in
     normalised units, and the batches that held one multiplied the state's loss by a thousand."""
-    if state.shape[-1] != STATE_DIM:  # a model of another layout (synthetic worlds) has no quaternion
-        return state
     q = state[..., TCP_QUATERNION]
-    sign = torch.where((q * reference.to(q.dtype)).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
+    sign = torch.where((q * reference).sum(-1, keepdim=True) < 0, -1.0, 1.0)
     return torch.cat([state[..., : TCP_QUATERNION.start], q * sign, state[..., TCP_QUATERNION.stop :]], -1)
