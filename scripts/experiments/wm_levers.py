@@ -43,6 +43,7 @@ LEVERS = {
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},
     "bench": {"patch": "2"},  # the bench preset as it stands (its patch named for the pace below)
+    "wide": {"patch": "2", "d_model": "192"},  # the bench preset 1.5x wider: give its own pace (--steps_per_minute)
 }
 
 
