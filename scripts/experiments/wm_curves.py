@@ -45,6 +45,13 @@ def split(key: str) -> tuple[str, str]:
     return tuple(key.split("/", 1)) if "/" in key else ("", key)
 
 
+def named(point: dict, subset: str) -> dict:
+    """The point with its unprefixed measures named as read on `subset` ('' leaves them as they are)."""
+    if not subset:
+        return point
+    return {f"{subset}/{k}" if split(k) == ("", k) and k in MEASURES else k: v for k, v in point.items()}
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", type=Path, nargs="+", help="output_dir of each roboscape-train-wm run")
@@ -52,8 +59,11 @@ def main():
     parser.add_argument("--name", default="wm_curves")
     parser.add_argument("--x", choices=("minutes", "steps"), default="minutes", help="steps: for runs not timed alone")
     parser.add_argument("--cores", default="one core", help="what each run trained on, for the minutes' label")
+    parser.add_argument(
+        "--unprefixed", default="", help="the set a run's unprefixed measures were read on (a pipeline run's: ood)"
+    )
     args = parser.parse_args()
-    curves = {run.name: read_curve(run) for run in args.runs}
+    curves = {run.name: [named(p, args.unprefixed) for p in read_curve(run)] for run in args.runs}
     keys = {split(k) for c in curves.values() for p in c for k in p if split(k)[1] in MEASURES}
     sets = sorted({s for s, _ in keys})
     measures = [m for m in MEASURES if any(m == k for _, k in keys)]
