@@ -213,9 +213,10 @@ class TinyWorldModelConfig(WorldModelConfig):
 class BenchWorldModelConfig(WorldModelConfig):
     """The tiny model's width on the bench tokenizer's 16x16 grids, with a window of 6, a position 2x2 codes (128
     positions per two-view frame): 3.9x the clips of a code per position on 2 CPU cores, and at equal CPU minutes a
-    better arm and more motion in its rollouts; at 60 minutes on 2 cores (6 clips/s in the training loop) its
-    rollouts first follow their actions (docs/results/world_model/levers70). Changed tokens weigh 5x: on the robot's
-    data copying the previous frame already scores two thirds of the tokens."""
+    better arm and more motion in its rollouts (docs/results/world_model/levers70). On the bench data, 7,500 steps at
+    batch 4 (10 clips/s on 2 cores) take 48 minutes; two seeds' rollouts then follow the robot's state and pick their
+    own future by pixels in 0.55-0.6 of starts (docs/results/world_model/bench70). Changed tokens weigh 5x: on the
+    robot's data copying the previous frame already scores two thirds of the tokens."""
 
     tokens_per_side: int = 16
     vocab_size: int = 1024
