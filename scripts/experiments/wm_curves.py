@@ -49,7 +49,7 @@ def named(point: dict, subset: str) -> dict:
     """The point with its unprefixed measures named as read on `subset` ('' leaves them as they are)."""
     if not subset:
         return point
-    return {f"{subset}/{k}" if split(k) == ("", k) and k in MEASURES else k: v for k, v in point.items()}
+    return {f"{subset}/{k}" if "/" not in k and k in MEASURES else k: v for k, v in point.items()}
 
 
 def main():
