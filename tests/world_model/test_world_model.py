@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from lerobot_roboscape.robot import STATE_DIM, TCP_QUATERNION
 from lerobot_roboscape.world_model.configuration_world_model import PaperWorldModelConfig, TinyWorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ACTION_STD_FLOOR
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -553,8 +554,6 @@ def test_training_corrupts_a_share_of_the_unmasked_context_drawn_per_clip():
 def test_a_quaternion_and_its_negation_read_as_one_state():
     """q and -q are one orientation, and the simulator reports either (24 jumps in the bench's exploration): the
     state channel reads both alike, so such a frame costs the state's loss nothing."""
-    from lerobot_roboscape.robot import STATE_DIM, TCP_QUATERNION
-
     mean = torch.zeros(STATE_DIM)
     mean[TCP_QUATERNION] = torch.tensor([0.0, 0.707, 0.707, 0.0])  # the gripper pointing down
     model = make_model(state_dim=STATE_DIM, state_mean=mean.tolist(), state_std=[0.02] * STATE_DIM)
