@@ -16,8 +16,8 @@ import torch
 
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.io.weights import weights_digest
+from lerobot_roboscape.world_model.goals import generate_goals
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -170,42 +170,36 @@ class GoalBank:
         return goals
 
     def _generate_batch(self, starts: list[EpisodeStart]) -> list[Goal]:
-        model, theta = self.text_model, self.config.theta
         padded = starts + [starts[-1]] * (GOAL_BATCH - len(starts))
-        prompt = torch.stack([s.goal_prompt for s in padded])[:, None]
-        control = model.encode_control(instructions=[s.task for s in padded])
         states = None
-        if model.config.state:
-            states = torch.stack([s.goal_prompt_state for s in padded]).to(prompt.device)[:, None]
-        rollout = Rollout.start(model, prompt, control, states=states)
-        goal = prompt[:, 0].clone()
-        goal_state = None if states is None else states[:, 0].clone()
-        reached = torch.zeros(len(padded), dtype=torch.bool, device=prompt.device)
-        k, max_frames = self.frame_skip, -(-self.config.max_goal_steps // self.frame_skip)  # steps -> frames
-        steps = torch.full((len(padded),), max_frames * k, device=prompt.device)
-        for frame_index in range(1, max_frames + 1):
-            frame, done = rollout.predict_next_frame(control)
-            done = self.done_of(frame, done)
-            newly = (done >= theta) & ~reached
-            goal[newly] = frame[newly]
-            goal[~reached & ~newly] = frame[~reached & ~newly]  # the latest frame until theta is crossed
-            if goal_state is not None:
-                goal_state[~reached] = rollout.state[~reached]
-            steps[newly] = frame_index * k
-            reached |= newly
-            if reached.all():
-                break
+        if self.text_model.config.state:
+            states = torch.stack([s.goal_prompt_state for s in padded])
+        goals = generate_goals(
+            self.text_model,
+            torch.stack([s.goal_prompt for s in padded]),
+            [s.task for s in padded],
+            self.config.theta,
+            self.frame_skip,
+            self.config.max_goal_steps,
+            states,
+            self.done_of,
+        )
         for i, s in enumerate(starts):
-            if not reached[i]:
+            if not goals.reached[i]:
                 logger.warning(
                     "text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
                     "its last generated frame is the goal",
-                    theta,
+                    self.config.theta,
                     self.config.max_goal_steps,
                     s.episode_index,
                     s.task,
                 )
         return [
-            Goal(goal[i], bool(reached[i]), int(steps[i]), None if goal_state is None else goal_state[i])
+            Goal(
+                goals.tokens[i],
+                bool(goals.reached[i]),
+                int(goals.steps[i]),
+                None if goals.states is None else goals.states[i],
+            )
             for i in range(len(starts))
         ]

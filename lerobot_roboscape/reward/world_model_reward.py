@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from lerobot_roboscape.tokenizer.similarity import frame_distance
+
 
 def max_step_reward(alpha: float, beta: float, sparse_value: float) -> float:
     """The most one step can pay: the sparse term on, and the dense term at its maximum of 1."""
@@ -49,10 +51,7 @@ class WorldModelReward(nn.Module):
     @torch.no_grad()
     def forward(self, frames: torch.Tensor, goals: torch.Tensor, done: torch.Tensor) -> RewardParts:
         """frames, goals: (B, n_cameras, 3, H, W) in [0, 1]; done: (B,) done probability of the action model."""
-        B, n = frames.shape[:2]
-        distance = (
-            self.distance(frames.flatten(0, 1) * 2 - 1, goals.flatten(0, 1) * 2 - 1).float().reshape(B, n).mean(1)
-        )
+        distance = frame_distance(self.distance, frames, goals)
         dense = 1 - distance
         sparse = (done >= self.theta_sps).float() * self.sparse_value
         return RewardParts(self.alpha * sparse + self.beta * dense, sparse, dense, distance)

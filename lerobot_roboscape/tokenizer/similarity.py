@@ -61,6 +61,13 @@ class TokenizerPerceptualDistance(nn.Module):
         return torch.stack(per_stage).mean(0).view(-1, 1, 1, 1)
 
 
+def frame_distance(distance: nn.Module, frames: torch.Tensor, others: torch.Tensor) -> torch.Tensor:
+    """A distance of `load_similarity` between frames of several camera views, (B, n_cameras, 3, H, W) in [0, 1]
+    each: the views' distances averaged, (B,)."""
+    B, n = frames.shape[:2]
+    return distance(frames.flatten(0, 1) * 2 - 1, others.flatten(0, 1) * 2 - 1).float().reshape(B, n).mean(1)
+
+
 class PixelDistance(nn.Module):
     """The plainest offline distance, a baseline for the perceptual ones: the mean squared difference of the two
     images' pixels, (B, 3, H, W) in [-1, 1] -> (B, 1, 1, 1) in [0, 1]."""

@@ -30,6 +30,7 @@ from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, Reside
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
 from lerobot_roboscape.world_model.controllability import control_summary, load_control_starts, read_control_set
 from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
+from lerobot_roboscape.world_model.goals import goal_summary, load_goal_starts
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 
@@ -103,6 +104,8 @@ class TrainWorldModelConfig:
     heldout_control: DatasetConfig | None = None
     heldout_horizon: int = 16
     heldout_starts: list[Path] = field(default_factory=list)
+    heldout_goals: list[Path] = field(default_factory=list)
+    heldout_theta: float = 0.9
     done_tuning_steps: int = 300
     done_tuning_episodes: int | None = 128
     init_from: str | None = None
@@ -117,9 +120,15 @@ class TrainWorldModelConfig:
             )
         if (self.heldout_control is not None or self.heldout_starts) and self.wm.control != "action":
             raise InvalidInputError("heldout_control measures the action world model; the text model has no actions")
-        for path in self.heldout_starts:
-            if not Path(path).is_file():
-                raise InvalidInputError(f"heldout_starts: {path} is not a file (save_control_starts writes one)")
+        if self.heldout_goals and self.wm.control != "text":
+            raise InvalidInputError("heldout_goals judge the text model's goals; the action model has none")
+        for name, paths, writer in (
+            ("heldout_starts", self.heldout_starts, "save_control_starts"),
+            ("heldout_goals", self.heldout_goals, "save_goal_starts"),
+        ):
+            for path in paths:
+                if not Path(path).is_file():
+                    raise InvalidInputError(f"{name}: {path} is not a file ({writer} writes one)")
         if not 0.0 <= self.exploration_share <= 1.0:
             raise InvalidInputError(f"exploration_share must be in [0, 1], got {self.exploration_share}")
         if self.retrain_blocks is not None and self.init_from is None:
@@ -239,7 +248,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         cfg.output_dir,
         run_config,
         desc=f"{cfg.wm.control} world model",
-        evaluate=heldout_control(cfg) if cfg.heldout_control is not None or cfg.heldout_starts else None,
+        evaluate=heldout_evaluation(cfg),
         flops_per_sample=model.training_flops_per_clip(),
     )
     if cfg.done_tuning_steps and cfg.wm.control == "action":
@@ -288,6 +297,26 @@ def tune_done_on_open_loop(model: STWorldModel, cache: TokenCache, episodes: lis
     logger.info("done head tuned on open-loop frames: %s", summary)
     (Path(cfg.output_dir) / "done_tuning.json").write_text(json.dumps(summary, indent=2))
     save_atomically(model, Path(cfg.output_dir) / FINAL)
+
+
+def heldout_evaluation(cfg: TrainWorldModelConfig):
+    """What the run reads along training: the action model's controllability, the text model's goals, or nothing."""
+    if cfg.heldout_control is not None or cfg.heldout_starts:
+        return heldout_control(cfg)
+    return heldout_goals(cfg) if cfg.heldout_goals else None
+
+
+def heldout_goals(cfg: TrainWorldModelConfig):
+    """The held-out evaluation of the text model: its goals from each goal set of heldout_goals (named by its
+    file)."""
+    device = resolve_device(cfg.device)
+    tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
+    sets = {Path(path).stem: load_goal_starts(path, device) for path in cfg.heldout_goals}
+    return lambda model: {
+        f"{name}/{measure}": value
+        for name, starts in sets.items()
+        for measure, value in goal_summary(model, tokenizer, starts, cfg.heldout_theta, cfg.wm.frame_skip).items()
+    }
 
 
 def heldout_control(cfg: TrainWorldModelConfig):

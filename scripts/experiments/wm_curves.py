@@ -1,7 +1,8 @@
-"""Held-out curves of action world-model runs side by side: retrieval (whole frame, object, by state), action gain and
-the measures that see the arm (the TCP's error, the arm region's PSNR, the motion ratio) on each controllability
-set against training minutes, from each run's heldout_curve.jsonl (`roboscape-train-wm --heldout_control...` or
-`--heldout_starts=[ind.safetensors,ood.safetensors]`, whose measures are named `ind/...`, `ood/...`). Writes
+"""Held-out curves of world-model runs side by side against training minutes, from each run's heldout_curve.jsonl: of
+the action model, retrieval (whole frame, object, by state), action gain and the measures that see the arm (the
+TCP's error, the arm region's PSNR, the motion ratio) on each controllability set (`roboscape-train-wm
+--heldout_control...` or `--heldout_starts=[ind.safetensors,ood.safetensors]`, whose measures are named `ind/...`,
+`ood/...`); of the text model, its goals on each goal set (`--heldout_goals`, text_wm_curve.py). Writes
 OUT/NAME.png (a row per set, a column per measure; runs named `<lever>_seed<n>` share a colour per lever, a line style
 per seed) and OUT/NAME.json (every run's curve), and prints markdown tables of each run at every point and at its
 last.
@@ -30,6 +31,9 @@ MEASURES = {
     "tcp_error_share_of_moved": "TCP error / distance moved (median)",
     "arm_psnr": "arm region PSNR (dB)",
     "motion_ratio": "motion ratio",
+    "goal_reached": "goals: done crosses theta in the horizon",
+    "goal_nearer_final": "goal nearer the success than the start",
+    "goal_done_max": "goals: highest done (median)",
 }
 GOALS = {
     "retrieval_whole_frame": 0.9,
@@ -37,6 +41,8 @@ GOALS = {
     "action_gain_db": 3.0,
     "tcp_error_share_of_moved": 0.15,
     "motion_ratio": 1.0,
+    "goal_reached": 0.7,
+    "goal_nearer_final": 0.8,
 }
 
 
