@@ -2,7 +2,7 @@
 the action model, retrieval (whole frame, object, by state), action gain and the measures that see the arm (the
 TCP's error, the arm region's PSNR, the motion ratio) on each controllability set (`roboscape-train-wm
 --heldout_control...` or `--heldout_starts=[ind.safetensors,ood.safetensors]`, whose measures are named `ind/...`,
-`ood/...`); of the text model, its goals on each goal set (`--heldout_goals`, text_wm_curve.py). Writes
+`ood/...`); of the text model, its goals on each goal set (`--heldout_goals`, wm_levers.py's `text` runs). Writes
 OUT/NAME.png (a row per set, a column per measure; runs named `<lever>_seed<n>` share a colour per lever, a line style
 per seed) and OUT/NAME.json (every run's curve), and prints markdown tables of each run at every point and at its
 last.

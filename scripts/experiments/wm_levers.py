@@ -5,8 +5,14 @@ torch thread), so that every run gets the same CPU; each reads retrieval, action
 arm region's PSNR on IND and OOD controllability starts as it trains (`--train.eval_freq`). A run's budget is wall
 clock, its readings included; the curves' minutes are its training alone. Then `wm_curves.py` draws them.
 
+The text model's runs (`text`) read its goals instead (`--heldout_goals`): how often its done crosses `--theta` within
+the family's horizon from IND starts (the validation collection: new starts of the training scenes) and OOD ones (the
+held-out scenes), and whether its goal is nearer the real success than the start.
+
     python scripts/experiments/wm_levers.py outputs/screen --out outputs/screen/levers --minutes 10
     python scripts/experiments/wm_curves.py outputs/screen/levers/* --out docs/results/world_model/levers70
+    python scripts/experiments/wm_levers.py outputs/bench --out outputs/bench/text70 --runs text_seed0 --minutes 40 \
+        --parallel 1 --threads 2 --steps_per_minute 150 150 --theta 0.996
 """
 
 import argparse
@@ -26,13 +32,16 @@ from lerobot_roboscape.pipeline.layout import (
     DEMOS_REPO_ID,
     EXPLORE_DIR,
     EXPLORE_REPO_ID,
+    HELDOUT_DIR,
     TOKEN_CACHE_DIR,
     TOKENIZER_DIR,
+    VALIDATION_DIR,
 )
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts, spread
+from lerobot_roboscape.world_model.goals import read_goal_starts, save_goal_starts
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
 # Each lever alone against today's model, then all of them; --wm fields of the bench preset.
@@ -44,36 +53,55 @@ LEVERS = {
     "all": {"patch": "2", "corrupt_max": "0.2"},
     "bench": {"patch": "2"},  # the bench preset as it stands (its patch named for the pace below)
     "wide": {"patch": "2", "d_model": "192"},  # the bench preset 1.5x wider: give its own pace (--steps_per_minute)
+    "text": {"patch": "2", "control": "text"},  # the bench preset's text model, read on its goals
 }
 
 
-def control_starts(run: Path, out: Path, frame_skip: int, horizon: int, keep: int) -> list[Path]:
-    """The IND and OOD controllability sets read once for every run (ind.safetensors, ood.safetensors), at most
-    `keep` starts of each, spread over the set."""
+def held_out_sets(run: Path, out: Path, text: bool, frame_skip: int, horizon: int, keep: int) -> list[Path]:
+    """The IND and OOD sets read once for every run, at most `keep` starts of each, spread over the set: the
+    controllability sets (ind.safetensors, ood.safetensors), or the text model's goal sets (ind_goals..., ...)."""
     tokenizer = VisualTokenizer.from_pretrained(run / TOKENIZER_DIR / FINAL).eval()
+    folders = (
+        (("ind_goals", VALIDATION_DIR), ("ood_goals", HELDOUT_DIR))
+        if text
+        else (
+            ("ind", CONTROL_IND_DIR),
+            ("ood", CONTROL_DIR),
+        )
+    )
     paths = []
-    for name, folder in (("ind", CONTROL_IND_DIR), ("ood", CONTROL_DIR)):
+    for name, folder in folders:
         path = out / f"{name}.safetensors"
         if not path.is_file():
             dataset = open_dataset(f"local/{Path(folder).name}", run / folder)
-            save_control_starts(
-                spread(read_control_set(dataset, tokenizer, frame_skip, horizon, "cpu"), keep), path, frame_skip
-            )
+            if text:
+                save_goal_starts(read_goal_starts(dataset, tokenizer, keep), path)
+            else:
+                starts = read_control_set(dataset, tokenizer, frame_skip, horizon, "cpu")
+                save_control_starts(spread(starts, keep), path, frame_skip)
         paths.append(path)
     return paths
 
 
-def command(run: Path, folder: Path, lever: dict, seed: int, minutes: float, eval_freq: int, starts: list[Path]):
+def command(run: Path, folder: Path, lever: dict, seed: int, minutes: float, eval_freq: int, sets: list[Path], theta):
     wm = {"type": "bench", "control": "action", **lever}
+    if wm["control"] == "text":  # the demonstrations alone (its successful optimal episodes); read on its goals
+        data = [f"--heldout_goals=[{','.join(str(p) for p in sets)}]", f"--heldout_theta={theta}"]
+    else:
+        data = [
+            f"--exploration.repo_id={EXPLORE_REPO_ID}",
+            f"--exploration.root={run / EXPLORE_DIR}",
+            "--exploration_share=0.25",
+            f"--heldout_starts=[{','.join(str(p) for p in sets)}]",
+            "--done_tuning_steps=0",
+        ]
     return [
         sys.executable,
         "-m",
         "lerobot_roboscape.cli.train_wm",
         f"--dataset.repo_id={DEMOS_REPO_ID}",
         f"--dataset.root={run / DEMOS_DIR}",
-        f"--exploration.repo_id={EXPLORE_REPO_ID}",
-        f"--exploration.root={run / EXPLORE_DIR}",
-        "--exploration_share=0.25",
+        *data,
         f"--tokenizer={run / TOKENIZER_DIR / FINAL}",
         f"--cache_dir={run / TOKEN_CACHE_DIR}",
         f"--output_dir={folder}",
@@ -84,8 +112,6 @@ def command(run: Path, folder: Path, lever: dict, seed: int, minutes: float, eva
         "--train.batch_size=4",
         f"--train.seed={seed}",
         "--train.save_freq=100000",
-        f"--heldout_starts=[{','.join(str(p) for p in starts)}]",
-        "--done_tuning_steps=0",
     ]
 
 
@@ -102,7 +128,8 @@ def main():
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--runs", nargs="+", help="<lever>_seed<n> in this order, instead of every lever and seed")
     parser.add_argument("--horizon", type=int, default=16)
-    parser.add_argument("--starts", type=int, default=16, help="controllability starts per set (IND, OOD), at most")
+    parser.add_argument("--starts", type=int, default=16, help="starts per held-out set (IND, OOD), at most")
+    parser.add_argument("--theta", type=float, default=0.9, help="the text model's goals: the env's done threshold")
     args = parser.parse_args()
     run, out = args.run.resolve(), args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -110,7 +137,6 @@ def main():
     tokenizer = str(run / TOKENIZER_DIR / FINAL)
     for repo_id, folder in ((DEMOS_REPO_ID, DEMOS_DIR), (EXPLORE_REPO_ID, EXPLORE_DIR)):  # built once, not raced
         prepare_token_cache(DatasetConfig(repo_id=repo_id, root=str(run / folder)), tokenizer, run / TOKEN_CACHE_DIR)
-    starts = control_starts(run, out, frame_skip, args.horizon, args.starts)
     jobs = []
     runs = [(name, seed) for seed in args.seeds for name in args.levers]
     if args.runs:
@@ -122,7 +148,8 @@ def main():
         folder = out / f"{name}_seed{seed}"
         if (folder / FINAL / "model.safetensors").is_file():
             continue
-        jobs.append((folder, command(run, folder, lever, seed, args.minutes, eval_freq, starts)))
+        sets = held_out_sets(run, out, lever.get("control") == "text", frame_skip, args.horizon, args.starts)
+        jobs.append((folder, command(run, folder, lever, seed, args.minutes, eval_freq, sets, args.theta)))
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
     running: list[tuple[Path, subprocess.Popen]] = []
     while jobs or running:
