@@ -187,7 +187,7 @@ class GoalBank:
         for i, s in enumerate(starts):
             if not goals.reached[i]:
                 logger.warning(
-                    "text world model: done stayed below theta=%.2f for %d frames from episode %d (%r); "
+                    "text world model: done stayed below theta=%.2f for %d control steps from episode %d (%r); "
                     "its last generated frame is the goal",
                     self.config.theta,
                     self.config.max_goal_steps,

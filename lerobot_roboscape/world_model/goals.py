@@ -122,6 +122,7 @@ def save_goal_starts(starts: list[GoalStart], path: str | Path) -> None:
 
 
 def load_goal_starts(path: str | Path, device="cpu") -> list[GoalStart]:
+    """The starts `save_goal_starts` wrote."""
     metadata, tensors = load_tensors(path, "save_goal_starts", ("starts",), device)
     return [
         GoalStart(

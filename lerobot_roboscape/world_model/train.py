@@ -122,6 +122,8 @@ class TrainWorldModelConfig:
             raise InvalidInputError("heldout_control measures the action world model; the text model has no actions")
         if self.heldout_goals and self.wm.control != "text":
             raise InvalidInputError("heldout_goals judge the text model's goals; the action model has none")
+        if not 0 < self.heldout_theta <= 1:
+            raise InvalidInputError(f"heldout_theta must be in (0, 1], got {self.heldout_theta}")
         for name, paths, writer in (
             ("heldout_starts", self.heldout_starts, "save_control_starts"),
             ("heldout_goals", self.heldout_goals, "save_goal_starts"),

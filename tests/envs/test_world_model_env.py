@@ -110,7 +110,7 @@ def test_goal_never_reached_is_explicit(env_config, caplog):
     with caplog.at_level(logging.WARNING):
         _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
     assert not info["goal_from_text_model"].any()
-    assert "done stayed below theta=1.00 for 2 frames" in caplog.text
+    assert "done stayed below theta=1.00 for 2 control steps" in caplog.text
 
 
 def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monkeypatch):

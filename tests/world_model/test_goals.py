@@ -106,3 +106,5 @@ def test_text_model_training_reads_its_goals_on_each_goal_set(demo_dataset, trai
         assert curve[-1][f"ind/{key}"] == (value if value is None else pytest.approx(value, abs=1e-6)), key
     with pytest.raises(InvalidInputError, match="heldout_goals judge the text model's goals"):
         TrainWorldModelConfig(heldout_goals=[tmp_path / "ind.safetensors"])  # the action model's, by default
+    with pytest.raises(InvalidInputError, match="heldout_theta must be in"):
+        TrainWorldModelConfig(heldout_theta=1.5)
