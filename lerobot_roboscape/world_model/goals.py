@@ -52,7 +52,7 @@ def generate_goals(
     model_done)`: the done source read on each generated frame (default: the text model's own head)."""
     control = model.encode_control(instructions=instructions)
     prompt = prompt_BS[:, None]
-    states = states_BD[:, None].to(prompt.device) if model.config.state else None
+    states = None if states_BD is None or not model.config.state else states_BD[:, None].to(prompt.device)
     rollout = Rollout.start(model, prompt, control, states=states)
     B = prompt.shape[0]
     goal, goal_state = prompt[:, 0].clone(), None if states is None else states[:, 0].clone()
@@ -134,14 +134,19 @@ def load_goal_starts(path: str | Path, device="cpu") -> list[GoalStart]:
 
 @torch.no_grad()
 def goal_summary(
-    model, tokenizer: VisualTokenizer, starts: list[GoalStart], theta: float, frame_skip: int, batch: int = 8
+    model,
+    tokenizer: VisualTokenizer,
+    distance: TokenizerPerceptualDistance,
+    starts: list[GoalStart],
+    theta: float,
+    frame_skip: int,
+    batch: int = 8,
 ) -> dict[str, float]:
     """The text model's goals from `starts` (`batch` at a time), generated up to each start's horizon: the share
     whose done crossed theta within it (`goal_reached`), the median highest done (`goal_done_max`), and over the
     successful episodes the share whose goal is nearer the real final frame than the start is, by the tokenizer's
-    perceptual distance (`goal_nearer_final`, the reward's similarity offline)."""
+    perceptual distance (`distance`, made once by the caller: the reward's similarity offline; `goal_nearer_final`)."""
     device = next(model.parameters()).device
-    distance = TokenizerPerceptualDistance(tokenizer).to(device)
     n_cameras = model.config.n_cameras
     reached, done_max, nearer = [], [], []
     starts = sorted(starts, key=lambda s: s.horizon)  # a batch of one family generates to its own horizon

@@ -15,6 +15,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance
 from lerobot_roboscape.tokenizer.token_cache import (
     STATS_FILE,
     STATS_KEYS,
@@ -313,11 +314,14 @@ def heldout_goals(cfg: TrainWorldModelConfig):
     file)."""
     device = resolve_device(cfg.device)
     tokenizer = VisualTokenizer.from_pretrained(cfg.tokenizer).to(device).eval()
+    distance = TokenizerPerceptualDistance(tokenizer).to(device)
     sets = {Path(path).stem: load_goal_starts(path, device) for path in cfg.heldout_goals}
     return lambda model: {
         f"{name}/{measure}": value
         for name, starts in sets.items()
-        for measure, value in goal_summary(model, tokenizer, starts, cfg.heldout_theta, cfg.wm.frame_skip).items()
+        for measure, value in goal_summary(
+            model, tokenizer, distance, starts, cfg.heldout_theta, cfg.wm.frame_skip
+        ).items()
     }
 
 

@@ -71,10 +71,10 @@ def test_goal_starts_are_saved_and_judged_by_the_done_and_the_distance(
     assert all(
         torch.equal(a.first, b.first) and torch.equal(a.last, b.last) for a, b in zip(starts, loaded, strict=True)
     )
-    k = text_model.config.frame_skip
+    k, distance = text_model.config.frame_skip, TokenizerPerceptualDistance(tokenizer)
     # Any done crosses a threshold this low at the first frame, within every horizon; none crosses 1.
-    assert goal_summary(text_model, tokenizer, loaded, 1e-9, k)["goal_reached"] == 1.0
-    never = goal_summary(text_model, tokenizer, loaded, 1.0, k)
+    assert goal_summary(text_model, tokenizer, distance, loaded, 1e-9, k)["goal_reached"] == 1.0
+    never = goal_summary(text_model, tokenizer, distance, loaded, 1.0, k)
     assert never["goal_reached"] == 0.0 and 0.0 < never["goal_done_max"] < 1.0
     assert never["goal_nearer_final"] is None or 0.0 <= never["goal_nearer_final"] <= 1.0
 
@@ -101,7 +101,7 @@ def test_text_model_training_reads_its_goals_on_each_goal_set(demo_dataset, trai
     curve = read_curve(tmp_path / "run")
     assert [point["step"] for point in curve] == [2, 4]
     final = STWorldModel.from_pretrained(str(tmp_path / "run" / "pretrained_model")).eval()
-    read = goal_summary(final, tokenizer, starts, 0.5, final.config.frame_skip)
+    read = goal_summary(final, tokenizer, TokenizerPerceptualDistance(tokenizer), starts, 0.5, final.config.frame_skip)
     for key, value in read.items():  # the last reading is the final model's
         assert curve[-1][f"ind/{key}"] == (value if value is None else pytest.approx(value, abs=1e-6)), key
     with pytest.raises(InvalidInputError, match="heldout_goals judge the text model's goals"):
