@@ -135,12 +135,15 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     frame_skip = WorldModelConfig.get_choice_class("bench")().frame_skip
     tokenizer = str(run / TOKENIZER_DIR / FINAL)
-    for repo_id, folder in ((DEMOS_REPO_ID, DEMOS_DIR), (EXPLORE_REPO_ID, EXPLORE_DIR)):  # built once, not raced
-        prepare_token_cache(DatasetConfig(repo_id=repo_id, root=str(run / folder)), tokenizer, run / TOKEN_CACHE_DIR)
-    jobs = []
     runs = [(name, seed) for seed in args.seeds for name in args.levers]
     if args.runs:
         runs = [(run.rsplit("_seed", 1)[0], int(run.rsplit("_seed", 1)[1])) for run in args.runs]
+    caches = [(DEMOS_REPO_ID, DEMOS_DIR)]
+    if any(LEVERS[name].get("control") != "text" for name, _ in runs):  # the text model reads no exploration
+        caches.append((EXPLORE_REPO_ID, EXPLORE_DIR))
+    for repo_id, folder in caches:  # built once, not raced
+        prepare_token_cache(DatasetConfig(repo_id=repo_id, root=str(run / folder)), tokenizer, run / TOKEN_CACHE_DIR)
+    jobs = []
     for name, seed in runs:
         lever = LEVERS[name]
         pace = args.steps_per_minute[1] if lever.get("patch") == "2" else args.steps_per_minute[0]
