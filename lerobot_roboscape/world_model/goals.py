@@ -143,12 +143,14 @@ def goal_summary(
     batch: int = 8,
 ) -> dict[str, float]:
     """The text model's goals from `starts` (`batch` at a time), generated up to each start's horizon: the share
-    whose done crossed theta within it (`goal_reached`), the median highest done (`goal_done_max`), and over the
-    successful episodes the share whose goal is nearer the real final frame than the start is, by the tokenizer's
-    perceptual distance (`distance`, made once by the caller: the reward's similarity offline; `goal_nearer_final`)."""
+    whose done crossed theta within it (`goal_reached`), the median control steps to those goals over the horizon
+    (`goal_steps_share`: near 0, the done fires at once and the goal is the start), the median highest done
+    (`goal_done_max`), and over the successful episodes the share whose goal is nearer the real final frame than the
+    start is, by the tokenizer's perceptual distance (`distance`, made once by the caller: the reward's similarity
+    offline; `goal_nearer_final`)."""
     device = next(model.parameters()).device
     n_cameras = model.config.n_cameras
-    reached, done_max, nearer = [], [], []
+    reached, steps_share, done_max, nearer = [], [], [], []
     starts = sorted(starts, key=lambda s: s.horizon)  # a batch of one family generates to its own horizon
     for chunk in range(0, len(starts), batch):
         part = starts[chunk : chunk + batch]
@@ -162,7 +164,9 @@ def goal_summary(
             torch.stack([s.first_state for s in part]),
         )
         horizons = torch.tensor([s.horizon for s in part], device=device)
-        reached += (goals.reached & (goals.steps <= horizons)).tolist()
+        within = goals.reached & (goals.steps <= horizons)
+        reached += within.tolist()
+        steps_share += (goals.steps / horizons)[within].tolist()
         done_max += goals.done_max.tolist()
         images = [
             tokenizer.decode_views(t.to(device), n_cameras)
@@ -173,6 +177,7 @@ def goal_summary(
         nearer += [bool(g < s) for g, s, start in zip(to_goal, to_start, part, strict=True) if start.success]
     return {
         "goal_reached": float(np.mean(reached)),
+        "goal_steps_share": float(np.median(steps_share)) if steps_share else None,
         "goal_done_max": float(np.median(done_max)),
         "goal_nearer_final": float(np.mean(nearer)) if nearer else None,
     }

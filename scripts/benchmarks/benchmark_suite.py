@@ -32,7 +32,7 @@ def package_roots(tree: Path) -> list[str]:
 
 def run_suite(tree: Path, tier: str, extra: list[str]) -> dict:
     """One run of the test command in `tree` (`extra`: more pytest arguments): its wall seconds, pytest's own count
-    line and exit code."""
+    line, the tests that failed (pytest's `FAILED` lines) and its exit code."""
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *extra]
     cmd += ["-m", "not slow"] if tier == "fast" else []
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(package_roots(tree))}
@@ -41,7 +41,8 @@ def run_suite(tree: Path, tier: str, extra: list[str]) -> dict:
     seconds = time.perf_counter() - start
     lines = list(SUMMARY.finditer(done.stdout))
     counts = lines[-1]["counts"] if lines else "no summary: " + " ".join(done.stdout.strip().splitlines()[-1:])
-    return {"seconds": seconds, "counts": counts, "returncode": done.returncode}
+    failed = [line for line in done.stdout.splitlines() if line.startswith(("FAILED", "ERROR"))]
+    return {"seconds": seconds, "counts": counts, "failed": failed, "returncode": done.returncode}
 
 
 def main():
@@ -66,6 +67,8 @@ def main():
     print(f"{'side':<28} {'wall s':>8}  pytest")
     for name, r in results.items():
         print(f"{name:<28} {r['seconds']:8.0f}  {r['counts']} (exit {r['returncode']})")
+    for name, r in results.items():
+        print("".join(f"{name}: {line}\n" for line in r["failed"]), end="")
     ref, head = (r["seconds"] for r in (results[sides[0][0]], results[sides[1][0]]))
     print(f"this checkout / reference: {head / ref:.2f}")
 

@@ -34,6 +34,7 @@ MEASURES = {
     "goal_reached": "goals: done crosses theta in the horizon",
     "goal_nearer_final": "goal nearer the success than the start",
     "goal_done_max": "goals: highest done (median)",
+    "goal_steps_share": "goals: control steps to the goal / horizon (median)",
 }
 GOALS = {
     "retrieval_whole_frame": 0.9,

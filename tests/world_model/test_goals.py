@@ -2,6 +2,7 @@
 starts, and read along the text model's training as its held-out curve."""
 
 import draccus
+import numpy as np
 import pytest
 import torch
 
@@ -73,9 +74,13 @@ def test_goal_starts_are_saved_and_judged_by_the_done_and_the_distance(
     )
     k, distance = text_model.config.frame_skip, TokenizerPerceptualDistance(tokenizer)
     # Any done crosses a threshold this low at the first frame, within every horizon; none crosses 1.
-    assert goal_summary(text_model, tokenizer, distance, loaded, 1e-9, k)["goal_reached"] == 1.0
+    at_once = goal_summary(text_model, tokenizer, distance, loaded, 1e-9, k)
+    horizons = sorted(s.horizon for s in loaded)
+    assert at_once["goal_reached"] == 1.0 and at_once["goal_steps_share"] == pytest.approx(
+        np.median([k / h for h in horizons])
+    )
     never = goal_summary(text_model, tokenizer, distance, loaded, 1.0, k)
-    assert never["goal_reached"] == 0.0 and 0.0 < never["goal_done_max"] < 1.0
+    assert never["goal_reached"] == 0.0 and 0.0 < never["goal_done_max"] < 1.0 and never["goal_steps_share"] is None
     assert never["goal_nearer_final"] is None or 0.0 <= never["goal_nearer_final"] <= 1.0
 
 
