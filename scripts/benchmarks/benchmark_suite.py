@@ -14,18 +14,19 @@ import os
 import re
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-SUMMARY = re.compile(r"^=*\s*(?P<counts>(?:\d+ \w+|no tests ran)[^\n]*?) in (?P<seconds>[\d.]+)s", re.MULTILINE)
+SUMMARY = re.compile(r"^=*\s*(?P<counts>(?:\d+ \w+|no tests ran)[^\n]*?) in [\d.]+s", re.MULTILINE)
 
 
 def package_roots(tree: Path) -> list[str]:
     """The folders this environment's editable install puts on sys.path (its `_editable_impl_*.pth`), mapped from
     this checkout onto `tree`."""
-    site = next(p for p in map(Path, sys.path) if p.name == "site-packages" and p.is_dir())
+    site = Path(sysconfig.get_paths()["purelib"])
     roots = [Path(pth.read_text().strip()) for pth in sorted(site.glob("_editable_impl_*.pth"))]
     return [str(tree / root.relative_to(REPO)) for root in roots if root.is_relative_to(REPO)]
 
