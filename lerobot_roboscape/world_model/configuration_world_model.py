@@ -215,8 +215,9 @@ class BenchWorldModelConfig(WorldModelConfig):
     positions per two-view frame): 3.9x the clips of a code per position on 2 CPU cores, and at equal CPU minutes a
     better arm and more motion in its rollouts (docs/results/world_model/levers70). On the bench data, 7,500 steps at
     batch 4 (10 clips/s on 2 cores) take 48 minutes; two seeds' rollouts then follow the robot's state and pick their
-    own future by pixels in 0.55-0.6 of starts (docs/results/world_model/bench70). Changed tokens weigh 5x: on the
-    robot's data copying the previous frame already scores two thirds of the tokens."""
+    own future by pixels in 0.55-0.6 of starts (docs/results/world_model/bench70). d_model 192 trailed it at equal
+    minutes in two seeds (docs/results/world_model/wide70): on 2 cores the clips are worth more than the width.
+    Changed tokens weigh 5x: on the robot's data copying the previous frame already scores two thirds of the tokens."""
 
     tokens_per_side: int = 16
     vocab_size: int = 1024
