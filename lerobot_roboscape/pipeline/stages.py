@@ -136,7 +136,8 @@ def _world_model(
     train = TrainWorldModelConfig(
         dataset=data.train,
         tokenizer=str(tokenizer_path),
-        wm=replace(cfg.wm, control=control),
+        # corrupted context was judged on the action model's rollouts (corrupt70); the text model's goals without it
+        wm=replace(cfg.wm, control=control) if action else replace(cfg.wm, control=control, corrupt_max=0.0),
         train=_with_checkpoints(training),
         output_dir=folder,
         cache_dir=folder.parent / TOKEN_CACHE_DIR,

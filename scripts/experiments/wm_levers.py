@@ -44,16 +44,18 @@ from lerobot_roboscape.world_model.controllability import read_control_set, save
 from lerobot_roboscape.world_model.goals import read_goal_starts, save_goal_starts
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
-# Each lever alone against today's model, then all of them; --wm fields of the bench preset.
+# Each lever alone against today's model, then all of them; --wm fields of the bench preset (which now corrupts its
+# context, so the others turn that off).
+OFF = {"corrupt_max": "0"}
 LEVERS = {
-    "today": {"state": "false"},
-    "state": {},
-    "patch2": {"state": "false", "patch": "2"},
+    "today": {"state": "false", **OFF},
+    "state": OFF,
+    "patch2": {"state": "false", "patch": "2", **OFF},
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
-    "all": {"patch": "2", "corrupt_max": "0.2"},
-    "bench": {"patch": "2"},  # the bench preset as it stands (its patch named for the pace below)
-    "wide": {"patch": "2", "d_model": "192"},  # the bench preset 1.5x wider: give its own pace (--steps_per_minute)
-    "text": {"patch": "2", "control": "text"},  # the bench preset's text model, read on its goals
+    "all": {"patch": "2", "corrupt_max": "0.2"},  # the bench preset as it stands (its patch named for the pace below)
+    "bench": {"patch": "2", **OFF},  # the bench preset before corruption (corrupt70's reference)
+    "wide": {"patch": "2", "d_model": "192", **OFF},  # 1.5x wider: give its own pace (--steps_per_minute)
+    "text": {"patch": "2", "control": "text", **OFF},  # the bench preset's text model, read on its goals
 }
 
 
