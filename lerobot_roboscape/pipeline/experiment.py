@@ -60,9 +60,11 @@ class ExperimentConfig:
     curve_episodes: simulator episodes per family (OOD) behind each point of the curve of PPO's checkpoints.
     curve_points: points of each such curve: the SFT checkpoint and checkpoints evenly spread over the run (at least
         2: SFT and the last).
-    replay_episodes: world-model rollouts of each policy after PPO in the world model (the plain run's and each
-        lever's) replayed in the simulator (16: the share of its successes the simulator confirms rests on at least
-        that many starts).
+    replay_rollouts: world-model episodes of each policy after PPO in the world model (the plain run's and each
+        lever's), from starts spread over families and scenes, from which the replay picks.
+    replay_episodes: of them, at most this many the world model called successes, and as many it called failures,
+        replayed in the simulator (16: the share of its successes the simulator confirms rests on that many when the
+        done fires in a quarter of the rollouts).
     world_model_runs: a folder: PPO in the world model runs where its models were trained (a lent GPU, when they
         are too slow for this machine's CPUs: pipeline/world_model_runs.py). The first run of the experiment
         writes DIR/pack (the SFT checkpoint, the starts, each run's settings) and stops; once the runs are brought
@@ -82,6 +84,7 @@ class ExperimentConfig:
     lever: LeverSettings = field(default_factory=LeverSettings)
     curve_episodes: int = 10
     curve_points: int = 6
+    replay_rollouts: int = 64
     replay_episodes: int = 16
     world_model_runs: str | None = None
     report_dir: str = "docs/results/bench"
@@ -92,7 +95,7 @@ class ExperimentConfig:
             raise InvalidInputError(f"--protocol must be one of {list(methods.PROTOCOLS)}, got {self.protocol!r}")
         if unknown := [lever for lever in self.levers if lever not in LEVERS]:
             raise InvalidInputError(f"--levers {unknown} unknown; choose from {list(LEVERS)}")
-        for name in ("curve_episodes", "replay_episodes"):
+        for name in ("curve_episodes", "replay_rollouts", "replay_episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--{name} must be >= 1, got {getattr(self, name)}")
         if self.world_model_runs is not None and (simulator := [n for n in self.levers if LEVERS[n].simulator]):
@@ -166,7 +169,7 @@ def pack_world_model_runs(
     data = data_stages.demonstrations(p.data, run, p.fresh)  # complete: found, not collected again
     sets = {"validation": data.validation, "heldout": stages.spread(data.heldout, p.data.report_episodes)}
     extra = {
-        "replay": {"episodes": cfg.replay_episodes},
+        "replay": {"episodes": cfg.replay_rollouts},
         "ensemble": {
             "members": cfg.lever.ensemble.members,
             "retrain_blocks": cfg.lever.ensemble.retrain_blocks,
@@ -350,7 +353,13 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
     )
     replays = {
         m: replay_in_simulator(
-            p, cfg.replay_episodes, e.out / layout.replay_dir(m), envs.get(m), rl[policy][m], rollouts.get(m)
+            p,
+            e.out / layout.replay_dir(m),
+            envs.get(m),
+            rl[policy][m],
+            rollouts.get(m),
+            episodes=cfg.replay_rollouts,
+            per_outcome=cfg.replay_episodes,
         )
         for m in [methods.RL_WORLD_MODEL, *levers]
     }

@@ -47,16 +47,20 @@ def agreed(replays: list[Replay]) -> int:
 
 def replay_in_simulator(
     p: PipelineConfig,
-    episodes: int,
     folder: Path,
     env_cfg: RoboscapeWorldModelEnvConfig | None,
     checkpoint: Path,
     rollouts_file: Path | None = None,
+    *,
+    episodes: int,
+    per_outcome: int,
 ) -> list[Replay]:
     """The policy after PPO in the world model, rolled out in `roboscape_wm` from `episodes` starts (spread
     over the starts, so over families and scenes), or its rollouts made where the world models are
-    (`rollouts_file`), and its actions replayed open loop in the simulator from the same scene and initial state.
-    Writes side-by-side videos (world model | its goal | simulator) and returns, per start, what each world said:
+    (`rollouts_file`); of them, up to `per_outcome` the world model called successes and as many it called
+    failures have their actions replayed open loop in the simulator from the same scene and initial state (the
+    share of its successes the simulator confirms needs successes to replay, and the world model calls few).
+    Writes side-by-side videos (world model | its goal | simulator) and returns, per replay, what each world said:
     the world model's return and success, the simulator's success. Written into `folder`."""
     if rollouts_file is None:
         settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": episodes}
@@ -66,22 +70,36 @@ def replay_in_simulator(
             "bytes": rollouts_file.stat().st_size,
             "checkpoint": str(checkpoint),
         }
+    settings["per_outcome"] = per_outcome
 
     def replay():
         if rollouts_file is None:
             rollouts = world_model_runs.roll_out(env_cfg, checkpoint, episodes, p.device)
         else:
             rollouts = world_model_runs.load_rollouts(rollouts_file)
-        _replay(folder, rollouts, p.data.image_size)
+        _replay(folder, rollouts, picked(rollouts.success, per_outcome), p.data.image_size)
 
     resume.run_once(folder, settings, p.fresh, replay)
     return [Replay.from_json(row) for row in json.loads((folder / REPLAY_JSON).read_text())]
 
 
-def _replay(folder: Path, rollouts: world_model_runs.Rollouts, image_size: int) -> None:
+def picked(success: np.ndarray, per_outcome: int) -> list[int]:
+    """The rollouts to replay: up to `per_outcome` of those the world model called successes, then as many of
+    those it called failures, each spread over the rollouts (so over families and scenes)."""
+    chosen = []
+    for called in (True, False):
+        group = np.flatnonzero(success == called)
+        spread = np.linspace(0, len(group) - 1, min(per_outcome, len(group))).round().astype(int)
+        chosen += group[spread].tolist()
+    return chosen
+
+
+def _replay(folder: Path, rollouts: world_model_runs.Rollouts, chosen: list[int], image_size: int) -> None:
+    """Replays the chosen rollouts; the picture's strips are the first chosen, so successes when there are any."""
     folder.mkdir(parents=True)
     rows, strips = [], []
-    for i, start in enumerate(rollouts.starts):
+    for i in chosen:
+        start = rollouts.starts[i]
         family, scene, seed = start.task_family, start.scene, start.seed
         job = EpisodeJob(family, scene, seed, "optimal", image_size)
         replayed = replay_actions(worker_env(job), job, rollouts.actions[:, i], {})
