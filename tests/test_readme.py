@@ -233,7 +233,7 @@ def quoted_figures() -> list[str]:
     tokenizer = lambda name, view: _measured("tokenizer/results.json", "targets", name.format(view), "value")  # noqa: E731
     done = _measured("world_model/results.json", "done", "sources", "world_model", "teacher_forced")
     control = _measured("world_model/results.json", "fidelity", "controllability")
-    gpu = _measured("world_model/results.json", "bench_on_gpu", "fidelity", "controllability")
+    rebuilt = lambda *keys: _measured("world_model/bench70/rebuilt/results.json", *keys)  # noqa: E731
     table = lambda path, method: _measured(path, "table", "roboscape_mlp", method, "ood", "all", "success_rate")  # noqa: E731
     psnr = "tokenizer reconstruction PSNR, whole frame, {} (dB)"
     survival = "tokenizer object survival, {} (share of held-out frames with the object >= 4 px)"
@@ -244,9 +244,11 @@ def quoted_figures() -> list[str]:
         f"the object survives in {_pct(tokenizer(survival, 'third_view'))} / {_pct(tokenizer(survival, 'wrist'))},",
         f"(ROC-AUC {done['frame_roc_auc']:.2f}), but calls {_pct(done['confusion']['failed_called_done_rate'])} of "
         "the failed episodes done",
-        f"in {_pct(control['world_model']['whole_frame']['retrieval'])} of held-out starts (chance "
-        f"{_pct(control['ignoring_actions']['whole_frame']['retrieval'])}, goal 90%); trained on a GPU, "
-        f"{_pct(gpu['world_model']['whole_frame']['retrieval'])}.",
+        f"the TCP stays within {_pct(rebuilt('ind', 'tcp_error_share_of_moved'))} of the distance moved and the "
+        f"rollouts find their own future among 4 action sequences in {_pct(rebuilt('ind', 'retrieval_whole_frame'))} "
+        f"of IND starts (was {_pct(control['world_model']['whole_frame']['retrieval'])}; goal 90%); their done calls "
+        f"{_pct(rebuilt('done_ind', 'open_loop', 'successes_called_done'))} of successes, "
+        f"{_pct(rebuilt('done_ind', 'open_loop', 'failures_called_done'))} of failures.",
         f"balanced accuracy {_measured('world_model/agreement/ood/ladder.json', 'pooled', 'balanced_accuracy'):.2f} "
         "out of domain",
         *headline(),

@@ -210,8 +210,6 @@ def markdown(cfg, summary: "ClaimSummary | dict") -> str:
         ablation_rows=ablation_rows,
         lever_rows=lever_rows(summary, families),
         replays=summary.replays,
-        rollouts=cfg.replay_rollouts,
-        per_outcome=cfg.replay_episodes,
         agree=agreed(summary.replays),
         signal_rows=signal_rows(summary) if summary.lever_replays else [],
     )
