@@ -137,7 +137,7 @@ def _world_model(
         dataset=data.train,
         tokenizer=str(tokenizer_path),
         # corrupted context was judged on the action model's rollouts (corrupt70); the text model's goals without it
-        wm=replace(cfg.wm, control=control) if action else replace(cfg.wm, control=control, corrupt_max=0.0),
+        wm=replace(cfg.wm, control=control, corrupt_max=cfg.wm.corrupt_max if action else 0.0),
         train=_with_checkpoints(training),
         output_dir=folder,
         cache_dir=folder.parent / TOKEN_CACHE_DIR,
