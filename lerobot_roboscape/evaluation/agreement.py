@@ -17,6 +17,7 @@ import logging
 import math
 from collections import Counter
 from dataclasses import asdict, dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import matplotlib
@@ -209,15 +210,25 @@ def ladder_summary(rungs: list[dict]) -> dict:
     def rank(a, b):  # undefined with fewer than 3 rungs or a constant side
         return None if len(a) < 3 or len(set(a)) < 2 or len(set(b)) < 2 else float(spearmanr(a, b).statistic)
 
+    intervals = [r["summary"]["simulator"]["ci95"] for r in rungs]
     return {
         "policies": [r["policy"] for r in rungs],
         "simulator_success_rate": sim_rate,
+        "simulator_ci95": intervals,
+        "told_apart": told_apart(sim_rate, intervals),
         "world_model_mean_return": wm_return,
         "world_model_success_rate": wm_rate,
         "spearman_return_vs_success": rank(wm_return, sim_rate),
         "spearman_wm_success_vs_success": rank(wm_rate, sim_rate),
         "pooled": agreement_summary(pooled),
     }
+
+
+def told_apart(rates: list[float], intervals: list[list[float]]) -> bool:
+    """Whether the simulator tells every rung from the next: their 95% intervals, in order of success, disjoint
+    (a ranking over rungs it cannot tell apart measures noise)."""
+    ordered = [interval for _, interval in sorted(zip(rates, intervals, strict=True))]
+    return all(high < low for (_, high), (low, _) in pairwise(ordered))
 
 
 def evaluate_agreement(cfg: AgreementConfig) -> dict:

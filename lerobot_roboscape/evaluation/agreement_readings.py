@@ -26,7 +26,8 @@ class AgreementConfusion:
 @dataclass(frozen=True)
 class Ladder:
     """Per policy, its simulator success rate and world-model mean return, their Spearman correlation (None with
-    fewer than 3 policies or a constant side), and the pooled episodes' balanced accuracy and confusion."""
+    fewer than 3 policies or a constant side), and the pooled episodes' balanced accuracy and confusion; whether the
+    simulator's 95% intervals tell every rung from the next (None: a ladder written before they were kept)."""
 
     policies: list[str]
     simulator_success_rate: list[float]
@@ -35,6 +36,7 @@ class Ladder:
     episodes: int
     balanced_accuracy: float | None
     confusion: AgreementConfusion
+    told_apart: bool | None = None
 
     @classmethod
     def from_json(cls, data: dict) -> "Ladder":
@@ -47,4 +49,5 @@ class Ladder:
             pooled["episodes"],
             pooled["balanced_accuracy"],
             AgreementConfusion(**pooled["confusion"]),
+            data.get("told_apart"),
         )

@@ -35,6 +35,7 @@ GOAL_OWN_INSTRUCTION = 0.8  # the real success nearer its own instruction's goal
 REWARD_ROC_AUC = 0.9
 AGREEMENT_BALANCED_ACCURACY = 0.8  # per-episode success, world model against simulator, OOD
 LADDER_SPEARMAN = 0.9  # the world model's mean return ranking the policies as the simulator's success does
+LADDER_RUNGS = 5  # over at least this many policies the simulator tells apart (issue 72)
 REWARD_DENSE_ROC_AUC = 0.75  # the dense term alone, on frames generated open loop
 
 
@@ -263,9 +264,9 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
         ),
         f"ladder: Spearman of the world model's mean return against simulator success, {split.upper()}": target_row(
             rho,
-            f">= {LADDER_SPEARMAN}",
-            rho is not None and rho >= LADDER_SPEARMAN,
-            f"{n} policies; simulator success "
+            f">= {LADDER_SPEARMAN} over >= {LADDER_RUNGS} policies the simulator tells apart",
+            rho is not None and rho >= LADDER_SPEARMAN and n >= LADDER_RUNGS and bool(ladder.told_apart),
+            f"{n} policies, {_apart(ladder.told_apart)}; simulator success "
             + ", ".join(f"{r:.2f}" for r in ladder.simulator_success_rate)
             + "; world-model mean return "
             + ", ".join(f"{r:.1f}" for r in ladder.world_model_mean_return),
@@ -280,3 +281,9 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
             dense, f">= {REWARD_DENSE_ROC_AUC}", dense is not None and dense >= REWARD_DENSE_ROC_AUC
         )
     return targets
+
+
+def _apart(told_apart: bool | None) -> str:
+    if told_apart is None:
+        return "their simulator intervals not recorded"
+    return "every rung's simulator interval apart from the next" if told_apart else "simulator intervals overlapping"

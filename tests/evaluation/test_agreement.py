@@ -155,24 +155,15 @@ def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dat
 def test_agreement_targets_are_met_or_missed_by_the_measured_values():
     from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
 
-    def rung(name, sim, wm, wm_return):
-        eps = [episode(s, w, wm_return=wm_return) for s, w in zip(sim, wm, strict=True)]
+    def rung(name, successes, wm_return, n=100, wm=None):
+        sim = [i < successes for i in range(n)]
+        eps = [episode(s, s if wm is None else wm, wm_return=wm_return) for s in sim]
         return {"policy": name, "episodes": eps, "summary": agreement_summary(eps)}
 
-    good = ladder_summary(
-        [
-            rung("a", [False] * 4, [False] * 4, 1.0),
-            rung("b", [True, False] * 2, [True, False] * 2, 2.0),
-            rung("c", [True] * 4, [True, True, True, False], 3.0),
-        ]
-    )
-    bad = ladder_summary(
-        [
-            rung("a", [False] * 4, [True] * 4, 3.0),
-            rung("b", [True, False] * 2, [True] * 4, 2.0),
-            rung("c", [True] * 4, [True] * 4, 1.0),
-        ]
-    )
+    # five rungs 25 points apart at 100 episodes each: the simulator's 95% intervals are disjoint
+    good = ladder_summary([rung(str(k), 25 * k, float(k)) for k in range(5)])
+    assert good["told_apart"]
+    bad = ladder_summary([rung(str(k), 25 * k, float(4 - k), wm=True) for k in range(5)])
     rewards = {
         "summary": {
             "world_model": {"roc_auc_of_return": 0.95},
@@ -189,6 +180,25 @@ def test_agreement_targets_are_met_or_missed_by_the_measured_values():
     missed = agreement_targets(bad)
     assert len(missed) == 2 and not any(t["met"] for t in missed.values())
     assert missed[next(n for n in missed if n.startswith("agreement"))]["value"] == 0.5  # all called success
+
+
+def test_the_ladders_ranking_counts_only_over_rungs_the_simulator_tells_apart():
+    """A perfect ranking is not met over rungs whose simulator intervals overlap, nor over fewer than five."""
+    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+
+    def rung(successes, n):
+        eps = [episode(i < successes, i < successes, wm_return=float(successes)) for i in range(n)]
+        return {"policy": str(successes), "episodes": eps, "summary": agreement_summary(eps)}
+
+    def spearman_met(ladder):
+        return next(t["met"] for name, t in agreement_targets(ladder).items() if name.startswith("ladder"))
+
+    close = ladder_summary([rung(k, 10) for k in range(5)])  # 0-4 of 10: intervals overlap
+    assert close["spearman_return_vs_success"] == pytest.approx(1.0) and not close["told_apart"]
+    assert not spearman_met(close)
+    few = ladder_summary([rung(25 * k, 100) for k in range(4)])
+    assert few["told_apart"] and not spearman_met(few)
+    assert spearman_met(ladder_summary([rung(25 * k, 100) for k in range(5)]))
 
 
 def test_episode_clip_pairs_each_episodes_own_renders():

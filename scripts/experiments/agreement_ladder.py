@@ -1,0 +1,92 @@
+"""The world model's agreement with the simulator over a ladder of policies (issue 72): `roboscape_mlp` SFT'd by
+`lerobot-train` on the demonstrations of the first 1 and 8 training scenes (the first is the paper protocol's
+initial scene), a checkpoint every fifth of its steps, beside the policies the claim's experiment trained in RUN
+(each protocol's SFT, the last checkpoint of each of its PPO runs) and any given with --policies; then
+`roboscape-eval-agreement` over them all, IND and OOD, on RUN's world models as the experiment builds its env. The
+ladder counts only over rungs the simulator tells apart (their 95% intervals disjoint): its ladder.json says whether
+they are, and this prints the agreement targets.
+
+    python scripts/experiments/agreement_ladder.py outputs/bench --out outputs/bench/ladder --episodes 50
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from lerobot_roboscape.evaluation.agreement import AgreementConfig, evaluate_agreement
+from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
+from lerobot_roboscape.pipeline.config import scale_config
+from lerobot_roboscape.pipeline.lerobot_cli import lerobot_sft
+from lerobot_roboscape.pipeline.trained import trained_stages
+from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+from lerobot_roboscape.tasks import select_scenes
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST
+
+POLICY = "roboscape_mlp"
+
+
+def sft_rungs(cfg, run: Path, out: Path, scene_counts: list[int], checkpoints: int) -> list[Path]:
+    """SFT on the first k training scenes for each k, `checkpoints` checkpoints evenly over its steps (the last
+    among them): every checkpoint, fewest scenes and steps first."""
+    demonstrations = trained_stages(cfg, run).demonstrations
+    args = policy_stages.policy_specs(cfg)[POLICY]
+    every = max(cfg.sft.steps // checkpoints, 1)
+    rungs = []
+    for k in scene_counts:
+        scenes = [s.id for s in select_scenes("ind")[:k]]
+        folder = out / f"sft_{k}_scenes"
+        lerobot_sft(folder, demonstrations, args, cfg.sft.steps, cfg.sft.batch_size, save_freq=every, scenes=scenes)
+        rungs += sorted(p / FINAL for p in (folder / CHECKPOINTS).iterdir() if p.name != LAST)
+    return rungs
+
+
+def experiment_rungs(run: Path) -> list[Path]:
+    """What the claim's experiment trained in `run`, where it has: each protocol's SFT and its PPO runs' last
+    checkpoints."""
+    rungs = []
+    for protocol in methods.PROTOCOLS:
+        folder = run / layout.protocol_dir(protocol)
+        sft = folder / layout.sft_dir(POLICY) / CHECKPOINTS / LAST / FINAL
+        ppo = sorted((folder / layout.RL_DIR / POLICY).glob(f"*/{CHECKPOINTS}/*/{FINAL}"))
+        last = {p.parents[2]: p for p in ppo}  # each run's newest checkpoint
+        rungs += [p for p in (sft, *last.values()) if p.exists()]
+    return rungs
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a pipeline run's output folder (its world models, done report, data)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--scale", default="bench")
+    parser.add_argument("--scenes", type=int, nargs="+", default=[1, 8], help="SFT rungs: on the first k scenes")
+    parser.add_argument("--checkpoints", type=int, default=5, help="SFT checkpoints per rung's run")
+    parser.add_argument("--policies", nargs="*", default=[], help="more rungs: pretrained_model folders")
+    parser.add_argument("--splits", nargs="+", default=["ind", "ood"])
+    parser.add_argument("--episodes", type=int, default=50, help="paired episodes per family and policy")
+    args = parser.parse_args()
+    run, out = args.run.resolve(), args.out.resolve()
+    cfg = scale_config(args.scale, (f"--output_dir={run}",))
+    rungs = [*sft_rungs(cfg, run, out, args.scenes, args.checkpoints), *experiment_rungs(run), *args.policies]
+    trained = trained_stages(cfg, run)
+    env = stages.world_model_env(
+        cfg, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
+    )
+    for split in args.splits:
+        ladder = evaluate_agreement(
+            AgreementConfig(
+                policy_paths=[str(p) for p in rungs],
+                env=env,
+                families=cfg.data.families,
+                split=split,
+                episodes=args.episodes,
+                episode_length=cfg.eval.episode_length,
+                output_dir=out / split,
+                device=cfg.device,
+            )
+        )
+        for name, target in agreement_targets(ladder, split=split).items():
+            print(json.dumps({"target": name, **target}))
+
+
+if __name__ == "__main__":
+    main()
