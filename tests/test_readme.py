@@ -252,6 +252,7 @@ def quoted_figures() -> list[str]:
         f"balanced accuracy {_measured('world_model/agreement/ood/ladder.json', 'pooled', 'balanced_accuracy'):.2f} "
         "out of domain",
         *headline(),
+        gamed(),
         f"GPU-trained world models, {_pct(table('claim/results.json', 'Supervised finetune'))} to "
         f"{_pct(table('claim/results.json', 'RL w. World Model'))}",
     ]
@@ -279,6 +280,18 @@ def headline() -> list[str]:
         f"{episodes['episodes']} episodes each); PPO in the simulator in that scene reached {rate(methods[2])}.",
         "| roboscape_mlp, push and pick&place | " + " | ".join(rate(m) for m in methods) + " |",
     ]
+
+
+def gamed() -> str:
+    """The world model that keeps the arm, under PPO (claim72_paper/run_curve.json): its successes replayed in the
+    simulator, and the simulator's curve from SFT to PPO's last checkpoint."""
+    run = _measured("claim72_paper/run_curve.json")
+    called = [r for r in run["replays"] if r["world_model_success"]]
+    first, last = run["curve"][0]["success_rate"], run["curve"][-1]["success_rate"]
+    return (
+        f"{sum(r['simulator_success'] for r in called)} of {len(called)} of its successes replayed as successes in the "
+        f"simulator and OOD success fell from {_pct(first)} to {_pct(last)}"
+    )
 
 
 def test_results_quote_the_committed_results_files(readme):
