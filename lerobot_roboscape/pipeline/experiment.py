@@ -258,6 +258,12 @@ class Experiment:
         clock("SFT", f"the SFT checkpoint: {self.cfg.sft_checkpoint or f'SFT with lerobot-train on {data}'}")
         return sft_policy(self.cfg, self.out, self.trained.demonstrations)
 
+    def world_model_env(self) -> RoboscapeWorldModelEnvConfig:
+        """The roboscape_wm env on the run's world models, with one set of goals for every protocol."""
+        p, t = self.cfg.pipeline, self.trained
+        env = stages.world_model_env(p, t.demonstrations, t.tokenizer, t.models, t.done, t.reward_models)
+        return replace(env, goal_file=str(self.run / layout.GOAL_FILE))
+
     def splits(self) -> str:
         return "the initial scene, IND and OOD" if self.scene else "IND and OOD"
 
@@ -316,10 +322,7 @@ def run_experiment(cfg: ExperimentConfig) -> Path:
         clock("world-model env", f"none here: the runs in roboscape_wm went where its models are ({e.elsewhere})")
     else:
         clock("world-model env", "the roboscape_wm env on the run's world models (every start's goal, once)")
-        wm_env = stages.world_model_env(
-            p, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
-        )
-        wm_env = replace(wm_env, goal_file=str(e.run / layout.GOAL_FILE))  # one set of goals for every protocol
+        wm_env = e.world_model_env()
     sft = e.sft(clock)
     policy = next(iter(sft))
     clock("levers", f"the guards against gaming the world model: {', '.join(cfg.levers) or 'none'}")

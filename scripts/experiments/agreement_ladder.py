@@ -25,10 +25,9 @@ from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST
 POLICY = "roboscape_mlp"
 
 
-def sft_rungs(cfg, run: Path, out: Path, scene_counts: list[int], checkpoints: int) -> list[Path]:
+def sft_rungs(cfg, demonstrations, out: Path, scene_counts: list[int], checkpoints: int) -> list[Path]:
     """SFT on the first k training scenes for each k, `checkpoints` checkpoints evenly over its steps (the last
     among them): every checkpoint, fewest scenes and steps first."""
-    demonstrations = trained_stages(cfg, run).demonstrations
     args = policy_stages.policy_specs(cfg)[POLICY]
     every = max(cfg.sft.steps // checkpoints, 1)
     rungs = []
@@ -66,8 +65,9 @@ def main():
     args = parser.parse_args()
     run, out = args.run.resolve(), args.out.resolve()
     cfg = scale_config(args.scale, (f"--output_dir={run}",))
-    rungs = [*sft_rungs(cfg, run, out, args.scenes, args.checkpoints), *experiment_rungs(run), *args.policies]
     trained = trained_stages(cfg, run)
+    sft = sft_rungs(cfg, trained.demonstrations, out, args.scenes, args.checkpoints)
+    rungs = [*sft, *experiment_rungs(run), *args.policies]
     env = stages.world_model_env(
         cfg, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )

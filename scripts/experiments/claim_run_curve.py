@@ -12,11 +12,11 @@ training episodes) into --report_dir.
 
 import json
 import sys
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
+from lerobot_roboscape.pipeline import layout, methods, policy_stages
 from lerobot_roboscape.pipeline.config import parse_config
 from lerobot_roboscape.pipeline.curves import checkpoint_curves
 from lerobot_roboscape.pipeline.experiment import Experiment, ExperimentConfig, sft_policy
@@ -35,10 +35,7 @@ def main():
     curve = checkpoint_curves(cfg, e.out, e.trained.demonstrations, policy, sft, [method])[method]
     for point in curve:
         print(json.dumps(point))
-    t = e.trained
-    wm_env = stages.world_model_env(p, t.demonstrations, t.tokenizer, t.models, t.done, t.reward_models)
-    wm_env = replace(wm_env, goal_file=str(e.run / layout.GOAL_FILE))
-    env = policy_stages.rl_envs(p, e.out, t.demonstrations, wm_env)[method]
+    env = policy_stages.rl_envs(p, e.out, e.trained.demonstrations, e.world_model_env())[method]
     replays = replay_in_simulator(
         p,
         e.out / layout.replay_dir(method),
