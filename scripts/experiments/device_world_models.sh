@@ -15,7 +15,8 @@
 #   bash scripts/experiments/device_world_models.sh bench STEPS BATCH [BATCH..] # benchmark_wm_training.py's tables
 #        (random token caches: `pack -` will do)
 #   bash scripts/experiments/device_world_models.sh sweep STEPS BATCH LR [LR..] # short action runs, held-out at the end
-#   bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ]
+#   [SEEDS="0 1"] bash scripts/experiments/device_world_models.sh train CONTROL STEPS BATCH LR LIMIT_S [EVAL_FREQ] [BUDGET_S]
+#        # BUDGET_S: seconds of training (its steps fit them); SEEDS: models side by side, back as CONTROL_sSEED
 #   bash scripts/experiments/device_world_models.sh generation          # issue 48: GPU tests, race, memory
 #        (PARTS="tests memory race views env" by default; RACE_BATCHES, VIEW_BATCHES, ENV_BATCHES)
 #   bash scripts/experiments/device_world_models.sh claim A_S T_S PPO_S [BATCH] [LR]
@@ -208,7 +209,9 @@ if [ "$mode" = generation ]; then  # PARTS: a subset of "tests memory race views
   ls -la $OUT; exit 0
 fi
 if [ ! -f $W/ready ]; then
-  for s in ind ood; do xz -dc $G/data/$s.safetensors.xz > $W/sets/$s.safetensors; done
+  for s in ind ood; do  # Python's lzma: the image may lack xz
+    $PY -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$G/data/$s.safetensors.xz'), open('$W/sets/$s.safetensors', 'wb'))" || exit 3
+  done
   $PY - <<PY || exit 3
 from lerobot_roboscape.tokenizer.token_cache import import_token_cache
 import torch
@@ -226,18 +229,20 @@ member=(--wm.control=action --exploration.repo_id=local/roboscape_explore --expl
         --exploration_token_cache=$(cat $W/caches/explore.path))
 # The action model is read on held-out starts as it trains; the ensemble's members (the same data) are not: their
 # curve serves nothing, and on the CPU its generation outlasted their time limit (dry run, 2026-11-28).
-action=("${member[@]}" --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors] --done_tuning_episodes=32)
+action=("${member[@]}" --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors] --done_tuning_episodes=${DONE_EPISODES:-32})
 # fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/CONTROL (log: $OUT/CONTROL.log), for
 # BUDGET_S seconds if given (--train.time_budget_s: its steps fit the time, whatever the GPU's pace); prints the
 # model, the final one or the last checkpoint of a run the limit stopped.
 fit() {
-  local control=$1 steps=$2 bs=$3 lr=$4 limit=$5 eval=${6:-500} run=$W/$1 started=$(date +%s) extra=()
+  local control=$1 steps=$2 bs=$3 lr=$4 limit=$5 eval=${6:-500} name=$1${SEED:+_s$SEED} started=$(date +%s) extra=()
+  local run=$W/$name
   rm -rf $run
   [ "$control" = action ] && extra=("${action[@]}" --train.eval_freq=$eval) || extra=(--wm.control=text)
   [ -n "${7:-}" ] && extra+=(--train.time_budget_s=$7)
+  [ -n "${SEED:-}" ] && extra+=(--train.seed=$SEED)
   timeout $limit $PY -m lerobot_roboscape.cli.train_wm "${common[@]}" "${extra[@]}" --train.steps=$steps \
-    --train.batch_size=$bs --train.lr=$lr --train.save_freq=$eval --output_dir=$run 2>&1 | keep > $OUT/$control.log
-  echo "$control rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - started ))" | tee -a $OUT/$control.log >&2
+    --train.batch_size=$bs --train.lr=$lr --train.save_freq=$eval --output_dir=$run 2>&1 | keep > $OUT/$name.log
+  echo "$name rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - started ))" | tee -a $OUT/$name.log >&2
   local model=$run/pretrained_model
   [ -f $model/model.safetensors ] || model=$(ls -d $run/checkpoints/*/pretrained_model 2>/dev/null | tail -1)
   [ -n "$model" ] || { echo "$control: no model saved in $limit s" >&2; return 1; }
@@ -259,19 +264,28 @@ t=[json.loads(l) for l in open('$run/train_log.jsonl')][-1]; print(json.dumps({*
         | tee -a $OUT/sweep.jsonl
     done ;;
   train)
-    CONTROL=$1; STEPS=$2; BS=$3; LR=$4; LIMIT=$5; EVAL=${6:-500}
-    model=$(fit $CONTROL $STEPS $BS $LR $LIMIT $EVAL) || exit 1
-    $PY - $model $W/$CONTROL.bf16.safetensors <<'PY'
+    CONTROL=$1; STEPS=$2; BS=$3; LR=$4; LIMIT=$5; EVAL=${6:-500}; BUDGET=${7:-}
+    # SEEDS="0 1": one model per seed, side by side (a bench-preset model leaves the GPU most of its room), each
+    # back as CONTROL_sSEED; without SEEDS one model, back as CONTROL.
+    for seed in ${SEEDS:--}; do
+      [ "$seed" = - ] && seed=
+      name=$CONTROL${seed:+_s$seed}
+      (
+        model=$(SEED=$seed fit $CONTROL $STEPS $BS $LR $LIMIT $EVAL $BUDGET) || exit 1
+        $PY - $model $W/$name.bf16.safetensors <<'PY'
 import sys
 from safetensors.torch import load_file, save_file
 tensors = {k: v.bfloat16() if v.is_floating_point() else v for k, v in load_file(sys.argv[1] + "/model.safetensors").items()}
 save_file(tensors, sys.argv[2])
 PY
-    split -b 15M $W/$CONTROL.bf16.safetensors $OUT/$CONTROL.bf16.part-
-    mkdir -p $W/pack/pretrained_model && cp $model/config.json $W/pack/pretrained_model/
-    cp -r $model/text_encoder $W/pack/pretrained_model/ 2>/dev/null
-    records $CONTROL $W/pack
-    tar czf $OUT/${CONTROL}_run.tgz -C $W/pack . && rm -rf $W/pack
+        split -b 15M $W/$name.bf16.safetensors $OUT/$name.bf16.part-
+        mkdir -p $W/pack_$name/pretrained_model && cp $model/config.json $W/pack_$name/pretrained_model/
+        cp -r $model/text_encoder $W/pack_$name/pretrained_model/ 2>/dev/null
+        records $name $W/pack_$name
+        tar czf $OUT/${name}_run.tgz -C $W/pack_$name . && rm -rf $W/pack_$name
+      ) &
+    done
+    wait
     ls -la $OUT ;;
   claim)
     A_S=$1; T_S=$2; PPO_S=$3; BS=${4:-64}; LR=${5:-1e-3}
