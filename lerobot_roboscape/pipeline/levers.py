@@ -32,17 +32,24 @@ class EnsembleSettings:
     action model with its last this many blocks and heads drawn afresh and trained alone, the trunk shared (null:
     whole models trained as the run's own); steps_share: each member's training steps, as a share of the run's
     action model's; disagreement_penalty: lambda on their disagreement (roboscape_wm's --env.disagreement_penalty);
-    disagreement_threshold: episodes halt above it (--env.disagreement_threshold; null: never)."""
+    disagreement_threshold: episodes halt above it (--env.disagreement_threshold; null: never); trained: members
+    trained elsewhere (pretrained_model folders of action world models, e.g. other seeds from a GPU), taken instead
+    of training `members` here."""
 
     members: int = 2
     retrain_blocks: int | None = 1
     steps_share: float = 0.25
     disagreement_penalty: float = 1.0
     disagreement_threshold: float | None = None
+    trained: list[str] | None = None
 
     def __post_init__(self):
         if self.members < 1:
             raise InvalidInputError(f"--lever.ensemble.members must be >= 1, got {self.members}")
+        if self.trained is not None:
+            if not self.trained:
+                raise InvalidInputError("--lever.ensemble.trained is empty: name at least one member, or leave it null")
+            self.members = len(self.trained)
         if not 0 < self.steps_share <= 1:
             raise InvalidInputError(f"--lever.ensemble.steps_share must be in (0, 1], got {self.steps_share}")
 
@@ -123,7 +130,7 @@ class Lever:
 
 def _ensemble(context: LeverContext, settings: LeverSettings) -> RLRun:
     s, p = settings.ensemble, context.pipeline
-    members = context.members
+    members = context.members if context.members is not None else s.trained
     if members is None:
         data = data_stages.demonstrations(p.data, context.folder, p.fresh)  # complete: found, not collected again
         trained = stages.ensemble_members(
@@ -141,14 +148,20 @@ def _ensemble(context: LeverContext, settings: LeverSettings) -> RLRun:
 
 def _describe_ensemble(settings: LeverSettings) -> str:
     s = settings.ensemble
-    members = f"the run's action model and {s.members} more " + (
-        f"(its last {s.retrain_blocks} block(s) and heads drawn afresh and retrained alone"
-        if s.retrain_blocks is not None
-        else "(whole models trained from other seeds"
-    )
+    if s.trained is not None:
+        members = f"the run's action model and {s.members} more trained elsewhere ({', '.join(s.trained)})"
+    elif s.retrain_blocks is not None:
+        members = (
+            f"the run's action model and {s.members} more (its last {s.retrain_blocks} block(s) and heads drawn "
+            f"afresh and retrained alone, {s.steps_share:.0%} of its steps each)"
+        )
+    else:
+        members = (
+            f"the run's action model and {s.members} more (whole models trained from other seeds, "
+            f"{s.steps_share:.0%} of its steps each)"
+        )
     halt = "" if s.disagreement_threshold is None else f"; episodes halt above {s.disagreement_threshold} nats"
-    penalty = f"reward - {s.disagreement_penalty} x their disagreement{halt}"
-    return f"{members}, {s.steps_share:.0%} of its steps each); {penalty}"
+    return f"{members}; reward - {s.disagreement_penalty} x their disagreement{halt}"
 
 
 def _refresh(context: LeverContext, settings: LeverSettings) -> RLRun:

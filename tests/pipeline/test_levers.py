@@ -116,3 +116,19 @@ def test_the_trust_lever_stops_each_update_at_its_target_kl(context):
     method = LEVERS["trust"].method
     assert method.tag == "ppo_world_model_trust" and method.ood_only
     assert lever_descriptions([method], cfg.lever)[method].endswith("KL from the rollout's policy > 0.05")
+
+
+def test_the_ensemble_takes_members_trained_elsewhere(context):
+    context = dataclasses.replace(context, members=None)  # not a pack's run: members come from the settings
+    cfg = parse_config(
+        ExperimentConfig, ["--levers=[ensemble]", "--lever.ensemble.trained=[gpu/seed1,gpu/seed2]"], "pipeline."
+    )
+    assert cfg.lever.ensemble.members == 2
+    ensemble = lever_runs(cfg.levers, context, cfg.lever)[LEVERS["ensemble"].method]
+    assert ensemble.env.ensemble == ["gpu/seed1", "gpu/seed2"] and ensemble.env.disagreement_penalty == 1.0
+    described = lever_descriptions({LEVERS["ensemble"].method: ensemble}, cfg.lever)[LEVERS["ensemble"].method]
+    assert described == (
+        "the run's action model and 2 more trained elsewhere (gpu/seed1, gpu/seed2); reward - 1.0 x their disagreement"
+    )
+    with pytest.raises(InvalidInputError, match="--lever.ensemble.trained is empty"):
+        EnsembleSettings(trained=[])
