@@ -184,10 +184,12 @@ def rl(
     wm_env: RoboscapeWorldModelEnvConfig | None,
     checkpoints: dict[str, Path],
     levers: dict[Method, RLRun] | None = None,
+    only: list[str] | None = None,
 ) -> dict[str, dict[str, Path]]:
     """PPO from each SFT checkpoint in each RL env (one multi-task run over the families, at equal wall-clock), and
-    the runs of `levers`; returns {policy: {method: checkpoint}}."""
+    the runs of `levers`; `only`: these methods' runs alone. Returns {policy: {method: checkpoint}}."""
     runs = {method: RLRun(env) for method, env in rl_envs(cfg, out, demonstrations, wm_env).items()} | (levers or {})
+    runs = {method: run for method, run in runs.items() if only is None or method in only}
     return {
         name: {
             method: run.runner(ppo_config(cfg, out, name, method, sft_checkpoint, run.env, run.settings), cfg.fresh)

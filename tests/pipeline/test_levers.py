@@ -13,6 +13,7 @@ from draccus.utils import ParsingError
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.pipeline import policy_stages
 from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
 from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
 from lerobot_roboscape.pipeline.experiment import ExperimentConfig
@@ -26,6 +27,7 @@ from lerobot_roboscape.pipeline.levers import (
     lever_runs,
 )
 from lerobot_roboscape.pipeline.methods import REWARD_ABLATION, RL_WORLD_MODEL, SFT, Method
+from lerobot_roboscape.pipeline.policy_stages import RLRun
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from roboscape_core.errors import InvalidInputError
 
@@ -132,3 +134,17 @@ def test_the_ensemble_takes_members_trained_elsewhere(context):
     )
     with pytest.raises(InvalidInputError, match="--lever.ensemble.trained is empty"):
         EnsembleSettings(trained=[])
+
+
+def test_rl_runs_only_the_methods_asked_for(context, tmp_path):
+    ran = []
+
+    def runner(ppo_cfg, fresh):
+        ran.append(ppo_cfg.output_dir)
+        return Path(ppo_cfg.output_dir) / "final"
+
+    kl = LEVERS["kl"].method
+    levers = {kl: RLRun(context.world_model, {"kl_coef": 0.3}, runner)}
+    sft = {"mlp": tmp_path / "sft"}
+    rl = policy_stages.rl(context.pipeline, tmp_path, context.demonstrations, None, sft, levers, only=[kl])
+    assert list(rl["mlp"]) == [kl] and [Path(r).name for r in ran] == ["ppo_world_model_kl"]
