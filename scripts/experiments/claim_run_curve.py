@@ -23,7 +23,6 @@ from lerobot_roboscape.pipeline.curves import checkpoint_curves
 from lerobot_roboscape.pipeline.experiment import Experiment, ExperimentConfig, lever_context, sft_policy
 from lerobot_roboscape.pipeline.figures import gaming_figure
 from lerobot_roboscape.pipeline.levers import lever_runs
-from lerobot_roboscape.pipeline.methods import Method
 from lerobot_roboscape.pipeline.replay import replay_in_simulator
 
 
@@ -54,7 +53,7 @@ def main():
         confirmed = sum(r.simulator_success for r in called)
         print(f"{method} replay: {len(replays)} runs; of the world model's {len(called)} successes, {confirmed} real")
         record = {"method": method, "curve": curves[method], "replays": [asdict(r) for r in replays]}
-        name = "run_curve.json" if method == methods.RL_WORLD_MODEL else f"run_curve_{Method.named(method).tag}.json"
+        name = "run_curve.json" if method == methods.RL_WORLD_MODEL else f"run_curve_{method.tag}.json"
         write_text_atomically(report / name, json.dumps(record, indent=2))
     gaming_figure(e.out, policy, curves, report / "run_curve.png")
 

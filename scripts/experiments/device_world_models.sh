@@ -230,9 +230,9 @@ member=(--wm.control=action --exploration.repo_id=local/roboscape_explore --expl
 # The action model is read on held-out starts as it trains; the ensemble's members (the same data) are not: their
 # curve serves nothing, and on the CPU its generation outlasted their time limit (dry run, 2026-11-28).
 action=("${member[@]}" --heldout_starts=[$W/sets/ind.safetensors,$W/sets/ood.safetensors] --done_tuning_episodes=${DONE_EPISODES:-32})
-# fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/CONTROL (log: $OUT/CONTROL.log), for
-# BUDGET_S seconds if given (--train.time_budget_s: its steps fit the time, whatever the GPU's pace); prints the
-# model, the final one or the last checkpoint of a run the limit stopped.
+# fit CONTROL STEPS BATCH LR LIMIT [EVAL] [BUDGET_S]: train one model into $W/NAME (log: $OUT/NAME.log; NAME is
+# CONTROL, or CONTROL_sSEED with SEED set), for BUDGET_S seconds if given (--train.time_budget_s: its steps fit the
+# time, whatever the GPU's pace); prints the model, the final one or the last checkpoint of a run the limit stopped.
 fit() {
   local control=$1 steps=$2 bs=$3 lr=$4 limit=$5 eval=${6:-500} name=$1${SEED:+_s$SEED} started=$(date +%s) extra=()
   local run=$W/$name
@@ -245,7 +245,7 @@ fit() {
   echo "$name rc ${PIPESTATUS[0]} seconds $(( $(date +%s) - started ))" | tee -a $OUT/$name.log >&2
   local model=$run/pretrained_model
   [ -f $model/model.safetensors ] || model=$(ls -d $run/checkpoints/*/pretrained_model 2>/dev/null | tail -1)
-  [ -n "$model" ] || { echo "$control: no model saved in $limit s" >&2; return 1; }
+  [ -n "$model" ] || { echo "$name: no model saved in $limit s" >&2; return 1; }
   echo $model
 }
 # records CONTROL DEST: a trained model's logs and curves (not its weights)
@@ -267,6 +267,7 @@ t=[json.loads(l) for l in open('$run/train_log.jsonl')][-1]; print(json.dumps({*
     CONTROL=$1; STEPS=$2; BS=$3; LR=$4; LIMIT=$5; EVAL=${6:-500}; BUDGET=${7:-}
     # SEEDS="0 1": one model per seed, side by side (a bench-preset model leaves the GPU most of its room), each
     # back as CONTROL_sSEED; without SEEDS one model, back as CONTROL.
+    pids=()
     for seed in ${SEEDS:--}; do
       [ "$seed" = - ] && seed=
       name=$CONTROL${seed:+_s$seed}
@@ -284,9 +285,10 @@ PY
         records $name $W/pack_$name
         tar czf $OUT/${name}_run.tgz -C $W/pack_$name . && rm -rf $W/pack_$name
       ) &
+      pids+=($!)
     done
-    wait
-    ls -la $OUT ;;
+    failed=0; for pid in "${pids[@]}"; do wait $pid || failed=1; done  # a seed that saved nothing fails the call
+    ls -la $OUT; exit $failed ;;
   claim)
     A_S=$1; T_S=$2; PPO_S=$3; BS=${4:-64}; LR=${5:-1e-3}
     C=$W/claim
