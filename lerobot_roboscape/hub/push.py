@@ -27,6 +27,7 @@ from lerobot_roboscape.hub.cards import (
 )
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
 from lerobot_roboscape.io.weights import looks_like_repo_id
+from lerobot_roboscape.rl.ppo_state import PPO_CONFIG_JSON
 from lerobot_roboscape.world_model.fidelity import REPORT_JSON as FIDELITY_JSON
 from lerobot_roboscape.world_model.fidelity import read_fidelity
 from roboscape_core.errors import InvalidInputError, MissingInputError
@@ -165,11 +166,11 @@ def stage_policy(
     _require(pretrained_model, "policy", "train one with lerobot-train or roboscape-ppo")
     config = read_json(pretrained_model / "config.json")
     _copy_model(pretrained_model, folder)
-    ppo_path = pretrained_model.parent / "ppo_config.json"
+    ppo_path = pretrained_model.parent / PPO_CONFIG_JSON
     training, method, reward = {}, "sft", None
     if ppo_path.is_file():
         ppo = read_json(ppo_path)
-        shutil.copy2(ppo_path, folder / "ppo_config.json")
+        shutil.copy2(ppo_path, folder / PPO_CONFIG_JSON)
         training["roboscape-ppo"] = json.dumps(ppo, indent=2)
         method = ppo["env"]["type"]
         dataset_repo_id = dataset_repo_id or ppo["env"].get("dataset_repo_id")

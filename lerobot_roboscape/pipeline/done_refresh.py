@@ -1,5 +1,5 @@
-"""The done-refresh lever (Dyna-style, issue 49): PPO in the world model whose done head is refitted, between slices
-of the PPO clock, on simulator rollouts of the current policy.
+"""The done-refresh lever (Dyna-style, issue 49): PPO in the world model whose done head is refitted, before each
+slice of the PPO clock, on simulator rollouts of the current policy.
 
 A policy that games the world model drives it to frames its done head calls success although the task is not
 done. Refitting the head on what the current policy does in the simulator (labelled by the simulator's success)
@@ -47,8 +47,8 @@ class DoneRefresh:
     demonstrations_repo_id, demonstrations_root: the demonstrations whose episodes are refitted on beside the
         rollouts (their token cache is found in `cache_dir`, as the world model's training left it).
     cache_dir: the run's token caches.
-    rounds: equal slices of PPO's clock; the head is refitted before each slice after the first, from the last
-        refit's head.
+    rounds: equal slices of PPO's clock; the head is refitted before each slice, from the last refit's head (the
+        first from the base model's, on rollouts of the policy PPO starts from).
     episodes: simulator episodes of the current policy per refit.
     demonstrations: demonstration episodes (spread over the dataset) per refit.
     steps: full-batch steps of the head's fit.
@@ -68,7 +68,7 @@ class DoneRefresh:
 
 def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneRefresh) -> Path:
     """PPO in the world model of `cfg.env` over `refresh.rounds` slices of `cfg.time_budget_s`, its done head
-    refitted before each slice after the first; one run folder (so its checkpoints form one curve), resumed from
+    refitted before each slice; one run folder (so its checkpoints form one curve), resumed from
     its last checkpoint and round when interrupted. Returns the final checkpoint."""
     folder = Path(cfg.output_dir)
     if cfg.time_budget_s is None:
@@ -82,10 +82,11 @@ def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneR
 def _rounds(cfg: PPOConfig, refresh: DoneRefresh, resume: bool) -> None:
     folder, env = Path(cfg.output_dir), cfg.env
     for r in range(refresh.rounds):
-        if r:
-            # each refit starts from the last one's head: the rollouts of earlier rounds stay in it
-            model = refreshed_world_model(refresh, env.action_world_model, last_checkpoint(folder) / FINAL, r, folder)
-            env = replace(env, action_world_model=str(model))
+        # The first refit plays the policy PPO starts from: the head is tuned on demonstrations only, and can call
+        # that policy's failures success from the first iteration. Each refit starts from the last one's head.
+        policy = last_checkpoint(folder) / FINAL if r else cfg.policy_path  # a path or a Hub repo id
+        model = refreshed_world_model(refresh, env.action_world_model, policy, r, folder)
+        env = replace(env, action_world_model=str(model))
         budget = cfg.time_budget_s * (r + 1) / refresh.rounds
         if _ppo_seconds(folder) >= budget:  # this slice ran before an interruption
             continue
@@ -123,7 +124,7 @@ def refresh_rounds(folder: Path) -> list[RefreshRound]:
     return [RefreshRound.from_json(json.loads(p.read_text())) for p in paths]
 
 
-def refreshed_world_model(refresh: DoneRefresh, base: str, policy: Path, round_: int, run: Path) -> Path:
+def refreshed_world_model(refresh: DoneRefresh, base: str, policy: str | Path, round_: int, run: Path) -> Path:
     """Round `round_`'s action model: the base model with its done head refitted on `refresh.episodes` simulator
     rollouts of `policy` and on demonstrations. Done once per round: a resumed run reads it back."""
     folder = run / REFRESH_DIR / f"round_{round_}"
@@ -135,7 +136,7 @@ def refreshed_world_model(refresh: DoneRefresh, base: str, policy: Path, round_:
     return folder / FINAL
 
 
-def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, folder: Path) -> None:
+def _refit(refresh: DoneRefresh, base: str, policy_path: str | Path, round_: int, folder: Path) -> None:
     device = resolve_device(refresh.device)
     rollouts = _simulator_rollouts(refresh, policy_path, round_, device)
     tokenizer = VisualTokenizer.from_pretrained(refresh.tokenizer).to(device).eval()
@@ -160,7 +161,7 @@ def _refit(refresh: DoneRefresh, base: str, policy_path: Path, round_: int, fold
 
 
 @torch.no_grad()
-def _simulator_rollouts(refresh: DoneRefresh, policy_path: Path, round_: int, device: str) -> list:
+def _simulator_rollouts(refresh: DoneRefresh, policy_path: str | Path, round_: int, device: str) -> list:
     policy, preprocessor, postprocessor = load_policy(policy_path, device)
     policy.eval()
     io = PolicyIO(preprocessor, postprocessor)

@@ -65,7 +65,7 @@ class BranchedSettings:
 
 @dataclass
 class RefreshSettings:
-    """rounds: slices of PPO's clock, the done head refitted before each after the first on simulator rollouts of
+    """rounds: slices of PPO's clock, the done head refitted before each on simulator rollouts of
     the current policy in the training scenes; episodes: simulator episodes of the policy per refit."""
 
     rounds: int = 3
@@ -209,7 +209,7 @@ LEVERS = {
             world_model_variant("done refreshed in the simulator", "done_refresh"),  # uses the simulator: its own row
             _refresh,
             lambda settings: (
-                f"the done head refitted {settings.refresh.rounds - 1} times on "
+                f"the done head refitted {settings.refresh.rounds} times on "
                 f"{settings.refresh.episodes} simulator episodes of the current policy"
             ),
             simulator=True,

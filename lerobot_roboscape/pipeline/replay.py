@@ -15,6 +15,7 @@ from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.records import from_record
 from lerobot_roboscape.pipeline import resume, world_model_runs
 from lerobot_roboscape.pipeline.config import PipelineConfig
+from lerobot_roboscape.rl.ppo_state import trained_world_model
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.records import write_video
 
@@ -55,14 +56,17 @@ def replay_in_simulator(
     episodes: int,
     per_outcome: int,
 ) -> list[Replay]:
-    """The policy after PPO in the world model, rolled out in `roboscape_wm` from `episodes` starts (spread
-    over the starts, so over families and scenes), or its rollouts made where the world models are
-    (`rollouts_file`); of them, up to `per_outcome` the world model called successes and as many it called
-    failures have their actions replayed open loop in the simulator from the same scene and initial state (the
-    share of its successes the simulator confirms needs successes to replay, and the world model calls few).
+    """The policy after PPO in the world model, rolled out in `roboscape_wm` (with the action model its checkpoint
+    last trained in) from `episodes` starts (spread over the starts, so over families and scenes), or its rollouts
+    made where the world models are (`rollouts_file`); of them, up to `per_outcome` the world model called
+    successes and as many it called failures have their actions replayed open loop in the simulator from the same
+    scene and initial state (the share of its successes the simulator confirms needs successes to replay, and the
+    world model calls few).
     Writes side-by-side videos (world model | its goal | simulator) and returns, per replay, what each world said:
     the world model's return and success, the simulator's success. Written into `folder`."""
     if rollouts_file is None:
+        if trained := trained_world_model(checkpoint):  # the done refresh's run ends in a refitted model
+            env_cfg = dataclasses.replace(env_cfg, action_world_model=trained)
         settings = {"env": env_cfg, "checkpoint": str(checkpoint), "episodes": episodes}
     else:
         settings = {

@@ -17,6 +17,7 @@ from lerobot_roboscape.rl.policy_loading import PolicyIO
 from lerobot_roboscape.training.checkpoints import FINAL, begin_checkpoint, publish_checkpoint
 
 CLOCK_JSON = "clock.json"
+PPO_CONFIG_JSON = "ppo_config.json"  # beside a checkpoint's pretrained_model: the flags it trained under
 
 
 class RunningReturnStats:
@@ -75,7 +76,7 @@ def save_checkpoint(
     # Wall-clock apart from the state, which is the same bytes in every run with the same flags.
     (tmp / "training_state" / CLOCK_JSON).write_text(json.dumps({"seconds": seconds}))
     with draccus.config_type("json"):
-        draccus.dump(cfg, (tmp / "ppo_config.json").open("w"), indent=2)
+        draccus.dump(cfg, (tmp / PPO_CONFIG_JSON).open("w"), indent=2)
     (tmp / "reward.txt").write_text(reward + "\n")
     return publish_checkpoint(output_dir, iteration, tmp)
 
@@ -91,3 +92,12 @@ def load_checkpoint(checkpoint: Path) -> tuple[int, RunningReturnStats, float]:
 def checkpoint_seconds(checkpoint: Path) -> float:
     """Seconds of PPO's clock (rollouts and updates) when `checkpoint` was saved."""
     return json.loads((Path(checkpoint) / "training_state" / CLOCK_JSON).read_text())["seconds"]
+
+
+def trained_world_model(pretrained_model: Path) -> str | None:
+    """The action model a roboscape-ppo checkpoint last trained in (a lever such as the done refresh swaps it
+    during the run), or None where its flags name none (PPO in the simulator, SFT)."""
+    saved = Path(pretrained_model).parent / PPO_CONFIG_JSON
+    if not saved.is_file():
+        return None
+    return json.loads(saved.read_text())["env"].get("action_world_model")

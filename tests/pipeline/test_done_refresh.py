@@ -1,5 +1,5 @@
 """The done-refresh lever: PPO in the world model over slices of its clock, the action model's done head refitted
-between them on simulator rollouts of the policy as it is then."""
+before each on simulator rollouts of the policy as it is then."""
 
 import json
 from dataclasses import replace
@@ -10,6 +10,7 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.pipeline.done_refresh import REFRESH_DIR, DoneRefresh, ppo_with_done_refresh, refresh_rounds
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
+from lerobot_roboscape.rl.ppo_state import trained_world_model
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from tests.conftest import IMAGE_SIZE
@@ -49,20 +50,23 @@ def test_the_done_head_is_refitted_on_the_policys_rollouts_between_slices_of_ppo
     )
     final = ppo_with_done_refresh(cfg, refresh=refresh)
 
-    # One refit, after the first slice, on 2 simulator episodes of the policy as it was then.
-    (figures,) = refresh_rounds(run)
-    assert figures.round == 1 and figures.simulator_steps == 2 * SIM_STEPS
-    assert figures.rollouts.frames > 0 and figures.demonstrations.positives > 0
-    assert figures.loss["last"] < figures.loss["first"]
-    # The refitted model is the base one but for its done head.
-    refitted = run / REFRESH_DIR / "round_1" / FINAL
+    # Two refits, one before each slice: the first on 2 simulator episodes of the policy PPO started from, the
+    # second on 2 of the policy as the first slice left it.
+    first, second = refresh_rounds(run)
+    assert (first.round, second.round) == (0, 1)
+    assert first.policy == cfg.policy_path and second.policy not in (cfg.policy_path, str(final))
+    for figures in (first, second):
+        assert figures.simulator_steps == 2 * SIM_STEPS
+        assert figures.rollouts.frames > 0 and figures.demonstrations.positives > 0
+        assert figures.loss["last"] < figures.loss["first"]
+    # A refitted model is the base one but for its done head.
     base = STWorldModel.from_pretrained(world_models["action"]).state_dict()
-    new = STWorldModel.from_pretrained(refitted).state_dict()
-    changed = {name for name, weight in new.items() if not torch.equal(weight, base[name])}
-    assert changed and all(name.startswith("done_head.") for name in changed)
-    # The second slice trained in the world model with the refitted head, to the whole clock.
+    for r in (0, 1):
+        new = STWorldModel.from_pretrained(run / REFRESH_DIR / f"round_{r}" / FINAL).state_dict()
+        changed = {name for name, weight in new.items() if not torch.equal(weight, base[name])}
+        assert changed and all(name.startswith("done_head.") for name in changed)
+    # The second slice trained in the world model with the second refit's head, to the whole clock.
     assert final == last_checkpoint(run) / FINAL
-    saved = json.loads((last_checkpoint(run) / "ppo_config.json").read_text())
-    assert saved["env"]["action_world_model"] == str(refitted)
+    # The replay plays the policy in the model it last trained in, as its checkpoint's flags name it.
+    assert trained_world_model(final) == str(run / REFRESH_DIR / "round_1" / FINAL)
     assert json.loads((last_checkpoint(run) / "training_state" / "clock.json").read_text())["seconds"] >= BUDGET_S
-    assert figures.policy != str(final)  # the rollouts were played by the first slice's policy

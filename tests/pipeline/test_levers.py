@@ -94,7 +94,7 @@ def test_each_lever_makes_its_run_from_its_own_settings(context):
     )
     described = lever_descriptions(runs, cfg.lever)
     assert described[LEVERS["kl"].method] == "KL to the SFT policy x 0.3"
-    assert described[LEVERS["refresh"].method].startswith("the done head refitted 3 times on 16 simulator episodes")
+    assert described[LEVERS["refresh"].method].startswith("the done head refitted 4 times on 16 simulator episodes")
 
 
 def test_the_levers_settings_are_checked_where_they_are_given():
