@@ -14,10 +14,9 @@ from torch import Tensor
 
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO
-from lerobot_roboscape.training.checkpoints import FINAL, begin_checkpoint, publish_checkpoint
+from lerobot_roboscape.training.checkpoints import FINAL, PPO_CONFIG_JSON, begin_checkpoint, publish_checkpoint
 
 CLOCK_JSON = "clock.json"
-PPO_CONFIG_JSON = "ppo_config.json"  # beside a checkpoint's pretrained_model: the flags it trained under
 
 
 class RunningReturnStats:
