@@ -170,7 +170,7 @@ def ppo_config(
 @dataclass(frozen=True)
 class RLRun:
     """One PPO run of a method: its env, PPO's settings beside the pipeline's (`--pipeline.ppo.*`), and what runs
-    it (PPO, or PPO wrapped by a lever that acts between slices of its clock)."""
+    it (PPO, or PPO wrapped by a lever that acts before slices of its clock)."""
 
     env: object
     settings: dict = field(default_factory=dict)
