@@ -9,7 +9,7 @@ steps it spent beside PPO's clock; the demonstrations go into every refit so the
 
 import json
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from roboscape_core.errors import InvalidInputError
 
 REFRESH_DIR = "done_refresh"  # in the PPO run's folder: round_<r>/ (the refitted model and its figures)
 REFRESH_SEED = 300_000  # the rollouts' initial states, apart from Table 1's and the curve's
+FOCUS_SEED = 310_000  # those of the rollouts in the focus scenes
 BATCH = 8  # simulator episodes played at once
 
 
@@ -50,6 +51,8 @@ class DoneRefresh:
     rounds: equal slices of PPO's clock; the head is refitted before each slice, from the last refit's head (the
         first from the base model's, on rollouts of the policy PPO starts from).
     episodes: simulator episodes of the current policy per refit.
+    focus_scenes, focus_episodes: that many more episodes per refit in these scenes alone: where the policy
+        succeeds (the scenes its SFT learned), so that the head sees the policy's successes beside its failures.
     demonstrations: demonstration episodes (spread over the dataset) per refit.
     steps: full-batch steps of the head's fit.
     """
@@ -61,6 +64,8 @@ class DoneRefresh:
     cache_dir: str
     rounds: int = 3
     episodes: int = 16
+    focus_scenes: list[str] = field(default_factory=list)
+    focus_episodes: int = 0
     demonstrations: int = 16
     steps: int = 300
     device: str = "auto"
@@ -102,8 +107,9 @@ def _ppo_seconds(folder: Path) -> float:
 
 @dataclass(frozen=True)
 class RefreshRound:
-    """The figures of one refit: its round, the policy that played the rollouts, their simulator steps and success,
-    and the fit's (`done_tuning.refit_done_head`: the loss first and last, each source's frames and positives)."""
+    """The figures of one refit: its round, the policy that played the rollouts, their simulator steps and success
+    (and that of those in the focus scenes, when some were), and the fit's (`done_tuning.refit_done_head`: the loss
+    first and last, each source's frames and positives)."""
 
     round: int
     policy: str
@@ -112,6 +118,7 @@ class RefreshRound:
     loss: dict[str, float]
     rollouts: SourceFit
     demonstrations: SourceFit
+    focus_success: float | None = None
 
     @classmethod
     def from_json(cls, data: dict) -> "RefreshRound":
@@ -138,7 +145,13 @@ def refreshed_world_model(refresh: DoneRefresh, base: str, policy: str | Path, r
 
 def _refit(refresh: DoneRefresh, base: str, policy_path: str | Path, round_: int, folder: Path) -> None:
     device = resolve_device(refresh.device)
-    rollouts = _simulator_rollouts(refresh, policy_path, round_, device)
+    rollouts = _simulator_rollouts(refresh.sim, refresh.episodes, policy_path, REFRESH_SEED + 7919 * round_, device)
+    focus = []
+    if refresh.focus_episodes:
+        sim = replace(refresh.sim, scenes=list(refresh.focus_scenes))
+        seed = FOCUS_SEED + 7919 * round_
+        focus = _simulator_rollouts(sim, refresh.focus_episodes, policy_path, seed, device)
+    rollouts += focus
     tokenizer = VisualTokenizer.from_pretrained(refresh.tokenizer).to(device).eval()
     model = STWorldModel.from_pretrained(base).to(device)
     demos = open_dataset(refresh.demonstrations_repo_id, refresh.demonstrations_root)
@@ -153,24 +166,30 @@ def _refit(refresh: DoneRefresh, base: str, policy_path: str | Path, round_: int
         round_,
         str(policy_path),
         int(sum(len(e.action) - 1 for e in rollouts)),
-        float(np.mean([e.done[-1] > 0.5 for e in rollouts])),
+        _success(rollouts),
         figures.loss,
         *figures.sources,  # the rollouts', then the demonstrations'
+        _success(focus) if focus else None,
     )
     write_text_atomically(folder / "refresh.json", json.dumps(asdict(summary), indent=2))
 
 
+def _success(episodes: list) -> float:
+    return float(np.mean([e.done[-1] > 0.5 for e in episodes]))
+
+
 @torch.no_grad()
-def _simulator_rollouts(refresh: DoneRefresh, policy_path: str | Path, round_: int, device: str) -> list:
+def _simulator_rollouts(
+    sim: RoboscapeManiSkillEnvConfig, episodes: int, policy_path: str | Path, seed: int, device: str
+) -> list:
     policy, preprocessor, postprocessor = load_policy(policy_path, device)
     policy.eval()
     io = PolicyIO(preprocessor, postprocessor)
     # with the robot's state, which the world models read beside the frames
-    env = RoboscapeManiSkillEnv(replace(refresh.sim, include_state=True), num_envs=min(BATCH, refresh.episodes))
+    env = RoboscapeManiSkillEnv(replace(sim, include_state=True), num_envs=min(BATCH, episodes))
     try:
-        batches = math.ceil(refresh.episodes / env.num_envs)
-        seed = REFRESH_SEED + 7919 * round_
-        episodes = [e for k in range(batches) for e in record_episodes(env, policy, io, seed + k)]
+        batches = math.ceil(episodes / env.num_envs)
+        played = [e for k in range(batches) for e in record_episodes(env, policy, io, seed + k)]
     finally:
         env.close()
-    return episodes[: refresh.episodes]
+    return played[:episodes]

@@ -14,7 +14,7 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, Roboscap
 from lerobot_roboscape.pipeline import data_stages, layout, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import DoneRefresh, ppo_with_done_refresh
-from lerobot_roboscape.pipeline.methods import Method, world_model_variant
+from lerobot_roboscape.pipeline.methods import Method, initial_scene, world_model_variant
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from roboscape_core.errors import InvalidInputError
 
@@ -66,15 +66,22 @@ class BranchedSettings:
 @dataclass
 class RefreshSettings:
     """rounds: slices of PPO's clock, the done head refitted before each on simulator rollouts of
-    the current policy in the training scenes; episodes: simulator episodes of the policy per refit."""
+    the current policy in the training scenes; episodes: simulator episodes of the policy per refit;
+    initial_scene_episodes: that many more per refit in the paper protocol's initial scene, where its SFT policy
+    succeeds (a refit on the training scenes alone sees the one-scene policy fail, and the done falls silent)."""
 
     rounds: int = 3
     episodes: int = 16
+    initial_scene_episodes: int = 0
 
     def __post_init__(self):
         for name in ("rounds", "episodes"):
             if getattr(self, name) < 1:
                 raise InvalidInputError(f"--lever.refresh.{name} must be >= 1, got {getattr(self, name)}")
+        if self.initial_scene_episodes < 0:
+            raise InvalidInputError(
+                f"--lever.refresh.initial_scene_episodes must be >= 0, got {self.initial_scene_episodes}"
+            )
 
 
 @dataclass
@@ -174,9 +181,17 @@ def _refresh(context: LeverContext, settings: LeverSettings) -> RLRun:
         cache_dir=str(context.folder / layout.TOKEN_CACHE_DIR),
         rounds=settings.refresh.rounds,
         episodes=settings.refresh.episodes,
+        focus_scenes=[initial_scene()],
+        focus_episodes=settings.refresh.initial_scene_episodes,
         device=p.device,
     )
     return RLRun(context.world_model, runner=partial(ppo_with_done_refresh, refresh=refresh))
+
+
+def _describe_refresh(settings: LeverSettings) -> str:
+    s = settings.refresh
+    initial = f" (and {s.initial_scene_episodes} in the initial scene)" if s.initial_scene_episodes else ""
+    return f"the done head refitted {s.rounds} times on {s.episodes} simulator episodes of the current policy{initial}"
 
 
 LEVERS = {
@@ -208,10 +223,7 @@ LEVERS = {
             "refresh",
             world_model_variant("done refreshed in the simulator", "done_refresh"),  # uses the simulator: its own row
             _refresh,
-            lambda settings: (
-                f"the done head refitted {settings.refresh.rounds} times on "
-                f"{settings.refresh.episodes} simulator episodes of the current policy"
-            ),
+            _describe_refresh,
             simulator=True,
         ),
         Lever(

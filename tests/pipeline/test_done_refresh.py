@@ -9,6 +9,7 @@ import torch
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.pipeline.done_refresh import REFRESH_DIR, DoneRefresh, ppo_with_done_refresh, refresh_rounds
+from lerobot_roboscape.pipeline.methods import initial_scene
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo_state import trained_world_model
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
@@ -44,19 +45,22 @@ def test_the_done_head_is_refitted_on_the_policys_rollouts_between_slices_of_ppo
         cache_dir=str(token_cache.root.parent),
         rounds=2,
         episodes=2,
+        focus_scenes=[initial_scene()],
+        focus_episodes=1,
         demonstrations=4,
         steps=50,
         device="cpu",
     )
     final = ppo_with_done_refresh(cfg, refresh=refresh)
 
-    # Two refits, one before each slice: the first on 2 simulator episodes of the policy PPO started from, the
-    # second on 2 of the policy as the first slice left it.
+    # Two refits, one before each slice: the first on 2 simulator episodes of the policy PPO started from (and 1
+    # in the focus scene), the second on 2 (and 1) of the policy as the first slice left it.
     first, second = refresh_rounds(run)
     assert (first.round, second.round) == (0, 1)
     assert first.policy == cfg.policy_path and second.policy not in (cfg.policy_path, str(final))
     for figures in (first, second):
-        assert figures.simulator_steps == 2 * SIM_STEPS
+        assert figures.simulator_steps == 3 * SIM_STEPS
+        assert figures.focus_success is not None
         assert figures.rollouts.frames > 0 and figures.demonstrations.positives > 0
         assert figures.loss["last"] < figures.loss["first"]
     # A refitted model is the base one but for its done head.

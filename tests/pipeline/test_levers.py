@@ -26,7 +26,7 @@ from lerobot_roboscape.pipeline.levers import (
     lever_descriptions,
     lever_runs,
 )
-from lerobot_roboscape.pipeline.methods import REWARD_ABLATION, RL_WORLD_MODEL, SFT, Method
+from lerobot_roboscape.pipeline.methods import REWARD_ABLATION, RL_WORLD_MODEL, SFT, Method, initial_scene
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from roboscape_core.errors import InvalidInputError
@@ -79,6 +79,7 @@ def test_each_lever_makes_its_run_from_its_own_settings(context):
             "--lever.ensemble.disagreement_penalty=2.0",
             "--lever.branched.episode_length=12",
             "--lever.refresh.rounds=4",
+            "--lever.refresh.initial_scene_episodes=8",
         ],
         "pipeline.",
     )
@@ -89,12 +90,14 @@ def test_each_lever_makes_its_run_from_its_own_settings(context):
     assert (branched.env.episode_length, branched.env.branches_per_episode) == (12, 4)
     assert context.world_model.episode_length == 30  # the plain run's env is left as it was
     assert isinstance(refresh.runner, partial) and refresh.runner.func is ppo_with_done_refresh
-    assert (
-        refresh.runner.keywords["refresh"].rounds == 4 and refresh.runner.keywords["refresh"].sim is context.simulator
-    )
+    refit = refresh.runner.keywords["refresh"]
+    assert refit.rounds == 4 and refit.sim is context.simulator
+    assert (refit.focus_scenes, refit.focus_episodes) == ([initial_scene()], 8)
     described = lever_descriptions(runs, cfg.lever)
     assert described[LEVERS["kl"].method] == "KL to the SFT policy x 0.3"
-    assert described[LEVERS["refresh"].method].startswith("the done head refitted 4 times on 16 simulator episodes")
+    assert described[LEVERS["refresh"].method] == (
+        "the done head refitted 4 times on 16 simulator episodes of the current policy (and 8 in the initial scene)"
+    )
 
 
 def test_the_levers_settings_are_checked_where_they_are_given():
