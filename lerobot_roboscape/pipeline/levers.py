@@ -68,11 +68,14 @@ class RefreshSettings:
     """rounds: slices of PPO's clock, the done head refitted before each on simulator rollouts of
     the current policy in the training scenes; episodes: simulator episodes of the policy per refit;
     initial_scene_episodes: that many more per refit in the paper protocol's initial scene, where its SFT policy
-    succeeds (a refit on the training scenes alone sees the one-scene policy fail, and the done falls silent)."""
+    succeeds (a refit on the training scenes alone sees the one-scene policy fail, and the done falls silent);
+    branched: PPO's episodes as the branched lever plays them (--lever.branched's settings): short, from starts along
+    the demonstrations, some near success, before the world model's frames drift off the data."""
 
     rounds: int = 3
     episodes: int = 16
     initial_scene_episodes: int = 0
+    branched: bool = False
 
     def __post_init__(self):
         for name in ("rounds", "episodes"):
@@ -171,6 +174,14 @@ def _describe_ensemble(settings: LeverSettings) -> str:
     return f"{members}; reward - {s.disagreement_penalty} x their disagreement{halt}"
 
 
+def _branched(env: RoboscapeWorldModelEnvConfig, s: BranchedSettings) -> RoboscapeWorldModelEnvConfig:
+    return replace(env, branches_per_episode=s.branches_per_episode, episode_length=s.episode_length)
+
+
+def _describe_branched(s: BranchedSettings) -> str:
+    return f"{s.branches_per_episode} starts per demonstration, episodes of {s.episode_length} steps"
+
+
 def _refresh(context: LeverContext, settings: LeverSettings) -> RLRun:
     p = context.pipeline
     refresh = DoneRefresh(
@@ -185,13 +196,18 @@ def _refresh(context: LeverContext, settings: LeverSettings) -> RLRun:
         focus_episodes=settings.refresh.initial_scene_episodes,
         device=p.device,
     )
-    return RLRun(context.world_model, runner=partial(ppo_with_done_refresh, refresh=refresh))
+    env = _branched(context.world_model, settings.branched) if settings.refresh.branched else context.world_model
+    return RLRun(env, runner=partial(ppo_with_done_refresh, refresh=refresh))
 
 
 def _describe_refresh(settings: LeverSettings) -> str:
     s = settings.refresh
     initial = f" (and {s.initial_scene_episodes} in the initial scene)" if s.initial_scene_episodes else ""
-    return f"the done head refitted {s.rounds} times on {s.episodes} simulator episodes of the current policy{initial}"
+    branched = f"; branched: {_describe_branched(settings.branched)}" if s.branched else ""
+    return (
+        f"the done head refitted {s.rounds} times on {s.episodes} simulator episodes of the current policy"
+        f"{initial}{branched}"
+    )
 
 
 LEVERS = {
@@ -207,17 +223,8 @@ LEVERS = {
         Lever(
             "branched",
             world_model_variant("branched short rollouts", "branched"),
-            lambda context, settings: RLRun(
-                replace(
-                    context.world_model,
-                    branches_per_episode=settings.branched.branches_per_episode,
-                    episode_length=settings.branched.episode_length,
-                )
-            ),
-            lambda settings: (
-                f"{settings.branched.branches_per_episode} starts per demonstration, episodes of "
-                f"{settings.branched.episode_length} steps"
-            ),
+            lambda context, settings: RLRun(_branched(context.world_model, settings.branched)),
+            lambda settings: _describe_branched(settings.branched),
         ),
         Lever(
             "refresh",

@@ -80,6 +80,7 @@ def test_each_lever_makes_its_run_from_its_own_settings(context):
             "--lever.branched.episode_length=12",
             "--lever.refresh.rounds=4",
             "--lever.refresh.initial_scene_episodes=8",
+            "--lever.refresh.branched=true",
         ],
         "pipeline.",
     )
@@ -93,10 +94,12 @@ def test_each_lever_makes_its_run_from_its_own_settings(context):
     refit = refresh.runner.keywords["refresh"]
     assert refit.rounds == 4 and refit.sim is context.simulator
     assert (refit.focus_scenes, refit.focus_episodes) == ([initial_scene()], 8)
+    assert refresh.env == branched.env  # its PPO plays the branched lever's episodes
     described = lever_descriptions(runs, cfg.lever)
     assert described[LEVERS["kl"].method] == "KL to the SFT policy x 0.3"
     assert described[LEVERS["refresh"].method] == (
-        "the done head refitted 4 times on 16 simulator episodes of the current policy (and 8 in the initial scene)"
+        "the done head refitted 4 times on 16 simulator episodes of the current policy (and 8 in the initial scene); "
+        "branched: 4 starts per demonstration, episodes of 12 steps"
     )
 
 
