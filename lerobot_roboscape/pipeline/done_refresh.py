@@ -108,8 +108,8 @@ def _ppo_seconds(folder: Path) -> float:
 @dataclass(frozen=True)
 class RefreshRound:
     """The figures of one refit: its round, the policy that played the rollouts, their simulator steps and success
-    (and that of those in the focus scenes, when some were), and the fit's (`done_tuning.refit_done_head`: the loss
-    first and last, each source's frames and positives)."""
+    (over all of them, and over those in the focus scenes alone when some were), and the fit's
+    (`done_tuning.refit_done_head`: the loss first and last, each source's frames and positives)."""
 
     round: int
     policy: str

@@ -23,6 +23,7 @@ from lerobot_roboscape.pipeline.levers import (
     EnsembleSettings,
     LeverContext,
     LeverSettings,
+    RefreshSettings,
     lever_descriptions,
     lever_runs,
 )
@@ -107,6 +108,8 @@ def test_the_levers_settings_are_checked_where_they_are_given():
     with pytest.raises(ParsingError) as parsing:  # the command line's one-line error gives the cause
         parse_config(ExperimentConfig, ["--lever.refresh.rounds=0"], "pipeline.")
     assert str(parsing.value.__cause__) == "--lever.refresh.rounds must be >= 1, got 0"
+    with pytest.raises(InvalidInputError, match="--lever.refresh.initial_scene_episodes must be >= 0, got -1"):
+        RefreshSettings(initial_scene_episodes=-1)
     with pytest.raises(InvalidInputError, match="--lever.ensemble.steps_share must be in \\(0, 1\\], got 1.5"):
         EnsembleSettings(steps_share=1.5)
     with pytest.raises(ParsingError) as parsing:
