@@ -1,8 +1,9 @@
 """The world model's agreement with the simulator over a ladder of policies (issue 72): `roboscape_mlp` SFT'd by
 `lerobot-train` on the demonstrations of the first 1 and 8 training scenes (the first is the paper protocol's
 initial scene), a checkpoint every fifth of its steps, beside the policies the claim's experiment trained in RUN
-(each protocol's SFT, the last checkpoint of each of its PPO runs) and any given with --policies; then
-`roboscape-eval-agreement` over them all, IND and OOD, on RUN's world models as the experiment builds its env. The
+(each protocol's SFT, the last checkpoint of each of its PPO runs, or those --runs names) and any given with
+--policies; then `roboscape-eval-agreement` over them all on RUN's world models as the experiment builds its env, in
+each of --splits: IND, OOD, or the paper protocol's initial scene alone (`initial`, its IND). The
 ladder counts only over rungs the simulator tells apart (their 95% intervals disjoint): its ladder.json says whether
 they are, and this prints the agreement targets.
 
