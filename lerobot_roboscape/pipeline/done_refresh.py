@@ -145,12 +145,14 @@ def refreshed_world_model(refresh: DoneRefresh, base: str, policy: str | Path, r
 
 def _refit(refresh: DoneRefresh, base: str, policy_path: str | Path, round_: int, folder: Path) -> None:
     device = resolve_device(refresh.device)
-    rollouts = _simulator_rollouts(refresh.sim, refresh.episodes, policy_path, REFRESH_SEED + 7919 * round_, device)
+    policy, preprocessor, postprocessor = load_policy(policy_path, device)
+    policy.eval()
+    io = PolicyIO(preprocessor, postprocessor)
+    rollouts = _simulator_rollouts(refresh.sim, refresh.episodes, policy, io, REFRESH_SEED + 7919 * round_)
     focus = []
     if refresh.focus_episodes:
         sim = replace(refresh.sim, scenes=list(refresh.focus_scenes))
-        seed = FOCUS_SEED + 7919 * round_
-        focus = _simulator_rollouts(sim, refresh.focus_episodes, policy_path, seed, device)
+        focus = _simulator_rollouts(sim, refresh.focus_episodes, policy, io, FOCUS_SEED + 7919 * round_)
     rollouts += focus
     tokenizer = VisualTokenizer.from_pretrained(refresh.tokenizer).to(device).eval()
     model = STWorldModel.from_pretrained(base).to(device)
@@ -179,12 +181,7 @@ def _success(episodes: list) -> float:
 
 
 @torch.no_grad()
-def _simulator_rollouts(
-    sim: RoboscapeManiSkillEnvConfig, episodes: int, policy_path: str | Path, seed: int, device: str
-) -> list:
-    policy, preprocessor, postprocessor = load_policy(policy_path, device)
-    policy.eval()
-    io = PolicyIO(preprocessor, postprocessor)
+def _simulator_rollouts(sim: RoboscapeManiSkillEnvConfig, episodes: int, policy, io: PolicyIO, seed: int) -> list:
     # with the robot's state, which the world models read beside the frames
     env = RoboscapeManiSkillEnv(replace(sim, include_state=True), num_envs=min(BATCH, episodes))
     try:
