@@ -83,7 +83,9 @@ def train_reward_model(cfg: TrainRewardConfig) -> RewardModel:
             else:
                 world_model.to(batch["tokens"].device)
                 control = world_model.encode_control(batch["actions"], batch["no_action"])
-                hidden = world_model.compute_hidden(batch["tokens"], control, states=batch["state"])[0]
+                hidden = world_model.compute_hidden(
+                    batch["tokens"], control, states=batch["state"], anchor=batch["anchor"]
+                )[0]
                 inputs = hidden.mean(dim=2).flatten(0, 1)
         labels = batch["done" if cfg.reward.kind == "success" else "reward"]
         return model.compute_loss(inputs, labels.flatten())

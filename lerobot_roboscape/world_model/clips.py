@@ -52,6 +52,7 @@ class ClipIndex:
     valid: np.ndarray  # (B, T, k) bool: False for actions before the episode's start or past its last step
     no_action: np.ndarray  # (B, T) bool: frames with no action before them (an episode's first frame)
     tasks: list[str]
+    anchor_rows: np.ndarray  # (B,) the row of each clip's episode's first frame (an anchored model reads it)
 
     @staticmethod
     def cat(parts: list["ClipIndex"], offsets: list[int]) -> "ClipIndex":
@@ -63,6 +64,7 @@ class ClipIndex:
             np.concatenate([p.valid for p in parts]),
             np.concatenate([p.no_action for p in parts]),
             [task for p in parts for task in p.tasks],
+            np.concatenate([p.anchor_rows + o for p, o in zip(parts, offsets, strict=True)]),
         )
 
 
@@ -112,6 +114,7 @@ class ClipSampler:
             valid=(steps >= 0) & (steps < length[..., None] - 1),
             no_action=(steps < 0).all(axis=2),
             tasks=[self.episodes[i]["task"] for i in picked],
+            anchor_rows=start[:, 0],
         )
 
 
@@ -142,13 +145,15 @@ class ClipMixture:
 
 
 def gather(cache: TokenCache, index: ClipIndex) -> dict:
-    """The batch at `index` from a cache's (memory-mapped) arrays: tokens (B, T, S) long, actions (B, T, k, A),
-    no_action (B, T), state (B, T, D), done (B, T), reward (B, T) and task (B strings)."""
+    """The batch at `index` from a cache's (memory-mapped) arrays: tokens (B, T, S) long, anchor (B, S) long (the
+    episodes' first frames), actions (B, T, k, A), no_action (B, T), state (B, T, D), done (B, T), reward (B, T)
+    and task (B strings)."""
     B, T = index.rows.shape
     S = int(np.prod(cache.tokens.shape[1:]))  # the views side by side
     actions = np.where(index.valid[..., None], cache.actions[index.action_rows], 0.0)
     return {
         "tokens": torch.from_numpy(cache.tokens[index.rows].reshape(B, T, S).astype(np.int64)),
+        "anchor": torch.from_numpy(cache.tokens[index.anchor_rows].reshape(B, S).astype(np.int64)),
         "actions": torch.from_numpy(actions.astype(np.float32)),
         "no_action": torch.from_numpy(index.no_action),
         "state": torch.from_numpy(np.asarray(cache.states[index.rows], dtype=np.float32)),
@@ -192,13 +197,14 @@ class ResidentClips:
     def __call__(self, step: int, process_index: int = 0) -> dict:
         index = self.sampler.index(step, process_index)
         B, T = index.rows.shape
-        rows, action_rows, valid, no_action = (
+        rows, action_rows, valid, no_action, anchor_rows = (
             torch.from_numpy(np.ascontiguousarray(a)).to(self.device, non_blocking=True)
-            for a in (index.rows, index.action_rows, index.valid, index.no_action)
+            for a in (index.rows, index.action_rows, index.valid, index.no_action, index.anchor_rows)
         )
         actions = self.actions[action_rows] * valid[..., None]
         return {
             "tokens": self.tokens[rows].view(B, T, -1).long(),
+            "anchor": self.tokens[anchor_rows].long(),
             "actions": actions,
             "no_action": no_action,
             "state": self.states[rows],

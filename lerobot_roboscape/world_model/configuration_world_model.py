@@ -54,6 +54,10 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         dropout: dropout in attention and MLPs.
         window: frames the model sees at once (training clip length and generation context).
         prompt_frames: real frames given before prediction starts in evaluation.
+        anchor: every frame's cross-attention also reads the episode's first frame (its real tokens, with a learned
+            anchor embedding), which the rollout keeps for the whole episode: what has not moved can be copied from
+            the real start instead of from the model's own generated past, which falls out of the window after
+            `window` frames and drifts (issue 72: 100-step rollouts drifted into texture).
         maskgit_steps: parallel decoding steps per generated frame.
         adaln: the frame's control in every block's LayerNorms (scale, shift and gate from the pooled control, the
             projection zero-initialised as in DiT, each sub-layer gated by 1 + g so training starts from the block
@@ -118,6 +122,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     # Generation.
     window: int = 8
     prompt_frames: int = 2
+    anchor: bool = False
     maskgit_steps: int = 2
     guidance_scale: float = 1.0
     # Control path.

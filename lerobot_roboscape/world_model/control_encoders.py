@@ -37,6 +37,16 @@ class Control(NamedTuple):
         mask = None if self.mask is None else torch.where(use_null[..., None], null.mask, self.mask)
         return Control(tokens, mask, torch.where(use_null[..., None], null.pooled, self.pooled))
 
+    def with_context(self, extra_B1MC: torch.Tensor) -> "Control":
+        """This control with M more cross-attention tokens, shared by every frame and always attended to (the
+        anchor frame's positions); the pooled control, which the adaptive LayerNorm reads, stays the control's."""
+        B, T = self.tokens.shape[:2]
+        tokens = torch.cat([self.tokens, extra_B1MC.to(self.tokens.dtype).expand(B, T, -1, -1)], 2)
+        mask = self.mask
+        if mask is not None:
+            mask = torch.cat([mask, mask.new_ones(*mask.shape[:2], extra_B1MC.shape[2])], 2)
+        return Control(tokens, mask, self.pooled)
+
     @staticmethod
     def cat(controls: list["Control"], dim: int) -> "Control":
         masks = [c.mask for c in controls]

@@ -232,7 +232,8 @@ def likelihood_retrieval(model, tokenizer: VisualTokenizer, start: ControlStart)
         inputs = tokens[:, seen].clone()
         inputs[:, -1] = model.config.mask_token_id
         seen_states = None if states is None else states[:, seen]
-        logits = model.compute_logits(inputs, control.frames(seen), states=seen_states)[0][:, -1]  # (K * K, S, V)
+        logits = model.compute_logits(inputs, control.frames(seen), states=seen_states, anchor=tokens[:, 0])[0]
+        logits = logits[:, -1]  # (K * K, S, V)
         nll += F.cross_entropy(logits.transpose(1, 2).float(), tokens[:, t], reduction="none").mean(1)
     return retrieval_accuracy(-nll.view(K, K).T.cpu().numpy())  # row j: future j under each sequence
 

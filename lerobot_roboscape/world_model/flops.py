@@ -13,6 +13,7 @@ def forward_flops_per_clip(c: WorldModelConfig, text_width: int | None = None) -
     costs about half of that."""
     T, S, C, V = c.window, c.positions_per_frame, c.d_model, c.vocab_size
     L = ACTION_TOKENS if c.control == "action" else c.text_max_length
+    L += S if c.anchor else 0  # the anchor frame's positions join the cross-attention's context
     per_token = 8 * C * C + 8 * C * C + 4 * C * C + 4 * c.mlp_ratio * C * C  # spatial, temporal, cross, MLP
     attention = T * 4 * S * S * C + S * 4 * T * T * C + T * 4 * S * L * C  # spatial, temporal, cross
     modulated = T if c.control == "action" else 1  # the text's pooled control is one per clip

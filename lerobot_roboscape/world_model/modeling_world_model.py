@@ -8,16 +8,13 @@ codes (N positions of G codes each: `group`), while everything outside reads and
 actions one per control step, k per frame, and states one per frame.
 """
 
-from pathlib import Path
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from einops import rearrange
-from huggingface_hub import snapshot_download
 from torch import nn
 
-from lerobot_roboscape.io.weights import CheckedHubMixin
 from lerobot_roboscape.training.losses import balanced_bce
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
 from lerobot_roboscape.world_model.control_encoders import ActionEncoder, Control, TextEncoder
@@ -25,11 +22,9 @@ from lerobot_roboscape.world_model.flops import forward_flops_per_clip
 from lerobot_roboscape.world_model.objective import changed_codes, masked_inputs, masked_token_loss
 from lerobot_roboscape.world_model.robot_state import RobotState
 from lerobot_roboscape.world_model.rollout import Rollout
-from lerobot_roboscape.world_model.saved import refuse_unusable
+from lerobot_roboscape.world_model.saved import SavedWorldModel
 from lerobot_roboscape.world_model.st_transformer import KVCache, STBlock
 from roboscape_core.errors import InvalidInputError
-
-TEXT_ENCODER_DIR = "text_encoder"
 
 
 class Generated(NamedTuple):
@@ -39,7 +34,7 @@ class Generated(NamedTuple):
 
 
 class STWorldModel(
-    nn.Module, CheckedHubMixin, library_name="lerobot-roboscape", tags=["lerobot", "world-model", "robotics"]
+    nn.Module, SavedWorldModel, library_name="lerobot-roboscape", tags=["lerobot", "world-model", "robotics"]
 ):
     def __init__(self, config: WorldModelConfig, text_encoder_dir: str | None = None):
         super().__init__()
@@ -49,6 +44,7 @@ class STWorldModel(
         self.token_emb = nn.Embedding(G * (config.vocab_size + 1), C)
         self.register_buffer("code_offsets", torch.arange(G) * (config.vocab_size + 1), persistent=False)
         self.pos_emb = nn.Parameter(torch.zeros(N, C))
+        self.anchor_emb = nn.Parameter(torch.zeros(C)) if config.anchor else None  # marks the anchor's positions
         self.robot_state = RobotState(config) if config.state else None
         if config.control == "action":
             self.control_encoder = ActionEncoder(config)
@@ -63,7 +59,9 @@ class STWorldModel(
         for name, module in self.named_modules():
             if not name.startswith("control_encoder.t5"):
                 self._init_weights(module)
-        nn.init.normal_(self.pos_emb, std=0.02)
+        for embedding in (self.pos_emb, self.anchor_emb):
+            if embedding is not None:
+                nn.init.normal_(embedding, std=0.02)
         for block in self.blocks:
             block.zero_init_modulation()
         if self.robot_state is not None:
@@ -137,6 +135,21 @@ class STWorldModel(
         """The control whose pooled vector is normalised as the blocks and the state head read it."""
         return control._replace(pooled=self.ln_pooled(control.pooled))
 
+    def embed(self, tokens_BTS) -> torch.Tensor:
+        """Each position's embedding (B, T, N, C): its codes' and its place's."""
+        return self.token_emb(self.group(tokens_BTS) + self.code_offsets).sum(3) + self.pos_emb
+
+    def _anchored(self, control: Control, tokens_BTS, anchor_BS, cached: bool) -> Control:
+        """With `config.anchor`, the control with the anchor frame's positions in its cross-attention: `anchor_BS`,
+        else the first of the frames read (a prompt, a clip), which a cached step of one new frame has not."""
+        if self.anchor_emb is None:
+            return control
+        if anchor_BS is None:
+            if cached:
+                raise ValueError("a cached step of an anchored world model needs its rollout's anchor frame")
+            anchor_BS = tokens_BTS[:, 0]
+        return control.with_context(self.embed(anchor_BS[:, None]) + self.anchor_emb)
+
     def compute_hidden(
         self,
         tokens_BTS,
@@ -144,15 +157,17 @@ class STWorldModel(
         cache: KVCache | None = None,
         fill: KVCache | None = None,
         states: torch.Tensor | None = None,
+        anchor: torch.Tensor | None = None,
     ):
         """Final hidden states (B, T, N, C) and the frames' keys/values per layer. With a cache, T = 1 and the new
         frame's keys/values are written into it instead; with `fill` (an empty cache), the frames' are written into
         that cache, block by block, and none is returned. `states`: the frames' raw states (B, T, state_dim), which
-        a model with a state channel needs."""
+        a model with a state channel needs; `anchor`: the episode's first frame (B, S), which an anchored model
+        reads (by default the first of `tokens_BTS`)."""
         B, T, S = tokens_BTS.shape
         if self.config.tokens_per_frame != S:
             raise ValueError(f"frames must have {self.config.tokens_per_frame} tokens, got {S}")
-        x_BTNC = self.token_emb(self.group(tokens_BTS) + self.code_offsets).sum(3) + self.pos_emb
+        x_BTNC = self.embed(tokens_BTS)
         if self.robot_state is not None:
             if states is None or states.shape[:2] != (B, T):
                 got = None if states is None else tuple(states.shape)
@@ -160,7 +175,7 @@ class STWorldModel(
                     f"a world model with a state channel needs the frames' states ({B}, {T}, D), got {got}"
                 )
             x_BTNC = x_BTNC + self.robot_state.embedding(states).to(x_BTNC.dtype)[:, :, None]
-        control = self._pooled(control)
+        control = self._anchored(self._pooled(control), tokens_BTS, anchor, cached=cache is not None)
         layer_caches = cache.layers if cache is not None else [None] * len(self.blocks)
         blocks = self._compiled_blocks if cache is None and self.training and self._compiled_blocks else self.blocks
         kvs = []
@@ -184,9 +199,9 @@ class STWorldModel(
         B, T, N, _ = hidden_BTNC.shape
         return self.ungroup(self.head(hidden_BTNC).view(B, T, N, self.config.codes_per_position, -1))
 
-    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None, states=None):
+    def compute_logits(self, tokens_BTS, control: Control, cache: KVCache | None = None, states=None, anchor=None):
         """Logits (B, T, S, V) of every token, done logits (B, T), and the keys/values of `compute_hidden`."""
-        hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states)
+        hidden_BTNC, kvs = self.compute_hidden(tokens_BTS, control, cache, states=states, anchor=anchor)
         return self.token_logits(hidden_BTNC), self.done_logits(hidden_BTNC), kvs
 
     def token_loss(self, hidden_BTNC, tokens_BTS, mask_BTS) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -218,12 +233,13 @@ class STWorldModel(
         return self.robot_state.predict_next(features_BC, state_BD, pooled)
 
     def compute_loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
-        """batch: tokens (B, T, S) long, done (B, T) float, state (B, T, D) with a state channel, and actions
-        (B, T, k, A) + no_action (B, T) or task (B strings). Positions of frames after the first are masked at a
-        MaskGIT ratio each, or left clean with clean_frame_prob; a share of the codes left unmasked, drawn per clip
-        up to corrupt_max, is replaced by random codes; controls are replaced by the null control with
-        control_dropout. Masked tokens that changed since the previous frame weigh changed_weight in the token
-        loss; each frame's predicted next state is scored against the clip's next frame."""
+        """batch: tokens (B, T, S) long, done (B, T) float, state (B, T, D) with a state channel, anchor (B, S) the
+        episode's first frame (an anchored model), and actions (B, T, k, A) + no_action (B, T) or task (B strings).
+        Positions of frames after the first are masked at a MaskGIT ratio each, or left clean with clean_frame_prob;
+        a share of the codes left unmasked, drawn per clip up to corrupt_max, is replaced by random codes; controls
+        are replaced by the null control with control_dropout. Masked tokens that changed since the previous frame
+        weigh changed_weight in the token loss; each frame's predicted next state is scored against the clip's next
+        frame."""
         tokens, done, c = batch["tokens"], batch["done"], self.config
         control = self.encode_control(batch.get("actions"), batch.get("no_action"), batch.get("task"))
         if c.control_dropout > 0:
@@ -231,7 +247,7 @@ class STWorldModel(
             control = control.where(dropped, self.null_control(control))
         inputs, mask = masked_inputs(tokens, c, self.ungroup)
         states = batch.get("state")
-        hidden, _ = self.compute_hidden(inputs, control, states=states)
+        hidden, _ = self.compute_hidden(inputs, control, states=states, anchor=batch.get("anchor"))
         token_loss, token_logs = self.token_loss(hidden, tokens, mask)
         done_loss = self.done_loss(self.done_logits(hidden).float(), done)
         loss = token_loss + c.done_weight * done_loss
@@ -340,50 +356,3 @@ class STWorldModel(
         if no_action is not None:
             flags[:, 1:] |= no_action
         return self.encode_control(shifted, flags)
-
-    # ---- saving --------------------------------------------------------------------------------------------
-
-    def _save_pretrained(self, save_directory: Path) -> None:
-        super()._save_pretrained(save_directory)
-        if self.config.control == "text":
-            self.control_encoder.save_tokenizer_and_config(Path(save_directory) / TEXT_ENCODER_DIR)
-
-    @classmethod
-    def _from_pretrained(
-        cls,
-        *,
-        model_id: str,
-        revision=None,
-        cache_dir=None,
-        force_download=False,
-        local_files_only=False,
-        token=None,
-        **kwargs,
-    ):
-        # A text model rebuilds its T5 from the saved config and tokenizer (weights come with the world model's).
-        if Path(model_id).is_dir():
-            root = Path(model_id)
-        else:
-            root = Path(
-                snapshot_download(
-                    model_id,
-                    revision=revision,
-                    cache_dir=cache_dir,
-                    token=token,
-                    local_files_only=local_files_only,
-                    allow_patterns=[f"{TEXT_ENCODER_DIR}/*"],
-                )
-            )
-        if (root / TEXT_ENCODER_DIR).is_dir():
-            kwargs["text_encoder_dir"] = str(root / TEXT_ENCODER_DIR)
-        model = super()._from_pretrained(
-            model_id=model_id,
-            revision=revision,
-            cache_dir=cache_dir,
-            force_download=force_download,
-            local_files_only=local_files_only,
-            token=token,
-            **kwargs,
-        )
-        refuse_unusable(model, model_id, root)
-        return model

@@ -55,6 +55,7 @@ class Rollout:
     frames_seen: int = 0
     guided: bool = False
     capture: bool = False
+    anchor: torch.Tensor | None = None  # (B, S), (2B, S) when guided: the first prompt frame, for an anchored model
 
     @classmethod
     @torch.no_grad()
@@ -93,9 +94,12 @@ class Rollout:
         if use_cache:
             reusable = reuse is not None and reuse.cache is not None and reuse.model is model
             cache = reuse.cache if reusable else KVCache(model.config.n_layer, model.config.window)
-        hidden_BTNC, _ = model.compute_hidden(prompt_BPS, control, fill=cache, states=states)
+        anchor = prompt_BPS[:, 0] if model.config.anchor else None
+        hidden_BTNC, _ = model.compute_hidden(prompt_BPS, control, fill=cache, states=states, anchor=anchor)
         done, features = readout(model, hidden_BTNC, B)
-        rollout = cls(model, prompt_BPS, control, cache, done, features, states, prompt_BPS.shape[1], guided, capture)
+        rollout = cls(
+            model, prompt_BPS, control, cache, done, features, states, prompt_BPS.shape[1], guided, capture, anchor
+        )
         rollout.slide()
         return rollout
 
@@ -218,12 +222,11 @@ class Rollout:
         if self.guided:
             frame_B1S = torch.cat([frame_B1S, frame_B1S])
         if self.cache is not None:
-            hidden_BTNC, _ = model.compute_hidden(frame_B1S, control, self.cache, states=state)
+            hidden_BTNC, _ = model.compute_hidden(frame_B1S, control, self.cache, states=state, anchor=self.anchor)
         else:
             tokens = torch.cat([self.tokens, frame_B1S], 1)
-            hidden_BTNC, _ = model.compute_hidden(
-                tokens, self._concat_controls(self.control, control), states=self._concat_states(state)
-            )
+            controls, states = self._concat_controls(self.control, control), self._concat_states(state)
+            hidden_BTNC, _ = model.compute_hidden(tokens, controls, states=states, anchor=self.anchor)
         return readout(model, hidden_BTNC, B)
 
     def _remember(self, frame_B1S, control: Control, done: torch.Tensor, features: torch.Tensor, state) -> None:
@@ -257,11 +260,12 @@ class Rollout:
         if self.guided:
             frame_B1S = torch.cat([frame_B1S, frame_B1S])
         if self.cache is not None:
-            logits = self.model.compute_logits(frame_B1S, control, self.cache, states=state)[0][:, -1]
+            logits = self.model.compute_logits(frame_B1S, control, self.cache, states=state, anchor=self.anchor)[0]
+            logits = logits[:, -1]
         else:  # without the cache: recompute the whole window (past frames + the new one), as the paper's code did
             tokens = torch.cat([self.tokens, frame_B1S], 1)
             controls, states = self._concat_controls(self.control, control), self._concat_states(state)
-            logits = self.model.compute_logits(tokens, controls, states=states)[0][:, -1]
+            logits = self.model.compute_logits(tokens, controls, states=states, anchor=self.anchor)[0][:, -1]
         if not self.guided:
             return logits
         conditioned, null = logits.float().chunk(2)
@@ -277,7 +281,8 @@ class CapturedFrame:
     """One frame of a cached rollout on CUDA, recorded as a CUDA graph: the control and the rollout's latest
     features and state are copied into the graph's inputs, the graph replayed, its outputs (tokens (B, 1, S), done
     (B,), features (B, C), state (B, 1, D) or None) copied out. The cache's rings and device-side state are the
-    graph's memory, so the graph serves every frame of every episode that refills the same cache."""
+    graph's memory, so the graph serves every frame of every episode that refills the same cache (its anchor frame
+    copied in as well)."""
 
     def __init__(self, rollout: Rollout, control: Control, temperature: float, generator):
         cache = rollout.cache
@@ -300,14 +305,15 @@ class CapturedFrame:
         self.control = Control(*(None if t is None else t.clone() for t in control))
         self.features = rollout.features.clone()
         self.state = None if rollout.states is None else rollout.states[:, -1:].clone()  # all a cached frame reads
-        live = rollout.features, rollout.states
-        rollout.features, rollout.states = self.features, self.state
+        self.anchor = None if rollout.anchor is None else rollout.anchor.clone()  # a new episode's is copied in
+        live = rollout.features, rollout.states, rollout.anchor
+        rollout.features, rollout.states, rollout.anchor = self.features, self.state, self.anchor
         self.graph = torch.cuda.CUDAGraph()
         if generator is not None:
             self.graph.register_generator_state(generator)
         with self._autocast(), torch.cuda.graph(self.graph):
             self.outputs = rollout._frame_on_device(self.control, temperature, generator)
-        rollout.features, rollout.states = live
+        rollout.features, rollout.states, rollout.anchor = live
 
     @staticmethod
     def _autocast():
@@ -326,5 +332,7 @@ class CapturedFrame:
         self.features.copy_(rollout.features)
         if self.state is not None:
             self.state.copy_(rollout.states[:, -1:])
+        if self.anchor is not None:
+            self.anchor.copy_(rollout.anchor)
         self.graph.replay()
         return tuple(None if t is None else t.clone() for t in self.outputs)

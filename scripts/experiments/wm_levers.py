@@ -1,9 +1,10 @@
 """The action world model's levers on a run's saved data, by held-out curves at equal CPU minutes (issue 70): today's
 model (no state channel, a code per position, clean context), the robot's state as a channel, 2x2 codes per
-position, corrupted context, and all three; each from several seeds. Two runs go at a time, each on one core (one
-torch thread), so that every run gets the same CPU; each reads retrieval, action gain, the state's error and the
-arm region's PSNR on IND and OOD controllability starts as it trains (`--train.eval_freq`). A run's budget is wall
-clock, its readings included; the curves' minutes are its training alone. Then `wm_curves.py` draws them.
+position, corrupted context, and all three (since issue 72 also the anchor frame); each from several seeds. Two
+runs go at a time, each on one core (one torch thread), so that every run gets the same CPU; each reads retrieval,
+action gain, the state's error and the arm region's PSNR on IND and OOD controllability starts as it trains
+(`--train.eval_freq`). A run's budget is wall clock, its readings included; the curves' minutes are its training
+alone. Then `wm_curves.py` draws them.
 
 The text model's runs (`text`) read its goals instead (`--heldout_goals`): how often its done crosses `--theta` within
 the family's horizon from IND starts (the validation collection: new starts of the training scenes) and OOD ones (the
@@ -54,6 +55,9 @@ LEVERS = {
     "corrupt": {"state": "false", "corrupt_max": "0.2"},
     "all": {"patch": "2", "corrupt_max": "0.2"},  # the bench preset as it stands (its patch named for the pace below)
     "bench": {"patch": "2", **OFF},  # the bench preset before corruption (corrupt70's reference)
+    # the bench preset reading the episode's first frame in every frame (issue 72: 100-step rollouts drifted);
+    # read it with a --horizon past the window (24 control steps), where the drift is
+    "anchor": {"patch": "2", "corrupt_max": "0.2", "anchor": "true"},
     "wide": {"patch": "2", "d_model": "192", **OFF},  # 1.5x wider: give its own pace (--steps_per_minute)
     "text": {"patch": "2", "control": "text", **OFF},  # the bench preset's text model, read on its goals
 }

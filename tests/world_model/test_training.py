@@ -70,6 +70,7 @@ def test_clips_of_action_chunks(token_cache):
     sampler = ClipSampler(token_cache, [row], window=3, batch_size=1, frame_skip=k)
     clip = _clip(sampler, start=1)
     assert np.array_equal(clip["tokens"], token_cache.tokens[start + np.array([1, 4, 7])].reshape(3, -1))
+    assert np.array_equal(clip["anchor"], token_cache.tokens[start].reshape(-1))  # the episode's first frame
     assert clip["no_action"].tolist() == [False, False, False]
     assert (clip["actions"][0, :2] == 0).all()  # steps -2 and -1: before the episode
     assert np.array_equal(clip["actions"][0, 2], token_cache.actions[start])
@@ -146,7 +147,7 @@ def test_resident_clips_are_the_samplers_batches(token_cache):
         for step in (0, 7):
             host, sliced = source(step), resident(step)
             assert host["task"] == sliced["task"]
-            for key in ("tokens", "actions", "no_action", "state", "done", "reward"):
+            for key in ("tokens", "anchor", "actions", "no_action", "state", "done", "reward"):
                 assert host[key].dtype == sliced[key].dtype and torch.equal(host[key], sliced[key]), key
     one_cache = token_cache.tokens.size * 4 + token_cache.actions.nbytes + token_cache.states.nbytes
     one_cache += 2 * len(token_cache.done) * 4
