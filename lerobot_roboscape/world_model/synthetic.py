@@ -119,9 +119,10 @@ class SyntheticWorld:
         self, step: int, batch_size: int, window: int, seed: int = 0, shuffle: bool = False, frame_skip: int = 1
     ) -> dict:
         """A batch in the world-model training layout (ClipSampler's), a pure function of (seed, step): tokens
-        (B, T, S) every `frame_skip` (k) control steps, actions (B, T, k, 7) with frame t carrying the k actions that
-        led to it, no_action, state, done and task. `shuffle`: every clip gets another clip's controls (text: one
-        instruction for all), so that nothing but chance links a control to its frames."""
+        (B, T, S) every `frame_skip` (k) control steps, anchor (B, S) the episode's first frame, actions
+        (B, T, k, 7) with frame t carrying the k actions that led to it, no_action, state, done and task.
+        `shuffle`: every clip gets another clip's controls (text: one instruction for all), so that nothing but
+        chance links a control to its frames."""
         rng = np.random.default_rng([seed, step])
         k = frame_skip
         episode = self.episodes(rng, batch_size, (window - 1) * k)
@@ -139,6 +140,7 @@ class SyntheticWorld:
         no_action[:, 0] = True
         return {
             "tokens": torch.from_numpy(episode["tokens"][:, ::k]).long(),
+            "anchor": torch.from_numpy(episode["tokens"][:, 0]).long(),  # the episode's first frame (clean)
             "actions": torch.from_numpy(actions),
             "no_action": torch.from_numpy(no_action),
             "state": torch.from_numpy(episode["states"][:, ::k]),
@@ -189,6 +191,37 @@ def retrieval(model, world: SyntheticWorld, starts: int = 32, K: int = 4, horizo
     agreement = (rollout[:, :, None] == future[:, None]).mean(axis=(3, 4))
     accuracy = float(np.mean([retrieval_accuracy(a) for a in agreement]))
     return accuracy, rollout, future
+
+
+@torch.no_grad()
+def drift(model, world: SyntheticWorld, starts: int = 64, horizon: int = 32, seed: int = 4321) -> dict[str, list]:
+    """How a motion rollout keeps its world over `horizon` frames, well past the model's window: per generated
+    frame, the share of the background's cells (where neither the real square nor the rollout's is) that keep the
+    real token, of those the square has just uncovered (their token read from memory: the window, or an anchor),
+    and the share of rollouts with the square drawn whole where the real one is."""
+    rng = np.random.default_rng(seed)
+    episodes = world.episodes(rng, starts, horizon)
+    device = next(model.parameters()).device
+    real = episodes["tokens"]  # (n, horizon + 1, S)
+    rollout = (
+        model.generate(
+            torch.from_numpy(real[:, :1]).to(device),
+            horizon,
+            actions=torch.from_numpy(episodes["controls"]).to(device),
+            states=torch.from_numpy(episodes["states"][:, :1]).to(device),
+        )
+        .tokens.cpu()
+        .numpy()
+    )
+    future, square = real[:, 1:], world.square_token
+    background = (future != square) & (rollout != square)
+    uncovered = background & (real[:, :-1] == square)
+
+    def kept(cells):
+        return (((rollout == future) & cells).sum((0, 2)) / np.maximum(cells.sum((0, 2)), 1)).tolist()
+
+    drawn = ((rollout == square) | (future != square)).all(2).mean(0)
+    return {"background": kept(background), "uncovered": kept(uncovered), "square": drawn.tolist()}
 
 
 def world_model(

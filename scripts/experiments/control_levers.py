@@ -9,12 +9,17 @@ removed; their columns stay in the saved curves.)
 
 `report` draws OUT/control_levers.png and prints the table of every run.
 
+`drift` trains the presets' combination with and without the anchor frame and corrupted context (issue 72: the
+bench model's 100-step rollouts drifted) for `--steps`, reading retrieval and, over rollouts of 32 frames (past the
+window of 5), the share of background cells kept and of squares drawn where they are, into OUT/drift/.
+
 `precision` trains the presets' combination on *motion* until it solves it, then reads the same model in float32,
 under bf16 autocast (roboscape_wm's `precision`) and with one MaskGIT pass: retrieval over 64 starts, and the
 share of float32's rollout tokens each keeps.
 
     python scripts/experiments/control_levers.py run --world motion --variant adaln_one_plus --minutes 10
     python scripts/experiments/control_levers.py report
+    python scripts/experiments/control_levers.py drift --variant corrupt_anchor --seed 0 --steps 2000
     python scripts/experiments/control_levers.py precision --threads 2
 """
 
@@ -26,7 +31,7 @@ from pathlib import Path
 import torch
 
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.synthetic import SyntheticWorld, retrieval, train_on_world, world_model
+from lerobot_roboscape.world_model.synthetic import SyntheticWorld, drift, retrieval, train_on_world, world_model
 
 OUT = Path("docs/results/world_model/control_levers")
 WINDOW = 5  # the retrieval horizon (4) and its prompt frame
@@ -48,6 +53,14 @@ LEVERS = {
 }
 VARIANTS = {name: {**AS_BUILT, **levers} for name, levers in LEVERS.items()}
 GUIDANCE = (2.0, 4.0)
+PRESETS = {"adaln": "one_plus", "normalize_control": True, "normalize_actions": True}  # dropout off
+DRIFT = {
+    "preset": {},
+    "anchor": {"anchor": True},
+    "corrupt": {"corrupt_max": 0.2},
+    "corrupt_anchor": {"corrupt_max": 0.2, "anchor": True},
+}
+DRIFT_FRAMES = (1, 4, 8, 16, 32)  # the rollout frames a drift point keeps
 
 
 def build_model(world: SyntheticWorld, variant: dict, seed: int = 0) -> STWorldModel:
@@ -152,11 +165,30 @@ def report(args):
     fig.savefig(args.out / "control_levers.png", dpi=70)
 
 
+def drift_run(args):
+    torch.set_num_threads(args.threads)
+    world = SyntheticWorld("motion")
+    model = build_model(world, {**AS_BUILT, **PRESETS, **DRIFT[args.variant]}, args.seed)
+    path = args.out / "drift" / f"{args.variant}_seed{args.seed}.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("")
+
+    def on_eval(point, model):
+        kept = drift(model, world)
+        extra = {f"{name}_{t}": kept[name][t - 1] for name in kept for t in DRIFT_FRAMES}
+        extra |= {f"{name}_past_window": sum(kept[name][WINDOW:]) / len(kept[name][WINDOW:]) for name in kept}
+        with path.open("a") as f:
+            f.write(json.dumps({**point, **extra}) + "\n")
+        print(args.variant, args.seed, json.dumps({**point, **extra}), flush=True)
+        return extra
+
+    train_on_world(model, world, steps=args.steps, seed=args.seed, eval_every=args.eval_every, on_eval=on_eval)
+
+
 def precision(args):
     torch.set_num_threads(args.threads)
     world = SyntheticWorld("motion")
-    presets = {"adaln": "one_plus", "normalize_control": True, "normalize_actions": True}  # dropout off
-    model = build_model(world, {**AS_BUILT, **presets}, args.seed)
+    model = build_model(world, {**AS_BUILT, **PRESETS}, args.seed)
     trained = train_on_world(model, world, steps=10**9, eval_every=args.eval_every, minutes=args.minutes, until=0.97)
     print(f"trained: {trained[-1]}")
     reads = {"float32": ("float32", 2), "bfloat16": ("bfloat16", 2), "one pass": ("float32", 1)}
@@ -171,9 +203,10 @@ def precision(args):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("command", choices=["run", "report", "precision"])
+    parser.add_argument("command", choices=["run", "report", "drift", "precision"])
     parser.add_argument("--world", default="motion", choices=["wiring", "motion", "text"])
-    parser.add_argument("--variant", default="as_built", choices=list(VARIANTS))
+    parser.add_argument("--variant", default="as_built", choices=[*VARIANTS, *DRIFT])
+    parser.add_argument("--steps", type=int, default=2000, help="drift: training steps")
     parser.add_argument("--minutes", type=float, default=10.0, help="training minutes (evaluation not counted)")
     parser.add_argument("--eval-every", type=int, default=100)
     parser.add_argument("--until", type=float, default=0.98, help="stop once two evaluations in a row reach this")
@@ -182,7 +215,7 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args()
-    {"run": run, "report": report, "precision": precision}[args.command](args)
+    {"run": run, "report": report, "drift": drift_run, "precision": precision}[args.command](args)
 
 
 if __name__ == "__main__":

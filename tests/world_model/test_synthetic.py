@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.synthetic import SyntheticWorld, retrieval, train_on_world, world_model
+from lerobot_roboscape.world_model.synthetic import SyntheticWorld, drift, retrieval, train_on_world, world_model
 
 pytestmark = pytest.mark.slow  # the tiny model trained to solve three worlds: minutes on 2 cores
 GRID, WINDOW, HORIZON = 5, 5, 4
@@ -61,6 +61,31 @@ def test_worlds_move_only_by_their_control():
     assert motion.next_position(np.array([[3, 2]]), right).tolist() == [[3, 2]]  # clamped at the border
     text = SyntheticWorld("text", grid=GRID)
     assert text.next_position(np.array([[0, 0], [0, 0]]), np.array([0, 1])).tolist() == [[1, 0], [0, 1]]
+
+
+class _Replay:
+    """A rollout that is the world's own future (`frozen`: its first frame, held), as drift() reads a model."""
+
+    def __init__(self, world: SyntheticWorld, frozen: bool):
+        self.world, self.frozen = world, frozen
+        self.weight = torch.nn.Parameter(torch.zeros(1))
+
+    def parameters(self):
+        return iter([self.weight])
+
+    def generate(self, prompt, n_frames, actions, states):
+        real = self.world.episodes(np.random.default_rng(4321), len(prompt), n_frames)["tokens"]
+        frames = np.repeat(real[:, :1], n_frames, 1) if self.frozen else real[:, 1:]
+        return type("Generated", (), {"tokens": torch.from_numpy(frames)})
+
+
+def test_drift_reads_a_kept_world_as_kept_and_a_held_frame_as_losing_the_square():
+    world = SyntheticWorld("motion", grid=GRID)
+    real = drift(_Replay(world, frozen=False), world, starts=16, horizon=12)
+    assert all(min(real[name]) == 1.0 for name in ("background", "uncovered", "square"))
+    held = drift(_Replay(world, frozen=True), world, starts=16, horizon=12)
+    assert min(held["background"]) == 1.0  # the first frame's background is the real one wherever it shows
+    assert held["square"][0] < 1 and max(held["square"][4:]) < 0.5  # the square stays while the real one moves
 
 
 @pytest.mark.parametrize("kind", ["wiring", "motion"])
