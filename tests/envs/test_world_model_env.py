@@ -13,6 +13,7 @@ from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.reward.world_model_reward import WorldModelReward
 from lerobot_roboscape.world_model.clips import model_frames
+from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
 
@@ -39,6 +40,38 @@ def test_batched_reset_and_step(env_config):
         assert info[key].shape == (3,)
     assert env.render()[0].shape == (2 * IMAGE_SIZE, 2 * IMAGE_SIZE, 3)
     assert env.call("_max_episode_steps") == (6, 6, 6) and len(env.call("task_description")) == 3
+
+
+def anchored_copy(path, out):
+    """The saved world model at `path` as an anchored one (its anchor embedding drawn), saved in `out`."""
+    model = STWorldModel.from_pretrained(path)
+    model.config.anchor = True
+    torch.manual_seed(0)
+    anchored = STWorldModel(model.config)
+    missing = anchored.load_state_dict(model.state_dict(), strict=False).missing_keys
+    assert missing == ["anchor_emb"]
+    anchored.save_pretrained(out)
+    return str(out)
+
+
+def test_anchored_world_models_run_the_env_past_their_window(env_config, tmp_path):
+    """Goals from an anchored text model, episodes from an anchored action model, both reading the start's first
+    frame after it has left their window."""
+    base = env_config()
+    config = env_config(
+        action_world_model=anchored_copy(base.action_world_model, tmp_path / "action"),
+        text_world_model=anchored_copy(base.text_world_model, tmp_path / "text"),
+        episode_length=48,
+        max_goal_steps=48,
+    )
+    env = RoboscapeWorldModelEnv(config, num_envs=2)
+    env.reset(seed=0)
+    first = torch.stack([s.first_tokens for s in env._starts]).to(env._rollout.anchor.device)
+    window = env.action_model.config.window
+    for _ in range(48):
+        _, reward, _, _, _ = env.step(env.action_space.sample())
+        assert np.isfinite(reward).all()
+    assert env._rollout.frames_seen > window and torch.equal(env._rollout.anchor[:2], first)
 
 
 def test_bfloat16_precision_runs_the_models_under_autocast(env_config, monkeypatch):
