@@ -76,6 +76,9 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         corrupt_max: training replaces a share of the codes left unmasked (the context every prediction reads) with
             random codes, the share drawn per clip uniformly in [0, corrupt_max] (1xgpt's collator after Copilot-4D,
             GameNGen's context noise), so that the model learns to read through the mistakes of its own rollouts.
+        corrupt_held: the corrupted codes are the same, replaced by the same random codes, in every frame of a
+            clip, as a rollout's mistakes persist from frame to frame: no frame of the window shows what they hide,
+            only an anchor does (`anchor`), so that the model learns to repair its rollouts from it.
         clean_frame_prob: chance that a training frame stays unmasked, so the model also learns from clean
             context as it sees at generation time.
         changed_weight: weight of the masked tokens that differ from the previous frame's token at the same place,
@@ -132,6 +135,7 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     # Training.
     clean_frame_prob: float = 0.25
     corrupt_max: float = 0.0
+    corrupt_held: bool = False
     changed_weight: float = 1.0
     masked_head: bool | None = None
     done_hidden: int = 128

@@ -17,7 +17,7 @@ def masked_inputs(
     """(the clip's inputs, its mask (B, T, S) bool): positions of frames after the first masked at a MaskGIT ratio
     each, or left clean with clean_frame_prob (a position's codes masked together, `ungroup` spreading a position's
     flag over them); a share of the codes left unmasked, drawn per clip up to corrupt_max, replaced by random
-    codes."""
+    codes (with corrupt_held the same codes by the same random ones in every frame of the clip)."""
     B, T, S = tokens_BTS.shape
     device = tokens_BTS.device
     ratio = torch.cos(math.pi / 2 * torch.rand(B, T, 1, device=device))  # MaskGIT cosine schedule
@@ -28,8 +28,12 @@ def masked_inputs(
     inputs = tokens_BTS
     if c.corrupt_max > 0:
         rate = c.corrupt_max * torch.rand(B, 1, 1, device=device)
-        corrupt = (torch.rand(B, T, S, device=device) < rate) & ~mask
-        inputs = torch.where(corrupt, torch.randint_like(tokens_BTS, c.vocab_size), tokens_BTS)
+        if c.corrupt_held:
+            corrupt = torch.rand(B, 1, S, device=device) < rate
+            noise = torch.randint(c.vocab_size, (B, 1, S), device=device).expand(B, T, S)
+        else:
+            corrupt, noise = torch.rand(B, T, S, device=device) < rate, torch.randint_like(tokens_BTS, c.vocab_size)
+        inputs = torch.where(corrupt & ~mask, noise, tokens_BTS)
     return inputs.masked_fill(mask, c.mask_token_id), mask
 
 

@@ -7,9 +7,10 @@ reads the same model guided (scale 2 and 4) when the variant trains a null contr
 its own. (The decoding orders, annealed and random, were read the same way, measured within noise of confidence and
 removed; their columns stay in the saved curves.)
 
-`report` draws OUT/control_levers.png and prints the table of every run.
+`report` draws OUT/control_levers.png and prints the table of every run (and of the drift runs).
 
-`drift` trains the presets' combination with and without the anchor frame and corrupted context (issue 72: the
+`drift` trains the presets' combination with and without the anchor frame and corrupted context, per code or held
+across the clip's frames (issue 72: the
 bench model's 100-step rollouts drifted) for `--steps`, reading retrieval and, over rollouts of 32 frames (past the
 window of 5), the share of background cells kept and of squares drawn where they are, into OUT/drift/.
 
@@ -59,6 +60,9 @@ DRIFT = {
     "anchor": {"anchor": True},
     "corrupt": {"corrupt_max": 0.2},
     "corrupt_anchor": {"corrupt_max": 0.2, "anchor": True},
+    # corruption held across the clip's frames: only the anchor shows what it hides
+    "held": {"corrupt_max": 0.2, "corrupt_held": True},
+    "held_anchor": {"corrupt_max": 0.2, "corrupt_held": True, "anchor": True},
 }
 DRIFT_FRAMES = (1, 4, 8, 16, 32)  # the rollout frames a drift point keeps
 
@@ -163,6 +167,22 @@ def report(args):
             ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(args.out / "control_levers.png", dpi=70)
+    drift_table(args.out / "drift")
+
+
+def drift_table(folder: Path):
+    """Each drift run's readings: retrieval, then past the window the background kept, the cells the square
+    uncovered kept, and the squares drawn where they are."""
+    if not folder.is_dir():
+        return
+    print("\n| variant | seed | step | retrieval | background | uncovered | square | square, frame 1 / 8 / 32 |")
+    print("|---|---:|---:|---:|---:|---:|---:|---|")
+    for path in sorted(folder.glob("*.jsonl")):
+        variant, seed = path.stem.rsplit("_seed", 1)
+        for p in map(json.loads, path.read_text().splitlines()):
+            past = " | ".join(f"{p[f'{name}_past_window']:.3f}" for name in ("background", "uncovered", "square"))
+            frames = " / ".join(f"{p[f'square_{t}']:.2f}" for t in (1, 8, 32))
+            print(f"| {variant} | {seed} | {p['step']} | {p['retrieval']:.2f} | {past} | {frames} |")
 
 
 def drift_run(args):

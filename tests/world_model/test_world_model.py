@@ -598,6 +598,21 @@ def test_training_corrupts_a_share_of_the_unmasked_context_drawn_per_clip():
     assert ((seen[0] == tokens) | (seen[0] == plain.config.mask_token_id)).all()  # corrupt_max=0: none
 
 
+def test_held_corruption_replaces_the_same_codes_by_the_same_codes_in_every_frame():
+    model = make_model(corrupt_max=0.9, corrupt_held=True).train()
+    batch = random_batch(B=64, T=4)
+    batch["tokens"][:] = batch["tokens"][:, :1]  # a still clip: a frame's codes are the first's
+    seen = []
+    compute = model.compute_hidden
+    model.compute_hidden = lambda tokens, *a, **k: seen.append(tokens) or compute(tokens, *a, **k)
+    model(batch)
+    inputs = seen[0]
+    unmasked = inputs != model.config.mask_token_id
+    assert ((inputs == inputs[:, :1]) | ~unmasked).all()  # every frame wrong where the first is, and alike
+    share = ((inputs != batch["tokens"]) & unmasked)[:, 0].float().mean(1)
+    assert share.max() > 0.4 and share.min() < 0.15
+
+
 def test_a_quaternion_and_its_negation_read_as_one_state():
     """q and -q are one orientation, and the simulator reports either (24 jumps in the bench's exploration): the
     state channel reads both alike, so such a frame costs the state's loss nothing."""
