@@ -10,9 +10,9 @@ removed; their columns stay in the saved curves.)
 `report` draws OUT/control_levers.png and prints the table of every run (and of the drift runs).
 
 `drift` trains the presets' combination with and without the anchor frame and corrupted context, per code or held
-across the clip's frames (issue 72: the
-bench model's 100-step rollouts drifted) for `--steps`, reading retrieval and, over rollouts of 32 frames (past the
-window of 5), the share of background cells kept and of squares drawn where they are, into OUT/drift/.
+across the clip's frames (issue 72: the bench model's 100-step rollouts drifted) for `--steps`, reading retrieval
+and, over rollouts of 32 frames (past the window of 5), the share of background cells kept, of the cells the square
+uncovered kept, and of squares drawn where they are, into OUT/drift/.
 
 `precision` trains the presets' combination on *motion* until it solves it, then reads the same model in float32,
 under bf16 autocast (roboscape_wm's `precision`) and with one MaskGIT pass: retrieval over 64 starts, and the
