@@ -58,6 +58,7 @@ LEVERS = {
     # the bench preset reading the episode's first frame in every frame (issue 72: 100-step rollouts drifted);
     # read it with a --horizon past the window (24 control steps), where the drift is
     "anchor": {"patch": "2", "corrupt_max": "0.2", "anchor": "true"},
+    "anchor_held": {"patch": "2", "corrupt_max": "0.2", "corrupt_held": "true", "anchor": "true"},  # repair from it
     "wide": {"patch": "2", "d_model": "192", **OFF},  # 1.5x wider: give its own pace (--steps_per_minute)
     "text": {"patch": "2", "control": "text", **OFF},  # the bench preset's text model, read on its goals
 }
