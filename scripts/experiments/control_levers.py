@@ -172,9 +172,23 @@ def report(args):
 
 def drift_table(folder: Path):
     """Each drift run's readings: retrieval, then past the window the background kept, the cells the square
-    uncovered kept, and the squares drawn where they are."""
+    uncovered kept, and the squares drawn where they are (printed, and drawn against steps in drift.png)."""
     if not folder.is_dir():
         return
+    import matplotlib.pyplot as plt
+
+    names = ("retrieval", "background_past_window", "uncovered_past_window", "square_past_window")
+    fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 4))
+    for i, path in enumerate(sorted(folder.glob("*.jsonl"))):
+        curve = [json.loads(line) for line in path.read_text().splitlines()]
+        variant, seed = path.stem.rsplit("_seed", 1)
+        for ax, name in zip(axes, names, strict=True):
+            style = "-" if "anchor" in variant else "--"
+            ax.plot([p["step"] for p in curve], [p[name] for p in curve], style, color=f"C{i // 2}", label=path.stem)
+            ax.set(title=name.replace("_", " "), xlabel="steps")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(folder / "drift.png", dpi=70)
     print("\n| variant | seed | step | retrieval | background | uncovered | square | square, frame 1 / 8 / 32 |")
     print("|---|---:|---:|---:|---:|---:|---:|---|")
     for path in sorted(folder.glob("*.jsonl")):
