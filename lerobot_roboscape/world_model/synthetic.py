@@ -199,6 +199,8 @@ def drift(model, world: SyntheticWorld, starts: int = 64, horizon: int = 32, see
     frame, the share of the background's cells (where neither the real square nor the rollout's is) that keep the
     real token, of those the square has just uncovered (their token read from memory: the window, or an anchor),
     and the share of rollouts with the square drawn whole where the real one is."""
+    if world.kind == "text":
+        raise ValueError("drift() rolls a world out under actions; the text world has instructions")
     rng = np.random.default_rng(seed)
     episodes = world.episodes(rng, starts, horizon)
     device = next(model.parameters()).device
