@@ -282,13 +282,17 @@ def headline() -> list[str]:
 
 
 def agreement() -> str:
-    """The agreement ladder on the world models of CLAIM: the initial scene's figures, OOD's beside."""
-    ladder = lambda split, *keys: _measured(f"claim72_gpuwm/ladder/{split}/ladder.json", *keys)  # noqa: E731
-    both = lambda *keys: (ladder("initial", *keys), ladder("ood", *keys))  # noqa: E731
-    accuracy, rho = both("pooled", "balanced_accuracy"), both("spearman_return_vs_success")
+    """The agreement ladder on CLAIM's world models: the initial scene's figures, OOD's beside."""
+    folder = CLAIM.rsplit("/", 1)[0]
+
+    def ladder(split: str, *keys):
+        return _measured(f"{folder}/ladder/{split}/ladder.json", *keys)
+
+    accuracy, accuracy_ood = (ladder(split, "pooled", "balanced_accuracy") for split in ("initial", "ood"))
+    rho, rho_ood = (ladder(split, "spearman_return_vs_success") for split in ("initial", "ood"))
     return (
-        f"over {len(ladder('initial', 'policies'))} policies in the initial scene, balanced accuracy {accuracy[0]:.2f} "
-        f"per episode (OOD {accuracy[1]:.2f}; goal 0.8), Spearman {rho[0]:.2f} (OOD {rho[1]:.2f}; goal 0.9)"
+        f"over {len(ladder('initial', 'policies'))} policies in the initial scene, balanced accuracy {accuracy:.2f} "
+        f"per episode (OOD {accuracy_ood:.2f}; goal 0.8), Spearman {rho:.2f} (OOD {rho_ood:.2f}; goal 0.9)"
     )
 
 
