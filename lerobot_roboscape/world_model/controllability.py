@@ -208,7 +208,7 @@ def measure_start(
     other_psnr = np.array([psnr(pred[K + j], real[j]).mean().item() for j in range(K)])
     out["action_gain"] = float(np.mean(own - other_psnr))
     predicted_states = None if generated.state is None else generated.state[:K]
-    out["arm"] = arm_measures(tokenizer, start, out["world_model"]["pred"], predicted_states)
+    out["arm"] = arm_measures(tokenizer, start, out["world_model"]["pred"], predicted_states, model.config.window)
     return out
 
 

@@ -29,6 +29,9 @@ class ArmReading:
     retrieval_state: float | None = None
     tcp_error_cm: float | None = None
     tcp_error_share_of_moved: float | None = None
+    scene_psnr_in_window: float | None = None
+    scene_psnr_past_window: float | None = None
+    arm_psnr_past_window: float | None = None
 
 
 @dataclass(frozen=True)

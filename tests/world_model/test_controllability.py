@@ -64,18 +64,39 @@ def test_the_arms_measures_see_the_tcp_the_arm_and_the_motion():
     start = ControlStart(
         0, [0, 1, 2], "push", torch.zeros(1, 2 * 64), torch.zeros(K, T * 4, 7), real, masks, torch.zeros(1, D), states
     )
-    exact = arm_measures(tokenizer, start, real.float() / 255, states)
+    exact = arm_measures(tokenizer, start, real.float() / 255, states, window=3)
     assert exact["retrieval_state"] == 1.0 and max(exact["tcp_error_m"]) == pytest.approx(0.0, abs=1e-6)
     np.testing.assert_allclose(exact["tcp_moved_m"], 0.1, rtol=1e-5)
     assert exact["motion_ratio"] == pytest.approx(1.0) and exact["arm_psnr"] > 60  # the real future itself
     assert exact["arm_psnr_tokenizer"] < 40  # an untrained tokenizer does not reconstruct noise
     frozen = (real[:, :1].float() / 255).expand(-1, T, -1, -1, -1, -1)
-    still = arm_measures(tokenizer, start, frozen, torch.zeros(K, T, D))
+    still = arm_measures(tokenizer, start, frozen, torch.zeros(K, T, D), window=3)
     assert still["motion_ratio"] == 0.0 and still["retrieval_state"] == pytest.approx(1 / K)  # tied: chance
     np.testing.assert_allclose(still["tcp_error_m"], 0.1, rtol=1e-5)
     summary = summarise_arm([exact, still])
+    assert exact["scene_psnr_in_window"] > 60 and exact["scene_psnr_past_window"] > 60
+    assert exact["arm_psnr_past_window"] > 60
     assert summary["tcp_error_cm"] == pytest.approx(5.0, abs=1e-3)  # median of three 0 cm and three 10 cm
     assert summary["retrieval_state"] == pytest.approx((1 + 1 / K) / 2)
+
+
+def test_the_scene_is_read_in_and_past_the_window():
+    """With a window of 3 frames, rollout frames 0-1 are generated seeing the start and frames 2-3 are not: a rollout
+    that keeps the scene until the start leaves its window and loses it after reads high in and low past it; the arm's
+    region alone past the window is read apart from the scene."""
+    tokenizer = VisualTokenizer(TinyTokenizerConfig(image_size=32)).eval()
+    K, T, n = 2, 4, 1
+    real = torch.full((K, T, n, 3, 32, 32), 128, dtype=torch.uint8)
+    masks = torch.zeros(K, T, n, 32, 32, dtype=torch.uint8)
+    masks[..., :8, :8] = ROBOT
+    start = ControlStart(0, [0, 1], "push", torch.zeros(1, 64), torch.zeros(K, T * 4, 7), real, masks, None, None)
+    pred = real.float() / 255
+    pred[:, 2:, ..., 16:, 16:] = 1.0  # the scene lost past the window, the arm's corner kept
+    read = arm_measures(tokenizer, start, pred, None, window=3)
+    assert read["scene_psnr_in_window"] == 100.0  # exact: the clamp of a zero error
+    assert read["scene_psnr_past_window"] < 15 and read["arm_psnr_past_window"] == 100.0
+    short = arm_measures(tokenizer, start, pred, None, window=5)  # the horizon ends before the start leaves
+    assert "scene_psnr_past_window" not in short and "arm_psnr_past_window" not in short
 
 
 def test_offsets_are_distinct_directions_of_the_given_length():
