@@ -4,6 +4,8 @@ and after. Writes OUT/controllability_<name>.png, where <name> is the model's ru
 
     python scripts/experiments/wm_pictures.py outputs/screen outputs/screen/levers20/today_seed0 \
         outputs/screen/bench60/bench_seed0 --out docs/results/world_model/levers70
+    python scripts/experiments/wm_pictures.py outputs/bench outputs/bench/anchor72/all_seed0 \
+        outputs/bench/anchor72/anchor_held_seed0 --out docs/results/world_model/anchor72 --starts 2 --horizon 48
 """
 
 import argparse
@@ -24,6 +26,7 @@ def main():
     parser.add_argument("models", type=Path, nargs="+", help="roboscape-train-wm output_dirs")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--starts", type=int, default=4, help="starts drawn (K = 4 sequences each)")
+    parser.add_argument("--horizon", type=int, default=16, help="control steps rolled out (48: twice the window)")
     args = parser.parse_args()
     control = args.run / CONTROL_IND_DIR
     args.out.mkdir(parents=True, exist_ok=True)
@@ -36,6 +39,7 @@ def main():
                 tokenizer=str(args.run / TOKENIZER_DIR / FINAL),
                 world_model=str(model / FINAL),
                 output_dir=Path(tmp),
+                horizon=args.horizon,
                 picture_starts=args.starts,
                 device="cpu",
             )
