@@ -341,7 +341,7 @@ def test_an_anchored_model_learns_to_redraw_what_left_its_window_and_a_plain_one
     for anchor in (False, True):
         model = make_model("action", anchor=anchor, window=2, clean_frame_prob=0.0).train()
         opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
-        for step in range(500):  # copying through the cross-attention is learnt by step 400 (measured, 2 seeds)
+        for step in range(1000):  # the copy is learnt between steps 300 and 600 (measured, 3 seeds); plain: 0.06
             loss, _ = model(_copy_clips(step))
             opt.zero_grad()
             loss.backward()
