@@ -82,6 +82,9 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
         disagreement_penalty: MOPO's lambda: each frame's reward minus this x its disagreement (0: none).
         disagreement_threshold: MOReL's halt: an episode ends (terminated, nothing paid after it) at the first frame
             whose disagreement passes this, where the world models no longer know what follows (null: never).
+        state_margin: an episode halts (terminated, that frame unpaid and no success) at the first frame whose
+            predicted robot state leaves the range of the action model's training states, widened by this share of
+            its span on each side: past it the model has seen nothing of what follows (null: never).
         max_goal_steps: control steps the text model may generate while looking for the goal (a frame per frame_skip).
         goal_file: a file of generated goals (safetensors): the env reads it when made, generates every start's
             missing goal then (once, before any episode) and writes them back. A file made with other models or
@@ -140,6 +143,7 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
     ensemble: list[str] = field(default_factory=list)
     disagreement_penalty: float = 0.0
     disagreement_threshold: float | None = None
+    state_margin: float | None = None
     max_goal_steps: int = 100
     goal_file: str | None = None
     starts_per_scene: int | None = None
@@ -196,6 +200,8 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
                 "(roboscape-train-wm --wm.control=action with other --train.seed values, or --init_from the env's "
                 "model with --retrain_blocks)"
             )
+        if self.state_margin is not None and self.state_margin < 0:
+            raise InvalidInputError(f"state_margin must be >= 0 (or null), got {self.state_margin}")
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
             raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
         self.features, self.features_map = camera_features(self.image_size)

@@ -28,6 +28,54 @@ from roboscape_core.errors import InvalidInputError
 FROM_FRAMES = -1
 
 
+def checked_frames(frames: dict, cameras: list[str], shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+    """A batch of given frames (camera -> (B, H, W, 3) uint8) in the env's camera order, each of `shape`, checked."""
+    if set(frames) != set(cameras):
+        raise InvalidInputError(f"frames have cameras {sorted(frames)}, this env {cameras}")
+    for cam, images in frames.items():
+        if np.shape(images) != shape:
+            raise InvalidInputError(f"frames[{cam!r}] has shape {np.shape(images)}, expected {shape}")
+    return {cam: np.asarray(frames[cam], np.uint8) for cam in cameras}
+
+
+def given_starts(cfg, tokens: torch.Tensor, tasks, horizons, states, state_dim: int | None) -> list[EpisodeStart]:
+    """Starts of `roboscape_wm` (config `cfg`) from given frames, tokenized (B, S) (another env's first
+    observation), with their instructions, horizons in control steps and the robot's states (B, D), which a world
+    model with a state channel (`state_dim`) needs, e.g. the simulator's initial states for a paired evaluation.
+    Their goals are the text model's from these frames, or goal frames that the reset gives (a real success of the
+    same scene, say)."""
+    if cfg.goal_source != "text_model":
+        raise InvalidInputError(
+            f"a start from given frames has no recorded last frame: goal_source must be text_model, not "
+            f"{cfg.goal_source!r}"
+        )
+    B = len(tokens)
+    if tasks is None or len(tasks) != B:
+        raise InvalidInputError(f"frames need an instruction per episode ({B}), got {tasks!r}")
+    horizons = np.broadcast_to(horizons, (B,))
+    if state_dim is not None:
+        if states is None or np.shape(states) != (B, state_dim):
+            raise InvalidInputError(
+                f"the action world model carries the robot's state: frames need options['states'] of shape "
+                f"{(B, state_dim)} (observation.state of each start), got "
+                f"{None if states is None else np.shape(states)}"
+            )
+        states = torch.as_tensor(np.asarray(states, np.float32))
+    return [
+        EpisodeStart(
+            FROM_FRAMES,
+            str(task),
+            tokens[i],
+            tokens[i],
+            {},
+            int(horizons[i]),
+            first_state=None if states is None else states[i],
+            last_state=None if states is None else states[i],
+        )
+        for i, task in enumerate(tasks)
+    ]
+
+
 def dataset_starts(
     cfg, repo_id: str, n_cameras: int, encode: Callable[[dict], torch.Tensor]
 ) -> tuple[list[EpisodeStart], list[str], tuple[np.ndarray, np.ndarray]]:

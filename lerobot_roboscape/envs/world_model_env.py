@@ -19,6 +19,9 @@ B episodes run side by side on one device, stepped by one batched call of the ac
   A finished episode stays frozen (same frame, reward 0) until the next reset, which restarts all of them.
 - With an **ensemble** of action models (`envs/ensemble.py`), each frame's disagreement is reported, and penalised
   (MOPO) or halts the episode (MOReL) where the world models no longer know what follows.
+- With a **state margin**, an episode halts, unpaid and unsuccessful, at the first frame whose predicted robot state
+  has left the range of the action model's training data: PPO learned to drive the arm there, where the frames
+  break down into texture that the done head reads as success (docs/results/claim72_gpuwm).
 """
 
 import logging
@@ -31,9 +34,10 @@ import torch
 
 from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
 from lerobot_roboscape.envs.ensemble import Ensemble
-from lerobot_roboscape.envs.goal_bank import EpisodeStart, GoalBank
+from lerobot_roboscape.envs.goal_bank import GoalBank
 from lerobot_roboscape.envs.loading import load_ensemble, load_models, load_rewards, model_refs
-from lerobot_roboscape.envs.starts import FROM_FRAMES, dataset_starts, file_starts
+from lerobot_roboscape.envs.starts import checked_frames, dataset_starts, file_starts, given_starts
+from lerobot_roboscape.world_model.robot_state import STATE_STD_FLOOR
 from lerobot_roboscape.world_model.rollout import Rollout
 from roboscape_core.errors import InvalidInputError
 
@@ -83,6 +87,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         bf16 = self.precision == "bfloat16"
         self.autocast = lambda: torch.autocast(torch.device(self.device).type, torch.bfloat16, enabled=bf16)
         self._check_cache_fits(torch.bfloat16 if bf16 else torch.float32)
+        self._state_bounds = self._bounds_of_the_data(action_model) if config.state_margin is not None else None
         if self.text_model is not None and self.text_model.config.frame_skip != self.frame_skip:
             raise InvalidInputError(
                 f"the text world model {text_model} steps every {self.text_model.config.frame_skip} control steps but "
@@ -147,55 +152,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 f"{free / 2**30:.2f} GiB are free on {self.device}: lower the number of envs"
             )
 
-    def _starts_from_frames(self, frames: dict, tasks, horizons, states=None) -> list[EpisodeStart]:
-        """Starts from another env's first observation (camera -> (B, H, W, 3) uint8), with their instructions,
-        horizons in control steps (default: the longest of this env's starts) and the robot's states (B, D), which
-        a world model with a state channel needs, e.g. the simulator's initial states for a paired evaluation.
-        Their goals are the text model's from these frames, or `goal_frames` when the reset gives them (a real
-        success of the same scene, say)."""
-        if self.config.goal_source != "text_model":
-            raise InvalidInputError(
-                f"a start from given frames has no recorded last frame: goal_source must be text_model, not "
-                f"{self.config.goal_source!r}"
-            )
-        if tasks is None or len(tasks) != self.num_envs:
-            raise InvalidInputError(f"frames need an instruction per episode ({self.num_envs}), got {tasks!r}")
-        tokens = self.encode(self._checked_frames(frames))  # (B, S)
-        horizons = np.broadcast_to(self._max_episode_steps if horizons is None else horizons, (self.num_envs,))
-        if self.action_model.config.state:
-            D = self.action_model.config.state_dim
-            if states is None or np.shape(states) != (self.num_envs, D):
-                raise InvalidInputError(
-                    f"the action world model carries the robot's state: frames need options['states'] of shape "
-                    f"{(self.num_envs, D)} (observation.state of each start), got "
-                    f"{None if states is None else np.shape(states)}"
-                )
-            states = torch.as_tensor(np.asarray(states, np.float32))
-        return [
-            EpisodeStart(
-                FROM_FRAMES,
-                str(task),
-                tokens[i],
-                tokens[i],
-                {},
-                int(horizons[i]),
-                first_state=None if states is None else states[i],
-                last_state=None if states is None else states[i],
-            )
-            for i, task in enumerate(tasks)
-        ]
-
     def _checked_frames(self, frames: dict) -> dict[str, np.ndarray]:
-        """A batch of given frames (camera -> (B, H, W, 3) uint8) in this env's camera order, checked."""
-        if set(frames) != set(self.cameras):
-            raise InvalidInputError(f"frames have cameras {sorted(frames)}, this env {self.cameras}")
         size = self.tokenizer.config.image_size
-        for cam, images in frames.items():
-            if np.shape(images) != (self.num_envs, size, size, 3):
-                raise InvalidInputError(
-                    f"frames[{cam!r}] has shape {np.shape(images)}, expected {(self.num_envs, size, size, 3)}"
-                )
-        return {cam: np.asarray(frames[cam], np.uint8) for cam in self.cameras}
+        return checked_frames(frames, self.cameras, (self.num_envs, size, size, 3))
 
     def encode(self, frames: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (k, H, W, 3) uint8 to (k, S) tokens, views side by side."""
@@ -238,9 +197,10 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             self._rng = np.random.default_rng(seed)
             self._generator.manual_seed(seed)  # world-model sampling; in place: a CUDA graph holds this generator
         if "frames" in options:  # new starts: their goals are made now (or given), not cached
-            starts = self._starts_from_frames(
-                options["frames"], options.get("task"), options.get("horizon"), options.get("states")
-            )
+            horizons = self._max_episode_steps if options.get("horizon") is None else options["horizon"]
+            state_dim = self.action_model.config.state_dim if self.action_model.config.state else None
+            tokens = self.encode(self._checked_frames(options["frames"]))
+            starts = given_starts(self.config, tokens, options.get("task"), horizons, options.get("states"), state_dim)
             if options.get("goal_frames") is not None:
                 goal_tokens, reached = self.encode(self._checked_frames(options["goal_frames"])), [True] * len(starts)
             else:
@@ -307,7 +267,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         self._chunk[:, self._substep] = actions
         self._substep += 1
         live = ~self._book.finished
-        halt = None
+        halt, off_data = None, np.zeros(self.num_envs, dtype=bool)
         if self._substep < self.frame_skip:  # within a chunk: the last frame stays, nothing is paid
             zeros = np.zeros(self.num_envs, np.float32)
             reward = zeros
@@ -323,9 +283,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                 torch.from_numpy(live).to(self.device)[:, None, None, None, None], frames, self._frames
             )
             reward, parts = self.compute_reward(frames, done, disagreement, live)
-            if self.config.disagreement_threshold is not None:
-                halt = disagreement > self.config.disagreement_threshold
-        reward = self._book.step(reward, self._succeeding(), halt)
+            halt, off_data = self._halts(disagreement)
+            reward = reward * ~off_data  # a frame off the data pays nothing and is no success
+        reward = self._book.step(reward, self._succeeding() & ~off_data, halt)
         info = {
             "is_success": self._book.succeeded.copy(),
             "halted": self._book.halted.copy(),
@@ -352,6 +312,33 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             if self.ensemble is not None:
                 self.ensemble.observe(tokens, chunk, self._rollout.state)
         return tokens, done, disagreement
+
+    def _halts(self, disagreement: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The episodes that halt at the frame just generated (B,), and those among them whose predicted robot state
+        has left the data's range (B,)."""
+        off_data = np.zeros(self.num_envs, dtype=bool)
+        if self._state_bounds is not None:
+            low, high = self._state_bounds
+            state = self._rollout.state.float()
+            off_data = ((state < low) | (state > high)).any(-1).cpu().numpy()
+        halt = off_data.copy()
+        if self.config.disagreement_threshold is not None:
+            halt |= disagreement > self.config.disagreement_threshold
+        return halt, off_data
+
+    def _bounds_of_the_data(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The range of the action model's training states, widened on each side by state_margin x its span (a
+        span floored as the states' spread is, so that a dimension the data never moved is not a wall)."""
+        config = self.action_model.config
+        if not config.state or config.state_min is None:
+            raise InvalidInputError(
+                f"state_margin: the action world model {name} carries no range of its training data's states "
+                "(trained with --wm.state=false, or before the range was recorded): retrain it, or leave "
+                "state_margin null"
+            )
+        low, high = (torch.tensor(v, device=self.device) for v in (config.state_min, config.state_max))
+        widen = self.config.state_margin * (high - low).clamp(min=STATE_STD_FLOOR)
+        return low - widen, high + widen
 
     def _succeeding(self) -> np.ndarray:
         return self._done >= self.config.theta

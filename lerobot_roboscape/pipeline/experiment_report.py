@@ -80,6 +80,7 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[PpoRun]
                 continue
             first, last = history[0], history[-3:]
             ensemble = first.disagreement is not None  # an ensemble guarded the run: how far from the data it went
+            halts = ensemble or any(row.halted for row in history)  # a guard halted its episodes
             rows.append(
                 PpoRun(
                     policy,
@@ -95,7 +96,7 @@ def ppo_runs(out: Path, policies: list[str], methods: list[str]) -> list[PpoRun]
                     simulator_steps_beside_ppo=sum(r.simulator_steps for r in refresh_rounds(folder)),
                     first_disagreement=round(first.disagreement, 4) if ensemble else None,
                     last_disagreement=mean([row.disagreement for row in last], 4) if ensemble else None,
-                    last_halted=mean([row.halted for row in last], 3) if ensemble else None,
+                    last_halted=mean([row.halted for row in last], 3) if halts else None,
                 )
             )
     return rows

@@ -100,6 +100,18 @@ class TrustSettings:
 
 
 @dataclass
+class RangeSettings:
+    """margin: episodes halt, that frame unpaid and no success, where the predicted robot state leaves the action
+    model's training range widened by this share of its span (roboscape_wm's --env.state_margin)."""
+
+    margin: float = 0.1
+
+    def __post_init__(self):
+        if self.margin < 0:
+            raise InvalidInputError(f"--lever.range.margin must be >= 0, got {self.margin}")
+
+
+@dataclass
 class LeverSettings:
     """Each lever's settings: starting points; what each measured goes in the claim's report."""
 
@@ -108,6 +120,7 @@ class LeverSettings:
     branched: BranchedSettings = field(default_factory=BranchedSettings)
     refresh: RefreshSettings = field(default_factory=RefreshSettings)
     trust: TrustSettings = field(default_factory=TrustSettings)
+    range: RangeSettings = field(default_factory=RangeSettings)
 
 
 @dataclass
@@ -239,6 +252,15 @@ LEVERS = {
             lambda context, settings: RLRun(context.world_model, {"target_kl": settings.trust.target_kl}),
             lambda settings: (
                 f"each iteration's update stopped once its KL from the rollout's policy > {settings.trust.target_kl}"
+            ),
+        ),
+        Lever(
+            "range",
+            world_model_variant("halted off the training states", "range"),
+            lambda context, settings: RLRun(replace(context.world_model, state_margin=settings.range.margin)),
+            lambda settings: (
+                "episodes halted where the predicted robot state leaves the training range, widened by "
+                f"{settings.range.margin:.0%} of its span"
             ),
         ),
     )

@@ -35,11 +35,7 @@ from lerobot_roboscape.rl.policy_loading import (
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
 from lerobot_roboscape.robot import CONTROL_FREQ
-from lerobot_roboscape.training.checkpoints import (
-    CHECKPOINTS,
-    FINAL,
-    last_checkpoint,
-)
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import resolve_mixed_precision
 from lerobot_roboscape.training.records import HISTORY, History, write_video
 from roboscape_core.errors import OutputExistsError
@@ -64,7 +60,7 @@ class Rollout(NamedTuple):
     successes: np.ndarray  # (B,) success at any step
     frames: list[np.ndarray]  # render() per step, when recorded
     disagreement: np.ndarray | None  # (B,) an ensemble's disagreement summed over the episode; None: none reported
-    halted: np.ndarray | None  # (B,) the episode ended by the ensemble's halt
+    halted: np.ndarray | None  # (B,) the episode ended by the env's halt; None: the env halts none
 
 
 @torch.no_grad()
@@ -80,7 +76,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
     raw_actions = None  # shaped as the policy's choice: a Gaussian sample, or OpenVLA's action token ids
     alive = np.ones(n, dtype=bool)
     returns, successes, frames = np.zeros(n), np.zeros(n, dtype=bool), []
-    disagreement, halted = np.zeros(n), np.zeros(n, dtype=bool)  # roboscape_wm with an ensemble reports them
+    disagreement, halted = np.zeros(n), None  # roboscape_wm reports its halts, and with an ensemble its disagreement
     reported = False
     for t in range(steps):
         for cam, image in observation["pixels"].items():
@@ -103,7 +99,8 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
             if "disagreement" in info:
                 reported = True
                 disagreement += np.asarray(info["disagreement"]) * running
-                halted |= np.asarray(info.get("halted", np.zeros(n, dtype=bool)), dtype=bool) & running
+            if "halted" in info:
+                halted = (np.zeros(n, dtype=bool) if halted is None else halted) | (info["halted"] & running)
             ended_by_task |= task_ended & running
             ended_by_time |= time_ended & running
         returns += reward
@@ -132,7 +129,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
         successes,
         frames,
         disagreement if reported else None,
-        halted if reported else None,
+        halted,
     )
 
 
@@ -299,7 +296,7 @@ def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:
 
 def _rollout_metrics(accelerator: Accelerator, rollout: Rollout, seconds: float, rollout_seconds: float) -> dict:
     """The iteration's episodes over every process: return, success, length, speed and, where an ensemble guards
-    the run, its disagreement per decision and the share of episodes it halted."""
+    the run, its disagreement per decision; the share of episodes the env halted, where it halts any."""
     device = accelerator.device
     episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
     successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
@@ -313,9 +310,9 @@ def _rollout_metrics(accelerator: Accelerator, rollout: Rollout, seconds: float,
     if rollout.disagreement is not None:  # the guard's own reading: does the policy leave the data?
         disagreement = accelerator.gather(torch.tensor(rollout.disagreement, device=device)).sum()
         decisions = accelerator.gather(rollout.alive.sum(0).float()).sum().clamp_min(1)
-        halted = accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean()
         metrics["charts/disagreement"] = float(disagreement / decisions)  # nats per decision
-        metrics["charts/halted"] = float(halted)
+    if rollout.halted is not None:
+        metrics["charts/halted"] = float(accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean())
     return metrics
 
 

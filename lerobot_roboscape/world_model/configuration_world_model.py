@@ -40,6 +40,9 @@ class WorldModelConfig(draccus.ChoiceRegistry):
         state_mean, state_std: per-dimension statistics of the training data's states, filled in by training, as the
             actions' (std floored at STATE_STD_FLOOR). A saved model with a state channel and without them is
             refused at load.
+        state_min, state_max: per-dimension range of the training data's states, filled in by training: where a
+            rollout's predicted state has left it, the model has seen nothing of what follows (`roboscape_wm`'s
+            state_margin halts the episode there).
         text_encoder: T5 checkpoint (Hub id or local directory) for the text model; None builds a small random
             T5 with a byte-level tokenizer (tests and the tiny preset: instructions are told apart, not understood).
         text_max_length: instructions are truncated to this many T5 tokens.
@@ -109,6 +112,8 @@ class WorldModelConfig(draccus.ChoiceRegistry):
     state_dim: int = 16
     state_mean: list[float] | None = None
     state_std: list[float] | None = None
+    state_min: list[float] | None = None
+    state_max: list[float] | None = None
     text_encoder: str | None = None
     text_max_length: int = 64
     # Frames.
@@ -161,15 +166,15 @@ class WorldModelConfig(draccus.ChoiceRegistry):
                     f"{name} has {len(stats)} dimensions but the actions have action_dim={self.action_dim}: "
                     "statistics of another action layout; retrain the world model on this dataset (roboscape-train-wm)"
                 )
-        for name in ("state_mean", "state_std"):
+        for name in ("state_mean", "state_std", "state_min", "state_max"):
             if (stats := getattr(self, name)) is not None and len(stats) != self.state_dim:
                 raise InvalidInputError(
                     f"{name} has {len(stats)} dimensions but the states have state_dim={self.state_dim}: statistics "
                     "of another state layout; retrain the world model on this dataset (roboscape-train-wm)"
                 )
-        for kind in ("action", "state"):
-            if (getattr(self, f"{kind}_mean") is None) != (getattr(self, f"{kind}_std") is None):
-                raise InvalidInputError(f"{kind}_mean and {kind}_std are set together (from dataset.meta.stats)")
+        for first, second in (("action_mean", "action_std"), ("state_mean", "state_std"), ("state_min", "state_max")):
+            if (getattr(self, first) is None) != (getattr(self, second) is None):
+                raise InvalidInputError(f"{first} and {second} are set together (from dataset.meta.stats)")
         if self.patch < 1 or self.tokens_per_side % self.patch:
             raise InvalidInputError(
                 f"patch={self.patch} must divide tokens_per_side={self.tokens_per_side} (a position is patch x patch "

@@ -171,9 +171,14 @@ def check_same_layout(cache: TokenCache, other: TokenCache) -> None:
         raise InvalidInputError(f"token caches {cache.root} and {other.root} differ in {differ}")
 
 
+# The data's statistics a world model keeps: (its config's prefix, the dataset's key, the moments).
+STATISTICS_KEPT = (("action", ACTION, ("mean", "std")), ("state", OBS_STATE, ("mean", "std", "min", "max")))
+
+
 def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, stats: dict) -> WorldModelConfig:
-    """A copy of `wm` whose frame layout, action and state widths and their statistics come from the data; says so
-    when the layout differs from the preset. The caller's config stays as it was given (a pipeline records it)."""
+    """A copy of `wm` whose frame layout, action and state widths and their statistics (the states' range too) come
+    from the data; says so when the layout differs from the preset. The caller's config stays as it was given (a
+    pipeline records it)."""
     wm = copy.deepcopy(wm)
     for name, value in (
         ("n_cameras", len(cache.cameras)),
@@ -185,8 +190,8 @@ def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, stats: dict) ->
         if getattr(wm, name) != value:
             logger.info("wm.%s = %s (from the token cache; the preset had %s)", name, value, getattr(wm, name))
             setattr(wm, name, value)
-    for name, key in (("action", ACTION), ("state", OBS_STATE)):
-        for moment in ("mean", "std"):
+    for name, key, moments in STATISTICS_KEPT:
+        for moment in moments:
             setattr(wm, f"{name}_{moment}", np.asarray(stats[key][moment], dtype=np.float64).reshape(-1).tolist())
     wm.__post_init__()  # the statistics must fit the action and state layouts
     return wm

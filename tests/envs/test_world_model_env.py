@@ -466,6 +466,45 @@ def test_an_ensemble_that_agrees_changes_nothing_and_one_that_parts_penalises_an
         env_config(disagreement_penalty=1.0)
 
 
+def test_a_state_margin_halts_an_episode_whose_predicted_state_leaves_the_datas_range(
+    env_config, demo_dataset, tmp_path
+):
+    """The action model keeps its training states' range. A margin that the rollout cannot leave changes nothing; a
+    range the first predicted state lies outside halts every episode at that frame: terminated, unpaid, no success,
+    although the done (theta near 0) calls every frame a success."""
+    _, root = demo_dataset
+    own = env_config().action_world_model
+    model = STWorldModel.from_pretrained(own)
+    dataset = open_dataset("test/demos", root)
+    states = np.concatenate([read_episode(dataset, e).state for e in range(dataset.meta.total_episodes)])
+    np.testing.assert_allclose(model.config.state_min, states.min(0), atol=1e-5)  # the data's range, saved
+    np.testing.assert_allclose(model.config.state_max, states.max(0), atol=1e-5)
+    model.config.state_min = model.config.state_max = (states.min(0) - 1).tolist()  # no state lies there
+    model.save_pretrained(tmp_path / "walled")
+
+    def run(**overrides):
+        env = RoboscapeWorldModelEnv(env_config(precision="float32", episode_length=8, theta=1e-6, **overrides), 2)
+        env.reset(seed=0)
+        return [env.step(np.full((2, 7), 0.9, np.float32))[1:] for _ in range(8)]
+
+    plain, wide = run(), run(state_margin=1e6)
+    for (reward, *_), (reward_wide, terminated_wide, _, info_wide) in zip(plain, wide, strict=True):
+        np.testing.assert_array_equal(reward_wide, reward)
+        assert not terminated_wide.any() and not info_wide["halted"].any()
+    assert wide[-1][3]["is_success"].all()  # from the first generated frame on
+    walled = run(action_world_model=str(tmp_path / "walled"), state_margin=0.0)
+    k = RoboscapeWorldModelEnv(env_config(), 1).frame_skip
+    reward, terminated, _, info = walled[k - 1]  # the first generated frame
+    assert terminated.all() and info["halted"].all() and not info["is_success"].any() and (reward == 0).all()
+    assert all((reward == 0).all() and not info["is_success"].any() for reward, _, _, info in walled[k:])
+    model.config.state_min = model.config.state_max = None
+    model.save_pretrained(tmp_path / "unbounded")
+    with pytest.raises(InvalidInputError, match="carries no range of its training data's states"):
+        RoboscapeWorldModelEnv(env_config(action_world_model=str(tmp_path / "unbounded"), state_margin=0.1), 1)
+    with pytest.raises(InvalidInputError, match="state_margin must be >= 0"):
+        env_config(state_margin=-0.1)
+
+
 def test_mutual_information_of_models_that_agree_and_of_models_sure_of_different_tokens():
     from lerobot_roboscape.envs.ensemble import mutual_information
 

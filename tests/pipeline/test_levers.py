@@ -129,6 +129,19 @@ def test_the_trust_lever_stops_each_update_at_its_target_kl(context):
     assert lever_descriptions([method], cfg.lever)[method].endswith("KL from the rollout's policy > 0.05")
 
 
+def test_the_range_lever_halts_the_world_models_episodes_off_the_datas_states(context):
+    cfg = parse_config(ExperimentConfig, ["--levers=[range]", "--lever.range.margin=0.25"], "pipeline.")
+    (run,) = lever_runs(cfg.levers, context, cfg.lever).values()
+    assert run.env == dataclasses.replace(context.world_model, state_margin=0.25)
+    assert run.settings == {} and run.runner is ppo
+    method = LEVERS["range"].method
+    assert method.tag == "ppo_world_model_range" and method.ood_only
+    assert lever_descriptions([method], cfg.lever)[method].endswith("widened by 25% of its span")
+    with pytest.raises(ParsingError) as parsing:
+        parse_config(ExperimentConfig, ["--lever.range.margin=-0.1"], "pipeline.")
+    assert str(parsing.value.__cause__) == "--lever.range.margin must be >= 0, got -0.1"
+
+
 def test_the_ensemble_takes_members_trained_elsewhere(context):
     context = dataclasses.replace(context, members=None)  # not a pack's run: members come from the settings
     cfg = parse_config(
