@@ -51,3 +51,17 @@ def test_the_world_models_done_and_goal_targets_render_again_from_their_stored_r
         readings = {"summary": results["reward"], "goals": results["goals"], "similarity": results["similarity"]}
         targets = goal_targets(RewardReadings.from_json(readings | {"done_source": "world_model", "theta": 0.5}))
         assert targets == {name: t for name, t in results["targets"].items() if name.startswith("goal")}
+
+
+def test_the_claim_report_says_how_many_episodes_a_guard_without_an_ensemble_halted():
+    folder = RESULTS / "claim72_gpuwm"
+    text, summary = (folder / "report.md").read_text(), json.loads((folder / "results.json").read_text())
+    command = re.search(r"`(roboscape-experiment [^`]*)`", text).group(1)
+    cfg = parse_config(ExperimentConfig, shlex.split(command)[1:], "pipeline.")
+    assert markdown(cfg, summary) == text
+    plain = next(run for run in summary["ppo_runs"] if run["method"] == "RL w. World Model")
+    plain["last_halted"] = 0.25  # as the range lever's run reports it
+    assert (
+        "Episodes of RL w. World Model halted where the predicted robot state left the data's range: 25% over its "
+        "last 3 iterations." in markdown(cfg, summary)
+    )
