@@ -1,6 +1,8 @@
 """PPO throughput of the MLP policy in `roboscape_wm` (the demo's tiny world models) against
-`roboscape_maniskill` (the simulator) at the same batch and image size: env steps/s of the rollout alone and of
-whole PPO iterations (rollout + update). Needs a `roboscape-demo` run (its SFT MLP and models).
+`roboscape_maniskill` (the simulator) at the same batch and image size: decisions/s of the rollout alone and of
+whole PPO iterations (rollout + update). A decision is one look of the policy; it executes the chunk's
+n_action_steps env steps (the MLP's default: 4), so env steps/s are up to that many times more. Needs a
+`roboscape-demo` run (its SFT MLP and models).
 
     python scripts/benchmarks/benchmark_ppo.py --batch-sizes 8 16 --episode-length 40 --iterations 2
 """
@@ -19,6 +21,8 @@ from lerobot_roboscape.rl.ppo_state import RunningReturnStats
 
 
 def measure(env_cfg, checkpoint: Path, batch_size: int, iterations: int) -> tuple[float, float]:
+    """(decisions/s of the rollouts alone, decisions/s of whole iterations): a rollout's steps are the policy's
+    decisions (collect_rollout), each up to n_action_steps env steps."""
     from accelerate import Accelerator
 
     policy, preprocessor, postprocessor = load_policy(str(checkpoint), "cpu")
@@ -68,11 +72,11 @@ def main():
     sim = RoboscapeManiSkillEnvConfig(image_size=args.image_size, episode_length=args.episode_length)
     print(
         f"PPO of the MLP policy, {args.image_size} px, 2 cameras, {args.episode_length}-step episodes, CPU "
-        f"({torch.get_num_threads()} threads)"
+        f"({torch.get_num_threads()} threads); decisions/s, each decision up to n_action_steps env steps"
     )
     print(
-        "| batch | roboscape_wm rollout steps/s | roboscape_wm PPO steps/s | roboscape_maniskill rollout steps/s "
-        "| roboscape_maniskill PPO steps/s | PPO ratio |\n|---:|---:|---:|---:|---:|---:|"
+        "| batch | roboscape_wm rollout decisions/s | roboscape_wm PPO decisions/s | roboscape_maniskill rollout "
+        "decisions/s | roboscape_maniskill PPO decisions/s | PPO ratio |\n|---:|---:|---:|---:|---:|---:|"
     )
     for batch_size in args.batch_sizes:
         wm_rollout, wm_total = measure(wm, checkpoint, batch_size, args.iterations)

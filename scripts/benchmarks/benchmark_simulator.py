@@ -206,12 +206,13 @@ def bench_eval(policy_path: Path, image_size: int, batches: int, episode_length:
 
 def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int, episode_length: int) -> None:
     from benchmark_ppo import measure  # the PPO throughput of scripts/benchmarks/benchmark_ppo.py, beside this file
+    from lerobot_policy_roboscape_mlp import RoboscapeMLPConfig
 
     from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 
     print(
         f"\n## PPO in roboscape_maniskill: {num_envs} envs, {iterations} iterations of {episode_length} steps "
-        "(after a warm-up rollout)"
+        f"(after a warm-up rollout); a decision executes {RoboscapeMLPConfig().n_action_steps} env steps"
     )
     rates = {}
     for name, path in PATHS.items():
@@ -219,7 +220,7 @@ def bench_ppo(policy_path: Path, image_size: int, num_envs: int, iterations: int
             families=["pick_place", "push"], image_size=image_size, episode_length=episode_length, **path
         )
         rollout_rate, rates[name] = measure(env_cfg, policy_path, num_envs, iterations)
-        print(f"{name:>6}: {rates[name]:.1f} env steps/s of rollout + update ({rollout_rate:.1f} of rollout alone)")
+        print(f"{name:>6}: {rates[name]:.1f} decisions/s of rollout + update ({rollout_rate:.1f} of rollout alone)")
     print_speed_up(rates)
 
 
