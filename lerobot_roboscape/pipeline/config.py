@@ -166,8 +166,9 @@ class PipelineConfig:
         the training of the action and of the text model, as `roboscape-train-wm` names them.
     world_models: world models trained elsewhere, taken instead of training them here: a folder holding action/
         and text/, each a `roboscape-train-wm` output_dir (pretrained_model/ beside its logs) trained on the tokens
-        of this run's tokenizer, as scripts/experiments/device_world_models.sh brings them back from a GPU;
-        null: train them.
+        of this run's tokenizer, as scripts/experiments/device_world_models.sh brings them back from a GPU; with a
+        tokenizer/ beside them (the roboscape-train-tokenizer output_dir they learned), that tokenizer is taken too,
+        so a run on another machine needs only the data its later stages read; null: train them.
     exploration_share: share of the action world model's training clips drawn from the exploratory episodes.
     reward_models: train the baseline reward models (embedding, proxy) and the success classifier.
     reward_train: their training (`roboscape-train-reward`'s `--train.*`).

@@ -2,9 +2,7 @@
 and returns what it made. A stage writes into its own folder under output_dir and, once complete, a stage.json with
 the settings it ran with; a rerun with the same settings skips it (so a killed run resumes where it stopped)."""
 
-import json
 import logging
-import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -24,6 +22,7 @@ from lerobot_roboscape.envs.reward_report import (
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.data_stages import Datasets
+from lerobot_roboscape.pipeline.given import GIVEN_TOKENIZER, given_tokenizer, given_world_model
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     DONE_REPORT_IND_DIR,
@@ -44,16 +43,12 @@ from lerobot_roboscape.pipeline.resume import run_once, train_once
 from lerobot_roboscape.reward.baselines import RewardModelConfig
 from lerobot_roboscape.reward.done_report import DoneChoice, DoneReportConfig, evaluate_done
 from lerobot_roboscape.reward.train import TrainRewardConfig, train_reward_model
-from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_tokenizer, read_tokenizer_report
-from lerobot_roboscape.tokenizer.token_cache import tokenizer_fingerprint
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
-from lerobot_roboscape.training.loop import TRAIN_CONFIG, TrainingConfig
+from lerobot_roboscape.training.checkpoints import FINAL
+from lerobot_roboscape.training.loop import TrainingConfig
 from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
-from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.train import TOKENIZER_FINGERPRINT, TrainWorldModelConfig, train_world_model
-from roboscape_core.errors import InvalidInputError, MissingInputError
+from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 logger = logging.getLogger(__name__)
 # ---- models ------------------------------------------------------------------------------------------------------
@@ -61,8 +56,10 @@ logger = logging.getLogger(__name__)
 
 def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
     """Train the image tokenizer, measured on the held-out episodes as it trains; returns its pretrained_model
-    directory."""
+    directory. With --world_models holding a tokenizer/ (the one they learned), that one is taken instead."""
     folder = out / TOKENIZER_DIR
+    if cfg.world_models is not None and (Path(cfg.world_models) / GIVEN_TOKENIZER).is_dir():
+        return given_tokenizer(cfg, folder)
     train = TrainTokenizerConfig(
         dataset=data.train,
         heldout=data.heldout,
@@ -94,7 +91,7 @@ def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path:
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
     controllability set as it trains. With --world_models, the models trained elsewhere are taken instead."""
     if cfg.world_models is not None:
-        return WorldModelPaths(*(_given_world_model(cfg, out, tokenizer_path, c) for c in WorldModelPaths._fields))
+        return WorldModelPaths(*(given_world_model(cfg, out, tokenizer_path, c) for c in WorldModelPaths._fields))
     return WorldModelPaths(
         *(
             _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
@@ -148,42 +145,6 @@ def _world_model(
         **train_options,
     )
     return _train(folder, train, train_world_model, cfg.fresh)
-
-
-def _given_world_model(cfg: PipelineConfig, out: Path, tokenizer_path: Path, control: str) -> Path:
-    """The `control` world model of --world_models (a roboscape-train-wm output_dir), copied with its logs and
-    curves into the folder the run's own would train in, once it is found to read the run's tokenizer's grids."""
-    source, folder = Path(cfg.world_models) / control, out / world_model_dir(control)
-    weights = source / FINAL / "model.safetensors"
-    if not weights.is_file():
-        raise MissingInputError(
-            f"--world_models={cfg.world_models}: no {weights}; it holds action/ and text/, each a roboscape-train-wm "
-            "output_dir (scripts/experiments/device_world_models.sh unpack writes them)"
-        )
-    # The weights' size and time name them: other models copied there rerun the stages that read them.
-    stat = weights.stat()
-    settings = {"world_model": str(source.resolve()), "bytes": stat.st_size, "modified_ns": stat.st_mtime_ns}
-
-    def take():
-        model = STWorldModel.from_pretrained(str(source / FINAL)).config
-        tokenizer = VisualTokenizer.from_pretrained(str(tokenizer_path))
-        theirs = {"control": model.control, "vocab_size": model.vocab_size, "tokens_per_side": model.tokens_per_side}
-        ours = {"control": control, "vocab_size": tokenizer.config.codebook_size}
-        ours["tokens_per_side"] = tokenizer.config.tokens_per_side
-        trained = source / TRAIN_CONFIG  # its training run's record names the tokens it learned
-        if trained.is_file() and TOKENIZER_FINGERPRINT in (record := json.loads(trained.read_text())):
-            theirs["tokenizer"], ours["tokenizer"] = record[TOKENIZER_FINGERPRINT], tokenizer_fingerprint(tokenizer)
-        else:
-            logger.warning("%s names no tokenizer: only its token grid is checked against the run's", trained)
-        if theirs != ours:
-            raise InvalidInputError(
-                f"--world_models: {source / FINAL} is not the {control} model of this run's tokenizer "
-                f"({tokenizer_path}): it has {theirs}, the run needs {ours}"
-            )
-        shutil.copytree(source, folder, ignore=shutil.ignore_patterns(CHECKPOINTS))  # the model, its logs, curves
-
-    run_once(folder, settings, cfg.fresh, take)
-    return folder / FINAL
 
 
 def _with_checkpoints(training: TrainingConfig) -> TrainingConfig:

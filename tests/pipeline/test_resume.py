@@ -197,3 +197,40 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
         stages.world_models(
             scale_config("smoke", (f"--world_models={tmp_path / 'nowhere'}",)), out, None, trained_tokenizer
         )
+
+
+def test_a_tokenizer_beside_the_given_world_models_is_taken_and_the_models_are_checked_against_it(
+    world_models, trained_tokenizer, tmp_path
+):
+    """--world_models with a tokenizer/: the run trains no tokenizer (it has no data here) but copies that one, once,
+    and the world models are checked against it; one made for other cameras is refused by name."""
+    import shutil
+
+    from lerobot_roboscape.pipeline import stages
+    from lerobot_roboscape.pipeline.config import scale_config
+    from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR
+    from lerobot_roboscape.training.checkpoints import FINAL
+    from lerobot_roboscape.training.loop import TRAIN_CONFIG
+    from roboscape_core.errors import InvalidInputError
+    from tests.conftest import IMAGE_SIZE
+    from tests.harness import assert_same_weights
+
+    given, out = tmp_path / "carried", tmp_path / "run"
+    shutil.copytree(trained_tokenizer.parent, given / "tokenizer")
+    for control, model in world_models.items():
+        shutil.copytree(model, given / control / FINAL)
+        shutil.copy2(model.parent / TRAIN_CONFIG, given / control)
+    cameras = f"--data.image_size={IMAGE_SIZE}", f"--tokenizer.image_size={IMAGE_SIZE}"
+    cfg = scale_config("smoke", (f"--world_models={given}", *cameras))
+    taken = stages.tokenizer(cfg, out, None)  # no data: nothing is trained
+    assert taken == out / TOKENIZER_DIR / FINAL
+    assert_same_weights(trained_tokenizer / "model.safetensors", taken / "model.safetensors")
+    copied = (taken / "model.safetensors").stat().st_mtime_ns
+    assert stages.tokenizer(cfg, out, None) == taken
+    assert (taken / "model.safetensors").stat().st_mtime_ns == copied  # taken once
+    models = stages.world_models(cfg, out, None, taken)  # their tokenizer fingerprint is the taken one's
+    assert_same_weights(world_models["text"] / "model.safetensors", models.text / "model.safetensors")
+
+    other = scale_config("smoke", (f"--world_models={given}", "--data.image_size=64", "--tokenizer.image_size=64"))
+    with pytest.raises(InvalidInputError, match=rf"carried/tokenizer/pretrained_model reads {IMAGE_SIZE} px.*=64"):
+        stages.tokenizer(other, tmp_path / "another_run", None)
