@@ -1,6 +1,6 @@
 """Models trained elsewhere (--world_models: on a lent GPU, or by an earlier run on another machine), taken into a
 run where its own would train: the action and text world models and, when they bring it, the tokenizer they
-learned."""
+learned; and a run's models carried out in that shape, for a run on another machine."""
 
 import json
 import logging
@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.layout import world_model_dir
+from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR, WorldModelPaths, world_model_dir
 from lerobot_roboscape.pipeline.resume import run_once
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import tokenizer_fingerprint
@@ -21,6 +21,9 @@ from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
 GIVEN_TOKENIZER = "tokenizer"  # the folder of --world_models holding the tokenizer they learned, if they bring it
+# What travels of a training output_dir: the model and its records (config, log, curves, done tuning), not the
+# checkpoints a killed run resumes from nor TensorBoard's events.
+NOT_CARRIED = shutil.ignore_patterns(CHECKPOINTS, "logs")
 
 
 def given_world_model(cfg: PipelineConfig, out: Path, tokenizer_path: Path, control: str) -> Path:
@@ -84,3 +87,23 @@ def _taken(cfg: PipelineConfig, source: Path, folder: Path, what: str, check: Ca
 
     run_once(folder, settings, cfg.fresh, take)
     return folder / FINAL
+
+
+def carry(out: Path, dest: Path) -> dict[str, int]:
+    """The tokenizer and world models of the run in `out` written to `dest` as --world_models takes them
+    (tokenizer/, action/, text/), so that a run on another machine goes on from them; {folder: bytes}. Written
+    beside `dest` and moved into place when complete."""
+    sources = {GIVEN_TOKENIZER: out / TOKENIZER_DIR} | {c: out / world_model_dir(c) for c in WorldModelPaths._fields}
+    for source in sources.values():
+        if not (source / FINAL / "model.safetensors").is_file():
+            raise MissingInputError(
+                f"{source / FINAL / 'model.safetensors'} does not exist: train the run's world models first "
+                f"(roboscape-demo --output_dir={out} --stop_after='world models')"
+            )
+    partial = dest.with_name(dest.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    for name, source in sources.items():
+        shutil.copytree(source, partial / name, ignore=NOT_CARRIED)
+    shutil.rmtree(dest, ignore_errors=True)
+    partial.rename(dest)
+    return {name: sum(f.stat().st_size for f in (dest / name).rglob("*") if f.is_file()) for name in sources}

@@ -199,27 +199,31 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
         )
 
 
-def test_a_tokenizer_beside_the_given_world_models_is_taken_and_the_models_are_checked_against_it(
+def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
     world_models, trained_tokenizer, tmp_path
 ):
-    """--world_models with a tokenizer/: the run trains no tokenizer (it has no data here) but copies that one, once,
-    and the world models are checked against it; one made for other cameras is refused by name."""
+    """carry() writes a run's tokenizer and world models as --world_models takes them, without checkpoints; a run
+    given them trains no tokenizer (it has no data here) but copies that one, once, and checks the world models
+    against it; a tokenizer made for other cameras is refused by name, and so is a run without its models."""
     import shutil
 
     from lerobot_roboscape.pipeline import stages
     from lerobot_roboscape.pipeline.config import scale_config
-    from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR
-    from lerobot_roboscape.training.checkpoints import FINAL
-    from lerobot_roboscape.training.loop import TRAIN_CONFIG
-    from roboscape_core.errors import InvalidInputError
+    from lerobot_roboscape.pipeline.given import carry
+    from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR, world_model_dir
+    from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
+    from roboscape_core.errors import InvalidInputError, MissingInputError
     from tests.conftest import IMAGE_SIZE
     from tests.harness import assert_same_weights
 
-    given, out = tmp_path / "carried", tmp_path / "run"
-    shutil.copytree(trained_tokenizer.parent, given / "tokenizer")
+    before, given, out = tmp_path / "before", tmp_path / "carried", tmp_path / "run"
+    shutil.copytree(trained_tokenizer.parent, before / TOKENIZER_DIR)
     for control, model in world_models.items():
-        shutil.copytree(model, given / control / FINAL)
-        shutil.copy2(model.parent / TRAIN_CONFIG, given / control)
+        shutil.copytree(model.parent, before / world_model_dir(control))
+    sizes = carry(before, given)
+    assert set(sizes) == {"tokenizer", "action", "text"} and not list(given.rglob(CHECKPOINTS))
+    assert (before / TOKENIZER_DIR / CHECKPOINTS).is_dir()  # what the run resumes from stays with it
+
     cameras = f"--data.image_size={IMAGE_SIZE}", f"--tokenizer.image_size={IMAGE_SIZE}"
     cfg = scale_config("smoke", (f"--world_models={given}", *cameras))
     taken = stages.tokenizer(cfg, out, None)  # no data: nothing is trained
@@ -234,3 +238,7 @@ def test_a_tokenizer_beside_the_given_world_models_is_taken_and_the_models_are_c
     other = scale_config("smoke", (f"--world_models={given}", "--data.image_size=64", "--tokenizer.image_size=64"))
     with pytest.raises(InvalidInputError, match=rf"carried/tokenizer/pretrained_model reads {IMAGE_SIZE} px.*=64"):
         stages.tokenizer(other, tmp_path / "another_run", None)
+    shutil.rmtree(before / world_model_dir("text"))
+    with pytest.raises(MissingInputError, match="world_model_text/pretrained_model/model.safetensors does not exist"):
+        carry(before, tmp_path / "again")
+    assert (given / "text").is_dir()  # the folder carried before is left whole
