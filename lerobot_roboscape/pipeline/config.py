@@ -164,11 +164,11 @@ class PipelineConfig:
         training, as `roboscape-train-tokenizer` names them (`--train.*` there).
     wm, wm_train, text_wm_train: the world models (`--wm.type=...`; each model's control is set by its stage) and
         the training of the action and of the text model, as `roboscape-train-wm` names them.
-    world_models: world models trained elsewhere, taken instead of training them here: a folder holding action/
-        and text/, each a `roboscape-train-wm` output_dir (pretrained_model/ beside its logs) trained on the tokens
-        of this run's tokenizer, as scripts/experiments/device_world_models.sh brings them back from a GPU; with a
-        tokenizer/ beside them (the roboscape-train-tokenizer output_dir they learned), that tokenizer is taken too,
-        so a run on another machine needs only the data its later stages read; null: train them.
+    world_models: models trained elsewhere, taken instead of training them here: a folder holding action/ and
+        text/, each a `roboscape-train-wm` output_dir (pretrained_model/ beside its logs), and tokenizer/, the
+        `roboscape-train-tokenizer` output_dir they learned, or a part of them (those missing are trained here; world
+        models without tokenizer/ must have learned this run's), as scripts/experiments/device_world_models.sh
+        brings them back from a GPU and carry_world_models.py carries a run's to another machine; null: train them.
     exploration_share: share of the action world model's training clips drawn from the exploratory episodes.
     reward_models: train the baseline reward models (embedding, proxy) and the success classifier.
     reward_train: their training (`roboscape-train-reward`'s `--train.*`).

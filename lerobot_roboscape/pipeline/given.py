@@ -1,6 +1,7 @@
 """Models trained elsewhere (--world_models: on a lent GPU, or by an earlier run on another machine), taken into a
-run where its own would train: the action and text world models and, when they bring it, the tokenizer they
-learned; and a run's models carried out in that shape, for a run on another machine."""
+run where its own would train: each of the action and text world models and the tokenizer they learned that the
+folder brings (those it does not are trained by the run); and a run's models carried out in that shape, for a run on
+another machine."""
 
 import json
 import logging
@@ -24,6 +25,20 @@ GIVEN_TOKENIZER = "tokenizer"  # the folder of --world_models holding the tokeni
 # What travels of a training output_dir: the model and its records (config, log, curves, done tuning), not the
 # checkpoints a killed run resumes from nor TensorBoard's events.
 NOT_CARRIED = shutil.ignore_patterns(CHECKPOINTS, "logs")
+
+
+def brought(cfg: PipelineConfig) -> set[str]:
+    """What --world_models brings, of the tokenizer/, action/ and text/ folders (none without the flag); a folder
+    that brings none of them is refused, so that a mistyped path trains nothing in its place unnoticed."""
+    if cfg.world_models is None:
+        return set()
+    given = {name for name in (GIVEN_TOKENIZER, *WorldModelPaths._fields) if (Path(cfg.world_models) / name).is_dir()}
+    if not given:
+        raise MissingInputError(
+            f"--world_models={cfg.world_models} holds none of {GIVEN_TOKENIZER}/, action/ and text/: each a training "
+            "output_dir (scripts/experiments/carry_world_models.py and device_world_models.sh unpack write them)"
+        )
+    return given
 
 
 def given_world_model(cfg: PipelineConfig, out: Path, tokenizer_path: Path, control: str) -> Path:

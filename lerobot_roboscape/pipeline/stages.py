@@ -22,7 +22,7 @@ from lerobot_roboscape.envs.reward_report import (
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.data_stages import Datasets
-from lerobot_roboscape.pipeline.given import GIVEN_TOKENIZER, given_tokenizer, given_world_model
+from lerobot_roboscape.pipeline.given import GIVEN_TOKENIZER, brought, given_tokenizer, given_world_model
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     DONE_REPORT_IND_DIR,
@@ -56,9 +56,9 @@ logger = logging.getLogger(__name__)
 
 def tokenizer(cfg: PipelineConfig, out: Path, data: Datasets) -> Path:
     """Train the image tokenizer, measured on the held-out episodes as it trains; returns its pretrained_model
-    directory. With --world_models holding a tokenizer/ (the one they learned), that one is taken instead."""
+    directory. When --world_models brings the tokenizer they learned, that one is taken instead."""
     folder = out / TOKENIZER_DIR
-    if cfg.world_models is not None and (Path(cfg.world_models) / GIVEN_TOKENIZER).is_dir():
+    if GIVEN_TOKENIZER in brought(cfg):
         return given_tokenizer(cfg, folder)
     train = TrainTokenizerConfig(
         dataset=data.train,
@@ -89,12 +89,13 @@ def tokenizer_report(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_p
 def world_models(cfg: PipelineConfig, out: Path, data: Datasets, tokenizer_path: Path) -> WorldModelPaths:
     """Train the action and the text world models (each with its done head); returns their folders. The
     action model also trains on the exploratory episodes, and reads its retrieval and action gain on the
-    controllability set as it trains. With --world_models, the models trained elsewhere are taken instead."""
-    if cfg.world_models is not None:
-        return WorldModelPaths(*(given_world_model(cfg, out, tokenizer_path, c) for c in WorldModelPaths._fields))
+    controllability set as it trains. Those --world_models brings are taken instead."""
+    given = brought(cfg)
     return WorldModelPaths(
         *(
-            _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
+            given_world_model(cfg, out, tokenizer_path, control)
+            if control in given
+            else _world_model(cfg, out / world_model_dir(control), data, tokenizer_path, control, training)
             for control, training in zip(WorldModelPaths._fields, (cfg.wm_train, cfg.text_wm_train), strict=True)
         )
     )

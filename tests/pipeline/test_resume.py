@@ -193,10 +193,13 @@ def test_world_models_trained_elsewhere_are_taken_once_and_checked(world_models,
     shutil.copytree(world_models["action"], given / "text" / FINAL)
     with pytest.raises(InvalidInputError, match="is not the text model of this run's tokenizer.*'control': 'action'"):
         stages.world_models(cfg, out, None, trained_tokenizer)
-    with pytest.raises(MissingInputError, match="nowhere/action/pretrained_model/model.safetensors"):
+    with pytest.raises(MissingInputError, match="nowhere holds none of tokenizer/, action/ and text/"):
         stages.world_models(
             scale_config("smoke", (f"--world_models={tmp_path / 'nowhere'}",)), out, None, trained_tokenizer
         )
+    (tmp_path / "empty" / "action").mkdir(parents=True)
+    with pytest.raises(MissingInputError, match="empty/action/pretrained_model/model.safetensors"):
+        stages.world_models(scale_config("smoke", (f"--world_models={tmp_path / 'empty'}",)), out, None, None)
 
 
 def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
@@ -204,12 +207,13 @@ def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
 ):
     """carry() writes a run's tokenizer and world models as --world_models takes them, without checkpoints; a run
     given them trains no tokenizer (it has no data here) but copies that one, once, and checks the world models
-    against it; a tokenizer made for other cameras is refused by name, and so is a run without its models."""
+    against it; a folder may bring part of them; a tokenizer made for other cameras is refused by name, and so is
+    a run without its models."""
     import shutil
 
     from lerobot_roboscape.pipeline import stages
     from lerobot_roboscape.pipeline.config import scale_config
-    from lerobot_roboscape.pipeline.given import carry
+    from lerobot_roboscape.pipeline.given import brought, carry
     from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR, world_model_dir
     from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
     from roboscape_core.errors import InvalidInputError, MissingInputError
@@ -238,7 +242,11 @@ def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
     other = scale_config("smoke", (f"--world_models={given}", "--data.image_size=64", "--tokenizer.image_size=64"))
     with pytest.raises(InvalidInputError, match=rf"carried/tokenizer/pretrained_model reads {IMAGE_SIZE} px.*=64"):
         stages.tokenizer(other, tmp_path / "another_run", None)
+    assert brought(cfg) == {"tokenizer", "action", "text"} and brought(scale_config("smoke", ())) == set()
+    shutil.rmtree(given / "action")
+    shutil.rmtree(given / "text")  # the tokenizer alone: the run trains its world models on it
+    assert brought(cfg) == {"tokenizer"}
     shutil.rmtree(before / world_model_dir("text"))
     with pytest.raises(MissingInputError, match="world_model_text/pretrained_model/model.safetensors does not exist"):
         carry(before, tmp_path / "again")
-    assert (given / "text").is_dir()  # the folder carried before is left whole
+    assert (given / "tokenizer").is_dir()  # the folder carried before is left whole
