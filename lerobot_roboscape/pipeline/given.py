@@ -105,20 +105,21 @@ def _taken(cfg: PipelineConfig, source: Path, folder: Path, what: str, check: Ca
 
 
 def carry(out: Path, dest: Path) -> dict[str, int]:
-    """The tokenizer and world models of the run in `out` written to `dest` as --world_models takes them
-    (tokenizer/, action/, text/), so that a run on another machine goes on from them; {folder: bytes}. Written
-    beside `dest` and moved into place when complete."""
+    """The tokenizer and the world models the run in `out` has trained, written to `dest` as --world_models takes
+    them (tokenizer/, action/, text/), so that a run on another machine goes on from them: a run stopped after its
+    tokenizer carries that alone, and the next trains its world models on it; {folder: bytes}. Written beside `dest`
+    and moved into place when complete."""
     sources = {GIVEN_TOKENIZER: out / TOKENIZER_DIR} | {c: out / world_model_dir(c) for c in WorldModelPaths._fields}
-    for source in sources.values():
-        if not (source / FINAL / "model.safetensors").is_file():
-            raise MissingInputError(
-                f"{source / FINAL / 'model.safetensors'} does not exist: train the run's world models first "
-                f"(roboscape-demo --output_dir={out} --stop_after='world models')"
-            )
+    trained = {name: source for name, source in sources.items() if (source / FINAL / "model.safetensors").is_file()}
+    if GIVEN_TOKENIZER not in trained:
+        raise MissingInputError(
+            f"{sources[GIVEN_TOKENIZER] / FINAL / 'model.safetensors'} does not exist: train the run's tokenizer first "
+            f"(roboscape-demo --output_dir={out} --stop_after=tokenizer)"
+        )
     partial = dest.with_name(dest.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
-    for name, source in sources.items():
+    for name, source in trained.items():
         shutil.copytree(source, partial / name, ignore=NOT_CARRIED)
     shutil.rmtree(dest, ignore_errors=True)
     partial.rename(dest)
-    return {name: sum(f.stat().st_size for f in (dest / name).rglob("*") if f.is_file()) for name in sources}
+    return {name: sum(f.stat().st_size for f in (dest / name).rglob("*") if f.is_file()) for name in trained}

@@ -208,7 +208,7 @@ def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
     """carry() writes a run's tokenizer and world models as --world_models takes them, without checkpoints; a run
     given them trains no tokenizer (it has no data here) but copies that one, once, and checks the world models
     against it; a folder may bring part of them; a tokenizer made for other cameras is refused by name, and so is
-    a run without its models."""
+    a run without its tokenizer."""
     import shutil
 
     from lerobot_roboscape.pipeline import stages
@@ -246,7 +246,9 @@ def test_models_carried_out_of_a_run_are_taken_by_another_with_their_tokenizer(
     shutil.rmtree(given / "action")
     shutil.rmtree(given / "text")  # the tokenizer alone: the run trains its world models on it
     assert brought(cfg) == {"tokenizer"}
-    shutil.rmtree(before / world_model_dir("text"))
-    with pytest.raises(MissingInputError, match="world_model_text/pretrained_model/model.safetensors does not exist"):
+    shutil.rmtree(before / world_model_dir("text"))  # a run stopped after its action model carries what it has
+    assert set(carry(before, tmp_path / "part")) == {"tokenizer", "action"}
+    shutil.rmtree(before / TOKENIZER_DIR)
+    with pytest.raises(MissingInputError, match="tokenizer/pretrained_model/model.safetensors does not exist"):
         carry(before, tmp_path / "again")
     assert (given / "tokenizer").is_dir()  # the folder carried before is left whole
