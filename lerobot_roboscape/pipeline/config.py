@@ -54,6 +54,9 @@ class DataConfig:
         chosen. 0: one recorded and converted IND episode instead, and the done threshold chosen on the
         demonstrations.
     report_episodes: held-out episodes (spread over the held-out dataset) behind the fidelity and reward reports.
+    ind_control_starts: starts per (family, IND scene) of the IND controllability set (new initial states of the
+        training scenes) behind the IND fidelity report, with held-out scenes; 0: neither, for a run whose models
+        were judged in domain where they were trained (the set takes an hour on a CPU that renders slowly).
     initial_scene_episodes: planner attempts per family in the initial scene, half of them suboptimal, whose
         successful ones the paper protocol's SFT imitates (the paper collected 500 optimal and 500 suboptimal per
         task and scene); 0: that scene's share of the demonstrations instead.
@@ -67,6 +70,7 @@ class DataConfig:
     explore_episodes_per_scene: int = 1
     heldout_scenes: int = 0
     report_episodes: int = 8
+    ind_control_starts: int = 1
     initial_scene_episodes: int = 0
     image_size: int = 64
     workers: int = 2
@@ -222,6 +226,8 @@ class PipelineConfig:
                 f"--tokenizer.image_size={self.tokenizer.image_size} differs from the cameras' "
                 f"--data.image_size={self.data.image_size}: set both"
             )
+        if self.data.ind_control_starts < 0:
+            raise InvalidInputError(f"--data.ind_control_starts must be >= 0, got {self.data.ind_control_starts}")
         if self.data.initial_scene_episodes < 0:
             raise InvalidInputError(
                 f"--data.initial_scene_episodes must be >= 0, got {self.data.initial_scene_episodes}"

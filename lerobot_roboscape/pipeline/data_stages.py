@@ -194,9 +194,10 @@ def demonstrations(data: DataConfig, out: Path, fresh: bool = False) -> Datasets
         heldout = _unseen_episodes(data, fresh, out / HELDOUT_DIR, "ood", data.heldout_scenes, 4, HELDOUT_SEED)
         validation = _unseen_episodes(data, fresh, out / VALIDATION_DIR, "ind", data.max_scenes, 1, VALIDATION_SEED)
         controllability = _controllability(data, fresh, out / CONTROL_DIR, "ood", data.heldout_scenes, CONTROL_SEED)
-        # One start per training scene, from new initial states: where RL runs, the world model is judged first.
+    if data.heldout_scenes and data.ind_control_starts:
+        # New initial states of the training scenes: where RL runs, the world model is judged first.
         controllability_ind = _controllability(
-            data, fresh, out / CONTROL_IND_DIR, "ind", data.max_scenes, CONTROL_IND_SEED, 1
+            data, fresh, out / CONTROL_IND_DIR, "ind", data.max_scenes, CONTROL_IND_SEED, data.ind_control_starts
         )
     exploration = None
     if data.explore_episodes_per_scene:
