@@ -1,9 +1,9 @@
 """A run's completed stages carried to another machine (no Hub here, and a machine's outputs die with it): every
-stage folder that completed (it holds its stage.json) and the text model's goals, without what only a killed run
-resumes from (checkpoints, logs), the token caches a stage rebuilds nor the datasets' object masks, written to a
-folder that travels; then taken into a run's output_dir on the next machine, where those stages count as done and
-are skipped. A stage records its inputs by absolute path, so the run must sit where it sat: a folder carried from
-elsewhere is refused by name."""
+stage folder that completed (it holds its stage.json), the text model's goals and the trajectory file, without what
+only a killed run resumes from (checkpoints, logs), the token caches a stage rebuilds nor the datasets' object masks,
+written to a folder that travels; then taken into a run's output_dir on the next machine, where those stages count
+as done and are skipped. A stage records its inputs by absolute path, so the run must sit where it sat: a folder
+carried from elsewhere is refused by name."""
 
 import json
 import shutil
@@ -11,7 +11,7 @@ from pathlib import Path
 
 from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR, SEGMENTATION_META
 from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
-from lerobot_roboscape.pipeline.layout import GOAL_FILE, TOKEN_CACHE_DIR
+from lerobot_roboscape.pipeline.layout import GOAL_FILE, TOKEN_CACHE_DIR, TRAJECTORIES_DIR
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS
 from roboscape_core.errors import InvalidInputError, MissingInputError
@@ -20,6 +20,8 @@ MANIFEST = "carried.json"  # {"run": the run's absolute path, "stages": {folder:
 # The masks are 90% of a collection's bytes and only the tokenizer and the reports read them, all before the
 # claim: a carried dataset has none (its record of them goes too, so a stage that needs them says so).
 NOT_CARRIED = (CHECKPOINTS, "logs", TOKEN_CACHE_DIR, SEGMENTATION_DIR, Path(SEGMENTATION_META).name)
+# Outputs a stage keeps outside its own folder: the goals, the trajectory file the converted dataset was made from.
+EXTRAS = (GOAL_FILE, TRAJECTORIES_DIR)
 
 
 def completed_stages(out: Path) -> list[str]:
@@ -45,10 +47,11 @@ def carry_stages(out: Path, dest: Path) -> dict[str, int]:
     tmp = make_tmp_dir(dest.parent, dest.name)
     for stage in stages:
         shutil.copytree(out / stage, tmp / stage, ignore=shutil.ignore_patterns(*NOT_CARRIED))
-    if (out / GOAL_FILE).is_file():
-        (tmp / GOAL_FILE).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(out / GOAL_FILE, tmp / GOAL_FILE)
-        stages.append(GOAL_FILE)
+    for extra in (e for e in EXTRAS if (out / e).exists()):
+        (tmp / extra).parent.mkdir(parents=True, exist_ok=True)
+        copy = shutil.copy2 if (out / extra).is_file() else shutil.copytree
+        copy(out / extra, tmp / extra)
+        stages.append(extra)
     sizes = {stage: _size(tmp / stage) for stage in stages}
     write_text_atomically(tmp / MANIFEST, json.dumps({"run": str(out), "stages": sizes}, indent=1))
     shutil.rmtree(dest, ignore_errors=True)
@@ -71,7 +74,7 @@ def take_stages(carried: Path, out: Path) -> list[str]:
     taken = []
     for stage in record["stages"]:
         source, target = Path(carried) / stage, out / stage
-        if (target / STAGE_FILE).is_file() or (source.is_file() and target.is_file()):
+        if (target / STAGE_FILE).is_file() or (stage in EXTRAS and target.exists()):
             continue
         tmp = make_tmp_dir(target.parent, target.name)
         if source.is_file():

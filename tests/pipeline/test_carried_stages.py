@@ -47,6 +47,8 @@ def _run(out):
     (demos / SEGMENTATION_DIR / "episode_000000.npz").write_bytes(b"m" * 10_000)
     (out / layout.GOAL_FILE).parent.mkdir(parents=True, exist_ok=True)
     (out / layout.GOAL_FILE).write_bytes(b"g")
+    (out / layout.TRAJECTORIES_DIR).mkdir()
+    (out / layout.TRAJECTORIES_DIR / "trajectory.h5").write_bytes(b"h5")
     return settings
 
 
@@ -57,7 +59,7 @@ def test_a_runs_stages_carried_to_another_machine_are_skipped_there(tmp_path):
     assert completed_stages(out) == [layout.DEMOS_DIR, "done_report", ppo, "world_model_action"]
     assert has_masks(out / layout.DEMOS_DIR)
     sizes = carry_stages(out, carried)
-    assert set(sizes) == {*completed_stages(out), layout.GOAL_FILE}
+    assert set(sizes) == {*completed_stages(out), layout.GOAL_FILE, layout.TRAJECTORIES_DIR}
     assert not list(carried.rglob(CHECKPOINTS)) and not (carried / layout.TOKEN_CACHE_DIR).exists()
     assert not (carried / "datasets" / ".roboscape_demos.episodes").exists()  # a collection under way stays
     assert not has_masks(carried / layout.DEMOS_DIR) and not (carried / layout.DEMOS_DIR / SEGMENTATION_DIR).exists()
@@ -68,6 +70,7 @@ def test_a_runs_stages_carried_to_another_machine_are_skipped_there(tmp_path):
     assert resume.run_once(out / layout.DONE_REPORT_DIR, settings, False, pytest.fail) is False
     assert resume.is_done(out / layout.world_model_dir("action"), Stage("none"), False)
     assert (out / layout.GOAL_FILE).read_bytes() == b"g"
+    assert (out / layout.TRAJECTORIES_DIR / "trajectory.h5").read_bytes() == b"h5"
 
     (out / layout.DONE_REPORT_DIR / "done_report.json").write_text('{"kept": true}')
     assert take_stages(carried, out) == []  # what the run completed since is kept
