@@ -13,13 +13,13 @@ from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR, SEGMENTATIO
 from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
 from lerobot_roboscape.pipeline.layout import GOAL_FILE, TOKEN_CACHE_DIR, TRAJECTORIES_DIR
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS
+from lerobot_roboscape.training.checkpoints import RESUME_ONLY
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 MANIFEST = "carried.json"  # {"run": the run's absolute path, "stages": {folder: bytes}}
 # The masks are 90% of a collection's bytes and only the tokenizer and the reports read them, all before the
 # claim: a carried dataset has none (its record of them goes too, so a stage that needs them says so).
-NOT_CARRIED = (CHECKPOINTS, "logs", TOKEN_CACHE_DIR, SEGMENTATION_DIR, Path(SEGMENTATION_META).name)
+NOT_CARRIED = (*RESUME_ONLY, TOKEN_CACHE_DIR, SEGMENTATION_DIR, Path(SEGMENTATION_META).name)
 # Outputs a stage keeps outside its own folder: the goals, the trajectory file the converted dataset was made from.
 EXTRAS = (GOAL_FILE, TRAJECTORIES_DIR)
 

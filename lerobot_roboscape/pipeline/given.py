@@ -14,7 +14,7 @@ from lerobot_roboscape.pipeline.layout import TOKENIZER_DIR, WorldModelPaths, wo
 from lerobot_roboscape.pipeline.resume import run_once
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import tokenizer_fingerprint
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, RESUME_ONLY
 from lerobot_roboscape.training.loop import TRAIN_CONFIG
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.train import TOKENIZER_FINGERPRINT
@@ -24,7 +24,7 @@ logger = logging.getLogger(__name__)
 GIVEN_TOKENIZER = "tokenizer"  # the folder of --world_models holding the tokenizer they learned, if they bring it
 # What travels of a training output_dir: the model and its records (config, log, curves, done tuning), not the
 # checkpoints a killed run resumes from nor TensorBoard's events.
-NOT_CARRIED = shutil.ignore_patterns(CHECKPOINTS, "logs")
+NOT_CARRIED = shutil.ignore_patterns(*RESUME_ONLY)
 
 
 def brought(cfg: PipelineConfig) -> set[str]:

@@ -19,6 +19,9 @@ from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
 
 # LeRobot's names, so that its tools and ours find the same folders.
 CHECKPOINTS, LAST, FINAL = CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
+LOGS = "logs"  # TensorBoard's events, under output_dir
+# What of a training output_dir only a resumed run or TensorBoard reads: it stays when the model travels.
+RESUME_ONLY = (CHECKPOINTS, LOGS)
 PPO_CONFIG_JSON = "ppo_config.json"  # beside a roboscape-ppo checkpoint's FINAL: the flags it trained under
 
 

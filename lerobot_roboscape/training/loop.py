@@ -27,6 +27,7 @@ from lerobot_roboscape.io.atomic import make_tmp_dir
 from lerobot_roboscape.training.checkpoints import (
     CHECKPOINTS,
     FINAL,
+    LOGS,
     begin_checkpoint,
     last_checkpoint,
     publish_checkpoint,
@@ -207,7 +208,7 @@ def fit(
     model, optimizer, scheduler = accelerator.prepare(model, optimizer, scheduler)
     if config.compile if config.compile is not None else accelerator.device.type == "cuda":
         accelerator.unwrap_model(model).compile()  # in place: the state dict's keys stay as they are
-    accelerator.init_trackers("logs", config={k: str(v) for k, v in run_config.items()})
+    accelerator.init_trackers(LOGS, config={k: str(v) for k, v in run_config.items()})
     start, before = _resume(accelerator, resume_from, output_dir, run_config)
     clock = _Clock(before)
     samples = config.batch_size * accelerator.num_processes
