@@ -1,5 +1,6 @@
-"""A run's completed stages carried to another machine: what travels (stage folders and the goals, not checkpoints,
-token caches nor unfinished work), and that the run they are taken into skips them, as the run they came from did."""
+"""A run's completed stages carried to another machine: what travels (stage folders, the goals and the trajectory
+file; not checkpoints, token caches, object masks nor unfinished work), and that the run they are taken into skips
+them, as the run they came from did."""
 
 import json
 import shutil
