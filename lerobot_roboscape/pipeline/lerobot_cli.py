@@ -9,7 +9,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import demonstrations_per_scene, open_dataset
 from lerobot_roboscape.pipeline.resume import run_once
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST
+from lerobot_roboscape.training.checkpoints import publish_final
 from roboscape_core.errors import InvalidInputError
 
 
@@ -44,7 +44,7 @@ def lerobot_sft(
 ) -> Path:
     """SFT with `lerobot-train` on the dataset's successful episodes (the first `per_scene` of each family and
     scene; None: all) in `scenes` (None: every scene), a checkpoint every `save_freq` steps (None: at the end);
-    returns the final pretrained_model directory."""
+    returns the final model's directory, output_dir/pretrained_model as of every trainer."""
     episodes = sft_episodes(dataset, per_scene, scenes)
     args = [
         f"--dataset.repo_id={dataset.repo_id}",
@@ -60,7 +60,7 @@ def lerobot_sft(
         f"--output_dir={output_dir}",
     ]
     run_once(output_dir, args, fresh, lambda: run_lerobot("lerobot_train", args))
-    return output_dir / CHECKPOINTS / LAST / FINAL  # lerobot-train links `last` to its newest checkpoint
+    return publish_final(output_dir)
 
 
 def lerobot_eval(

@@ -16,6 +16,7 @@ import numpy as np
 from lerobot.utils.constants import CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
 
 from lerobot_roboscape.io.atomic import make_tmp_dir, write_text_atomically
+from roboscape_core.errors import MissingInputError
 
 # LeRobot's names, so that its tools and ours find the same folders.
 CHECKPOINTS, LAST, FINAL = CHECKPOINTS_DIR, LAST_CHECKPOINT_LINK, PRETRAINED_MODEL_DIR
@@ -23,6 +24,23 @@ LOGS = "logs"  # TensorBoard's events, under output_dir
 # What of a training output_dir only a resumed run or TensorBoard reads: it stays when the model travels.
 RESUME_ONLY = (CHECKPOINTS, LOGS)
 PPO_CONFIG_JSON = "ppo_config.json"  # beside a roboscape-ppo checkpoint's FINAL: the flags it trained under
+
+
+def publish_final(output_dir: Path) -> Path:
+    """output_dir/FINAL, where every trainer's model lives and what travels of its output_dir: lerobot-train keeps
+    its model only in its newest checkpoint, so it is copied out of there once, built beside its place."""
+    final, newest = Path(output_dir) / FINAL, Path(output_dir) / CHECKPOINTS / LAST / FINAL
+    if final.is_dir():
+        return final
+    if not newest.is_dir():
+        raise MissingInputError(
+            f"{output_dir} holds neither {FINAL}/ nor {newest.relative_to(output_dir)}/: a training run carried "
+            "without its model; train it again (--fresh) where its data is"
+        )
+    tmp = make_tmp_dir(Path(output_dir), FINAL)
+    shutil.copytree(newest, tmp, dirs_exist_ok=True)
+    os.replace(tmp, final)
+    return final
 
 
 def checkpoint_name(step: int) -> str:

@@ -47,7 +47,7 @@ def experiment_rungs(run: Path, names: list[str] | None) -> list[Path]:
     rungs = []
     for protocol in methods.PROTOCOLS:
         folder = run / layout.protocol_dir(protocol)
-        sft = folder / layout.sft_dir(POLICY) / CHECKPOINTS / LAST / FINAL
+        sft = folder / layout.sft_dir(POLICY) / FINAL
         ppo = sorted((folder / layout.RL_DIR / POLICY).glob(f"*/{CHECKPOINTS}/*/{FINAL}"))
         last = {p.parents[2]: p for p in ppo if names is None or p.parents[2].name in names}  # each run's newest
         rungs += [p for p in (sft, *last.values()) if p.exists()]

@@ -1,6 +1,6 @@
 """A run's completed stages carried to another machine: what travels (stage folders, the goals and the trajectory
 file; not checkpoints, token caches, object masks nor unfinished work), and that the run they are taken into skips
-them, as the run they came from did."""
+them, as the run they came from did; an SFT run travels with its model."""
 
 import json
 import shutil
@@ -11,7 +11,7 @@ import pytest
 from lerobot_roboscape.dataset.segmentation import SEGMENTATION_DIR, SEGMENTATION_META, has_masks
 from lerobot_roboscape.pipeline import layout, methods, resume
 from lerobot_roboscape.pipeline.carried_stages import MANIFEST, carry_stages, completed_stages, take_stages
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST, publish_final
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 
@@ -89,3 +89,25 @@ def test_stages_are_taken_only_into_the_run_they_came_from(tmp_path):
     with pytest.raises(MissingInputError, match="holds no completed stage"):
         carry_stages(tmp_path / "empty", tmp_path / "none")
     assert not (tmp_path / "none").exists()
+
+
+def test_an_sft_run_travels_with_the_model_lerobot_train_kept_in_its_newest_checkpoint(tmp_path):
+    out, carried = tmp_path / "run", tmp_path / "carried"
+    sft = out / "protocol_paper" / layout.sft_dir("roboscape_mlp")
+
+    def lerobot_train():  # its layout: checkpoints/<step>/pretrained_model, `last` a link to the newest
+        (sft / CHECKPOINTS / "010000" / FINAL).mkdir(parents=True)
+        (sft / CHECKPOINTS / "010000" / FINAL / "model.safetensors").write_bytes(b"w")
+        (sft / CHECKPOINTS / LAST).symlink_to("010000")
+
+    resume.run_once(sft, Stage("demos"), False, lerobot_train)
+    assert publish_final(sft) == sft / FINAL
+    carry_stages(out, carried)
+    shutil.rmtree(out)
+    take_stages(carried, out)
+    assert not (sft / CHECKPOINTS).exists()
+    assert publish_final(sft) == sft / FINAL and (sft / FINAL / "model.safetensors").read_bytes() == b"w"
+
+    shutil.rmtree(sft / FINAL)  # a run carried before its model was published: said, not loaded as nothing
+    with pytest.raises(MissingInputError, match=rf"{sft} holds neither {FINAL}/ nor {CHECKPOINTS}/{LAST}/{FINAL}/"):
+        publish_final(sft)
