@@ -202,7 +202,7 @@ def test_ppo_in_the_simulator(mlp_checkpoint, tmp_path):
     resumed = killed / "checkpoints" / "00000002"
     assert_same_weights(reference / "model.safetensors", resumed / FINAL / "model.safetensors")
     state = "training_state/iteration.json"
-    assert (reference.parent / state).read_text() == (resumed / state).read_text()
+    assert (last_checkpoint(reference.parent) / state).read_text() == (resumed / state).read_text()
 
 
 def test_eval(mlp_checkpoint, tmp_path):

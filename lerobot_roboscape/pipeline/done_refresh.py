@@ -28,7 +28,7 @@ from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.rl.ppo_state import checkpoint_seconds
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import episodes_token_cache, load_or_build_token_cache
-from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint, publish_final
 from lerobot_roboscape.training.loop import resolve_device, save_atomically
 from lerobot_roboscape.world_model.done_tuning import SourceFit, refit_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
@@ -81,7 +81,7 @@ def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneR
             "the done refresh slices PPO's clock: give PPO a time budget (--pipeline.ppo.time_budget_s)"
         )
     train_once(folder, {"ppo": cfg, "refresh": refresh}, fresh, lambda resume: _rounds(cfg, refresh, resume))
-    return last_checkpoint(folder) / FINAL
+    return publish_final(folder)
 
 
 def _rounds(cfg: PPOConfig, refresh: DoneRefresh, resume: bool) -> None:

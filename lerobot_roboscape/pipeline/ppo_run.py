@@ -8,7 +8,7 @@ from pathlib import Path
 from lerobot_roboscape.pipeline.resume import train_once
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo import train_ppo
-from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
+from lerobot_roboscape.training.checkpoints import last_checkpoint, publish_final
 
 
 def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
@@ -22,4 +22,4 @@ def ppo(cfg: PPOConfig, fresh: bool = False) -> Path:
         lambda resume: train_ppo(replace(cfg, resume=resume and last_checkpoint(folder) is not None)),
         budgets=("time_budget_s",),
     )
-    return last_checkpoint(folder) / FINAL
+    return publish_final(folder)

@@ -35,7 +35,7 @@ from lerobot_roboscape.rl.policy_loading import (
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
 from lerobot_roboscape.robot import CONTROL_FREQ
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, last_checkpoint
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, last_checkpoint, publish_final
 from lerobot_roboscape.training.loop import resolve_mixed_precision
 from lerobot_roboscape.training.records import HISTORY, History, write_video
 from roboscape_core.errors import OutputExistsError
@@ -317,7 +317,7 @@ def _rollout_metrics(accelerator: Accelerator, rollout: Rollout, seconds: float,
 
 
 def train_ppo(cfg: PPOConfig) -> Path:
-    """Run PPO; returns the final checkpoint's pretrained_model directory."""
+    """Run PPO; returns its final model's directory, output_dir/pretrained_model (its newest checkpoint's)."""
     accelerator = Accelerator(
         mixed_precision=resolve_mixed_precision(cfg.mixed_precision),
         cpu=cfg.device == "cpu",
@@ -332,7 +332,7 @@ def train_ppo(cfg: PPOConfig) -> Path:
     check_policy_fits_frame_skip(run.policy, env, run.path)
     reward = getattr(env, "reward_description", "the env's own")
     logger.info("PPO reward: %s", reward)
-    accelerator.init_trackers("ppo", config={k: str(v) for k, v in asdict(cfg).items()})
+    accelerator.init_trackers(LOGS, config={k: str(v) for k, v in asdict(cfg).items()})
     history = History(cfg.output_dir / HISTORY, run.iteration) if accelerator.is_main_process else None
     progress = tqdm(
         range(run.iteration, cfg.iterations),
@@ -341,7 +341,6 @@ def train_ppo(cfg: PPOConfig) -> Path:
         desc="PPO",
         disable=not accelerator.is_main_process,
     )
-    final = None
     for iteration in progress:
         # One random stream per (iteration, process): a resumed run draws what an uninterrupted one would.
         stream = cfg.seed + 1_000_003 * iteration + accelerator.process_index
@@ -384,14 +383,16 @@ def train_ppo(cfg: PPOConfig) -> Path:
         done = iteration + 1 == cfg.iterations or out_of_time
         if (done or (iteration + 1) % cfg.save_freq == 0) and accelerator.is_main_process:
             policy = accelerator.unwrap_model(scorer).policy
-            saved = save_checkpoint(
+            save_checkpoint(
                 cfg.output_dir, iteration + 1, policy, run.io, optimizer, cfg, run.return_stats, reward, run.elapsed
             )
-            final = saved / FINAL
         accelerator.wait_for_everyone()
         if out_of_time:
             logger.info("time budget of %.0f s spent after %d iterations", cfg.time_budget_s, iteration + 1)
             break
+    if accelerator.is_main_process:
+        publish_final(cfg.output_dir)
+    accelerator.wait_for_everyone()
     accelerator.end_training()
     env.close()
-    return final if final is not None else last_checkpoint(cfg.output_dir) / FINAL
+    return Path(cfg.output_dir) / FINAL

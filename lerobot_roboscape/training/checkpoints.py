@@ -26,23 +26,6 @@ RESUME_ONLY = (CHECKPOINTS, LOGS)
 PPO_CONFIG_JSON = "ppo_config.json"  # beside a roboscape-ppo checkpoint's FINAL: the flags it trained under
 
 
-def publish_final(output_dir: Path) -> Path:
-    """output_dir/FINAL, where every trainer's model lives and what travels of its output_dir: lerobot-train keeps
-    its model only in its newest checkpoint, so it is copied out of there once, built beside its place."""
-    final, newest = Path(output_dir) / FINAL, Path(output_dir) / CHECKPOINTS / LAST / FINAL
-    if final.is_dir():
-        return final
-    if not newest.is_dir():
-        raise MissingInputError(
-            f"{output_dir} holds neither {FINAL}/ nor {newest.relative_to(output_dir)}/: a training run carried "
-            "without its model; train it again (--fresh) where its data is"
-        )
-    tmp = make_tmp_dir(Path(output_dir), FINAL)
-    shutil.copytree(newest, tmp, dirs_exist_ok=True)
-    os.replace(tmp, final)
-    return final
-
-
 def checkpoint_name(step: int) -> str:
     return f"{step:08d}"
 
@@ -71,6 +54,29 @@ def publish_checkpoint(output_dir: Path, step: int, tmp: Path, keep: int | None 
         for old in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))[:-keep]:
             shutil.rmtree(old)
     return root / name
+
+
+def publish_final(output_dir: Path) -> Path:
+    """output_dir/FINAL, where every trainer's model lives and what travels of its output_dir: lerobot-train and PPO
+    keep theirs only in their checkpoints, so it is copied out of the newest, built beside its place, whenever that
+    is newer (a run resumed with a larger budget); a carried run, without checkpoints, keeps the one it brought."""
+    final = Path(output_dir) / FINAL
+    newest = (last_checkpoint(output_dir) or Path(output_dir) / CHECKPOINTS / LAST) / FINAL  # lerobot's is a link
+    if not newest.is_dir():
+        if final.is_dir():
+            return final
+        raise MissingInputError(
+            f"{output_dir} holds neither {FINAL}/ nor {CHECKPOINTS}/{LAST}/{FINAL}/: a training run carried without "
+            "its model; train it again (--fresh) where its data is"
+        )
+    if final.is_dir() and final.stat().st_mtime >= newest.stat().st_mtime:
+        return final
+    tmp = make_tmp_dir(Path(output_dir), FINAL)
+    shutil.copytree(newest, tmp, dirs_exist_ok=True)
+    if final.is_dir():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    return final
 
 
 def spread_checkpoints(output_dir: Path, n: int) -> list[Path]:

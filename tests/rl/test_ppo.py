@@ -15,6 +15,7 @@ from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, last_checkpoint
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -131,10 +132,15 @@ def ppo_config(policy_path, output_dir, **overrides) -> PPOConfig:
     return PPOConfig(**{**kwargs, **overrides})
 
 
+def saved_state(final, name: str) -> dict:
+    """What the run of the model `final` saved beside its newest checkpoint (its training_state/<name>.json)."""
+    return json.loads((last_checkpoint(final.parent) / "training_state" / f"{name}.json").read_text())
+
+
 def logged(output_dir, tag: str = "charts/episode_return") -> list[float]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    events = EventAccumulator(str(next(output_dir.glob("ppo/events*")).parent))
+    events = EventAccumulator(str(next(output_dir.glob(f"{LOGS}/events*")).parent))
     events.Reload()
     return [event.value for event in events.Scalars(tag)]
 
@@ -240,7 +246,7 @@ def test_resume_equals_uninterrupted_training(fresh_mlp, tmp_path):
     reference = train_ppo(ppo_config(fresh_mlp, tmp_path / "reference", iterations=6, save_freq=2))
     train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=4, save_freq=2))  # "killed" after 4
     resumed = train_ppo(ppo_config(fresh_mlp, tmp_path / "interrupted", iterations=6, save_freq=2, resume=True))
-    assert json.loads((resumed.parent / "training_state" / "iteration.json").read_text())["iteration"] == 6
+    assert saved_state(resumed, "iteration")["iteration"] == 6
     expected, got = load_file(reference / "model.safetensors"), load_file(resumed / "model.safetensors")
     assert expected.keys() == got.keys()
     assert all(torch.equal(expected[key], got[key]) for key in expected)
@@ -250,8 +256,8 @@ def test_resume_equals_uninterrupted_training(fresh_mlp, tmp_path):
 
 def test_time_budget_stops_the_run_and_history_records_each_iteration(fresh_mlp, tmp_path):
     final = train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", iterations=12, time_budget_s=1e-6))
-    state = json.loads((final.parent / "training_state" / "iteration.json").read_text())
-    clock = json.loads((final.parent / "training_state" / "clock.json").read_text())
+    state = saved_state(final, "iteration")
+    clock = saved_state(final, "clock")
     assert state["iteration"] == 1 and clock["seconds"] > 0  # the first iteration spends the budget; it is saved
     history = read_ppo_history(tmp_path / "ppo")
     assert [row.iteration for row in history] == [1] and history[0].seconds == clock["seconds"]
@@ -263,14 +269,16 @@ def test_a_finished_run_given_a_larger_time_budget_goes_on_from_where_it_stopped
 
     cfg = ppo_config(fresh_mlp, tmp_path / "ppo", iterations=12, time_budget_s=1e-6)
     first = ppo(cfg)
-    clock = json.loads((first.parent / "training_state" / "clock.json").read_text())["seconds"]
+    clock = saved_state(first, "clock")["seconds"]
     # The budget grows past the first iteration's clock: the second iteration spends it, on top of the first.
     longer = ppo(replace(cfg, time_budget_s=clock + 1e-6))
-    assert json.loads((longer.parent / "training_state" / "iteration.json").read_text())["iteration"] == 2
+    assert saved_state(longer, "iteration")["iteration"] == 2
     assert [row.iteration for row in read_ppo_history(tmp_path / "ppo")] == [1, 2]
     assert read_ppo_history(tmp_path / "ppo")[1].seconds > clock  # PPO's clock went on from the first run's
+    saved = [tmp_path / "ppo" / CHECKPOINTS / step / FINAL / "model.safetensors" for step in ("00000001", "00000002")]
+    assert (longer / "model.safetensors").read_bytes() == saved[1].read_bytes() != saved[0].read_bytes()  # republished
     shorter = ppo(replace(cfg, time_budget_s=1e-7))  # a smaller budget is another run: it starts again
-    assert json.loads((shorter.parent / "training_state" / "iteration.json").read_text())["iteration"] == 1
+    assert saved_state(shorter, "iteration")["iteration"] == 1
 
 
 def test_bad_checkpoint_path_and_env_mismatch_are_clear_errors(fresh_mlp, tmp_path):
