@@ -69,6 +69,7 @@ def publish_final(output_dir: Path) -> Path:
             f"{output_dir} holds neither {FINAL}/ nor {CHECKPOINTS}/{LAST}/{FINAL}/: a training run carried without "
             "its model; train it again (--fresh) where its data is"
         )
+    # copytree keeps the checkpoint's mtime on the copy: an equal one is that checkpoint, a later checkpoint newer.
     if final.is_dir() and final.stat().st_mtime >= newest.stat().st_mtime:
         return final
     tmp = make_tmp_dir(Path(output_dir), FINAL)
