@@ -231,8 +231,8 @@ def run_pack(cfg: RunPackConfig) -> PackResults:
 
 def slim(runs: list[Path], checkpoints: int) -> None:
     """Keep what the experiment reads of each of `runs`, in half the bytes: `checkpoints` of its checkpoints spread
-    over the run (those the checkpoint curve evaluates, its last among them), their policy weights in bf16
-    (`copy_run` casts them back) and without the optimiser's state."""
+    over the run (those the checkpoint curve evaluates, its last among them), their policy weights and the run's
+    published model in bf16 (`copy_run` casts them back), without the optimiser's state."""
     for run in runs:
         kept = set(spread_checkpoints(run, checkpoints))
         for folder in (run / CHECKPOINTS).iterdir():
@@ -241,6 +241,7 @@ def slim(runs: list[Path], checkpoints: int) -> None:
         for folder in kept:
             (folder / "training_state" / "optimizer_state.safetensors").unlink(missing_ok=True)
             _cast(folder / FINAL / "model.safetensors", torch.bfloat16)
+        _cast(run / FINAL / "model.safetensors", torch.bfloat16)
         last = run / CHECKPOINTS / LAST  # names the newest checkpoint, which is kept
         if last.is_file() and not (run / CHECKPOINTS / last.read_text().strip()).is_dir():
             raise RuntimeError(f"{run}: the last checkpoint was dropped")
@@ -250,7 +251,10 @@ def copy_run(source: Path, dest: Path) -> None:
     """A run `slim` trimmed, copied to `dest` with its policy weights cast back to float32 (their values rounded to
     bf16's precision on the way)."""
     shutil.copytree(source, dest, dirs_exist_ok=True)
-    for weights in (Path(dest) / CHECKPOINTS).glob(f"*/{FINAL}/model.safetensors"):
+    for weights in [
+        *(Path(dest) / CHECKPOINTS).glob(f"*/{FINAL}/model.safetensors"),
+        Path(dest) / FINAL / "model.safetensors",
+    ]:
         _cast(weights, torch.float32)
 
 

@@ -59,7 +59,9 @@ def publish_checkpoint(output_dir: Path, step: int, tmp: Path, keep: int | None 
 def publish_final(output_dir: Path) -> Path:
     """output_dir/FINAL, where every trainer's model lives and what travels of its output_dir: lerobot-train and PPO
     keep theirs only in their checkpoints, so it is copied out of the newest, built beside its place, whenever that
-    is newer (a run resumed with a larger budget); a carried run, without checkpoints, keeps the one it brought."""
+    is newer (a run resumed with a larger budget); a carried run, without checkpoints, keeps the one it brought.
+    The files beside the checkpoint's FINAL (PPO's flags, its reward) come beside output_dir/FINAL with it, so that
+    what reads them beside a model (the Hub card, the done refresh's world model) reads either alike."""
     final = Path(output_dir) / FINAL
     newest = (last_checkpoint(output_dir) or Path(output_dir) / CHECKPOINTS / LAST) / FINAL  # lerobot's is a link
     if not newest.is_dir():
@@ -72,6 +74,9 @@ def publish_final(output_dir: Path) -> Path:
     # copytree keeps the checkpoint's mtime on the copy: an equal one is that checkpoint, a later checkpoint newer.
     if final.is_dir() and final.stat().st_mtime >= newest.stat().st_mtime:
         return final
+    for described in newest.parent.iterdir():
+        if described.is_file():
+            write_text_atomically(Path(output_dir) / described.name, described.read_text())
     tmp = make_tmp_dir(Path(output_dir), FINAL)
     shutil.copytree(newest, tmp, dirs_exist_ok=True)
     if final.is_dir():

@@ -69,8 +69,11 @@ def test_the_done_head_is_refitted_on_the_policys_rollouts_between_slices_of_ppo
         new = STWorldModel.from_pretrained(run / REFRESH_DIR / f"round_{r}" / FINAL).state_dict()
         changed = {name for name, weight in new.items() if not torch.equal(weight, base[name])}
         assert changed and all(name.startswith("done_head.") for name in changed)
-    # The second slice trained in the world model with the second refit's head, to the whole clock.
-    assert final == last_checkpoint(run) / FINAL
+    # The second slice trained in the world model with the second refit's head, to the whole clock; the run's model
+    # is its newest checkpoint's, published with the flags beside it.
+    assert final == run / FINAL
+    newest = last_checkpoint(run) / FINAL
+    assert (final / "model.safetensors").read_bytes() == (newest / "model.safetensors").read_bytes()
     # The replay plays the policy in the model it last trained in, as its checkpoint's flags name it.
     assert trained_world_model(final) == str(run / REFRESH_DIR / "round_1" / FINAL)
     assert json.loads((last_checkpoint(run) / "training_state" / "clock.json").read_text())["seconds"] >= BUDGET_S

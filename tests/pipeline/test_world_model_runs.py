@@ -25,6 +25,7 @@ from lerobot_roboscape.reward.done_report import (
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import load_policy
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
+from lerobot_roboscape.training.checkpoints import FINAL
 
 FRAME_SKIP = 4  # the test world models'
 
@@ -141,23 +142,24 @@ def test_runs_packed_here_run_without_the_dataset_and_come_back_as_the_experimen
     cfg = ExperimentConfig(world_model_runs=str(tmp_path / "wm_runs"))
     taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
     final = taken.runs["RL w. World Model"]
-    assert final == protocol / rl_dir("roboscape_mlp", "RL w. World Model") / "checkpoints/00000003/pretrained_model"
+    taken_run = protocol / rl_dir("roboscape_mlp", "RL w. World Model")
+    assert final == taken_run / FINAL  # the run's published model, its last checkpoint's
     here = load_file(final / "model.safetensors")
     there = load_file(out / results.runs["plain"].final / "model.safetensors")
     assert all(here[k].dtype == torch.float32 and torch.equal(here[k], there[k].float()) for k in there)
     load_policy(final, "cpu")
-    record = json.loads((final.parents[2] / STAGE_FILE).read_text())
+    record = json.loads((taken_run / STAGE_FILE).read_text())
     assert record["seconds"] == pytest.approx(results.runs["plain"].seconds)
-    written = (final.parents[2] / STAGE_FILE).stat().st_mtime_ns
+    written = (taken_run / STAGE_FILE).stat().st_mtime_ns
     take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
-    assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns == written
+    assert (taken_run / STAGE_FILE).stat().st_mtime_ns == written
     # A run that failed there is left out, the others taken; without the plain run's rollouts, nothing is.
     failed = {"method": "RL w. World Model, KL to SFT", "folder": "rl/kl", "error": "RuntimeError: out of memory"}
     written_results = results.to_json()
     (out / RESULTS).write_text(json.dumps(written_results | {"runs": written_results["runs"] | {"kl": failed}}))
     taken = take_world_model_runs(cfg, protocol, out, "roboscape_mlp")
     assert "RL w. World Model, KL to SFT" not in taken.runs and len(taken.runs) == 3
-    assert (final.parents[2] / STAGE_FILE).stat().st_mtime_ns != written  # other results: taken again
+    assert (taken_run / STAGE_FILE).stat().st_mtime_ns != written  # other results: taken again
     (out / RESULTS).write_text(json.dumps({k: v for k, v in written_results.items() if k != "replays"}))
     with pytest.raises(FileNotFoundError, match="did not come back"):
         take_world_model_runs(cfg, protocol, out, "roboscape_mlp")

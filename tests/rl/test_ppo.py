@@ -15,7 +15,7 @@ from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
 from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
-from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, last_checkpoint
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, PPO_CONFIG_JSON, last_checkpoint
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -277,6 +277,8 @@ def test_a_finished_run_given_a_larger_time_budget_goes_on_from_where_it_stopped
     assert read_ppo_history(tmp_path / "ppo")[1].seconds > clock  # PPO's clock went on from the first run's
     saved = [tmp_path / "ppo" / CHECKPOINTS / step / FINAL / "model.safetensors" for step in ("00000001", "00000002")]
     assert (longer / "model.safetensors").read_bytes() == saved[1].read_bytes() != saved[0].read_bytes()  # republished
+    # with the flags it trained under beside it, as beside a checkpoint's (the Hub card reads them there)
+    assert (longer.parent / PPO_CONFIG_JSON).read_text() == (saved[1].parent.parent / PPO_CONFIG_JSON).read_text()
     shorter = ppo(replace(cfg, time_budget_s=1e-7))  # a smaller budget is another run: it starts again
     assert saved_state(shorter, "iteration")["iteration"] == 1
 
