@@ -279,7 +279,8 @@ def simulator_eval(
                     out / eval_dir(name, method) / split,
                     scenes=[scene] if split == SCENE else None,
                 )
-    run_evaluations(cfg, list(jobs.values()))
+    # OOD's cells first, every checkpoint's: the claim's, complete when a long table is stopped midway.
+    run_evaluations(cfg, sorted(jobs.values(), key=lambda job: job.splits[0] != "ood"))
     cells = {}
     for (name, method, split), job in jobs.items():
         cells.setdefault(name, {}).setdefault(method, {})[split] = read_cells(job.output_dir, job.splits[0])

@@ -1,6 +1,7 @@
 """The pipeline's report: each target measured against its goal."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -266,3 +267,25 @@ def test_a_run_lists_each_artifact_once_and_refuses_a_second_under_its_name(tmp_
     with pytest.raises(ValueError, match="'experiment report' is already listed"):
         artifacts.add("experiment report", ArtifactKind.MARKDOWN, tmp_path / "other.md")
     assert artifacts["experiment report"].path == report
+
+
+def test_table_ones_ood_cells_are_evaluated_first_for_every_checkpoint(monkeypatch, tmp_path):
+    from lerobot.configs.default import DatasetConfig
+
+    from lerobot_roboscape.pipeline import policy_stages
+    from lerobot_roboscape.pipeline.config import PipelineConfig
+
+    order = []
+
+    def record(cfg, jobs):  # the order the simulator would play them in; stop before reading their outputs
+        order.extend((Path(job.policy_path).name, job.splits[0], bool(job.scenes)) for job in jobs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(policy_stages, "run_evaluations", record)
+    checkpoints = {"mlp": {methods.SFT: tmp_path / "sft", methods.RL_WORLD_MODEL: tmp_path / "wm"}}
+    with pytest.raises(KeyboardInterrupt):
+        policy_stages.simulator_eval(
+            PipelineConfig(), tmp_path, DatasetConfig("local/d"), checkpoints, methods.initial_scene()
+        )
+    assert order[:2] == [("sft", "ood", False), ("wm", "ood", False)]
+    assert sorted(order[2:]) == [("sft", "ind", False), ("sft", "ind", True), ("wm", "ind", False), ("wm", "ind", True)]
