@@ -269,7 +269,7 @@ CLAIM_2_CORES = "claim72_chain/table1/results.json"  # the same protocol in the 
 PAPER_METHODS = ("Supervised finetune", "RL w. World Model", "RL w. ManiSkill (one scene)", "RL w. ManiSkill")
 
 
-def ood(claim: str, split: str = "ood"):
+def claim_figures(claim: str, split: str = "ood"):
     """A claim's success per method in `split` (pooled over families) and PPO in the world model's paired
     differences out of domain."""
     rate = lambda method: _pct(  # noqa: E731
@@ -288,23 +288,24 @@ def interval(d: dict) -> str:
 def headline() -> list[str]:
     """The README's answer and its table: PPO in the world model against SFT and PPO in the simulator, out of domain,
     under the paper's protocol, in the GPU-trained world models (CLAIM) and in the 2-core ones (CLAIM_2_CORES)."""
-    rate, difference = ood(CLAIM)
+    rate, difference = claim_figures(CLAIM)
     points = round(100 * difference("Supervised finetune")["difference"])
     points = f"{points:+d} point" + ("" if abs(points) == 1 else "s")
     episodes = _measured(CLAIM, "table", "roboscape_mlp", "RL w. World Model", "ood", "all")
-    methods = PAPER_METHODS
-    here, here_difference = ood(CLAIM_2_CORES)
+    here, here_difference = claim_figures(CLAIM_2_CORES)
+    scene, _ = claim_figures(CLAIM_2_CORES, "scene")
+    sft, world_model, one_scene, _ = PAPER_METHODS
     return [
-        f"PPO in the world model took the one-scene SFT policy from {rate(methods[0])} to {rate(methods[1])} success "
-        f"out of domain ({points}, paired 95% interval {interval(difference(methods[0]))}, "
-        f"{episodes['episodes']} episodes each); PPO in the simulator in that scene reached {rate(methods[2])} "
-        f"(world model minus simulator: paired {interval(difference(methods[2]))}).",
-        f"In the world models trained on 2 cores: {here(methods[0])} to {here(methods[1])} "
-        f"(paired {interval(here_difference(methods[0]))}), against {here(methods[2])} by PPO in the simulator "
-        f"(paired {interval(here_difference(methods[2]))}); in the initial scene it lost SFT's "
-        f"{ood(CLAIM_2_CORES, 'scene')[0](methods[0])} to {ood(CLAIM_2_CORES, 'scene')[0](methods[1])}.",
-        "| roboscape_mlp, GPU-trained world models | " + " | ".join(rate(m) for m in methods) + " |",
-        "| roboscape_mlp, 2-core world models | " + " | ".join(here(m) for m in methods) + " |",
+        f"PPO in the world model took the one-scene SFT policy from {rate(sft)} to {rate(world_model)} success "
+        f"out of domain ({points}, paired 95% interval {interval(difference(sft))}, "
+        f"{episodes['episodes']} episodes each); PPO in the simulator in that scene reached {rate(one_scene)} "
+        f"(world model minus simulator: paired {interval(difference(one_scene))}).",
+        f"In the world models trained on 2 cores: {here(sft)} to {here(world_model)} "
+        f"(paired {interval(here_difference(sft))}), against {here(one_scene)} by PPO in the simulator "
+        f"(paired {interval(here_difference(one_scene))}); in the initial scene it lost SFT's "
+        f"{scene(sft)} to {scene(world_model)}.",
+        "| roboscape_mlp, GPU-trained world models | " + " | ".join(rate(m) for m in PAPER_METHODS) + " |",
+        "| roboscape_mlp, 2-core world models | " + " | ".join(here(m) for m in PAPER_METHODS) + " |",
     ]
 
 

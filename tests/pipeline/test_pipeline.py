@@ -4,8 +4,10 @@ import json
 from pathlib import Path
 
 import pytest
+from lerobot.configs.default import DatasetConfig
 
-from lerobot_roboscape.pipeline import methods
+from lerobot_roboscape.pipeline import methods, policy_stages
+from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tokenizer_targets
 from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
 
@@ -270,11 +272,6 @@ def test_a_run_lists_each_artifact_once_and_refuses_a_second_under_its_name(tmp_
 
 
 def test_table_ones_ood_cells_are_evaluated_first_for_every_checkpoint(monkeypatch, tmp_path):
-    from lerobot.configs.default import DatasetConfig
-
-    from lerobot_roboscape.pipeline import policy_stages
-    from lerobot_roboscape.pipeline.config import PipelineConfig
-
     order = []
 
     def record(cfg, jobs):  # the order the simulator would play them in; stop before reading their outputs
