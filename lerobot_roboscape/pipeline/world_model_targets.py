@@ -250,6 +250,7 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
     from their recorded actions (`roboscape-reward-report --frames=open_loop`)."""
     ladder = Ladder.from_json(ladder)
     c, n, rho = ladder.confusion, len(ladder.policies), ladder.spearman_return_vs_success
+    apart = ladder.apart_rungs or []
     balanced = ladder.balanced_accuracy
     targets = {
         f"agreement: balanced accuracy of world-model success against the simulator's, per episode, {split.upper()}": (
@@ -263,10 +264,10 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
             )
         ),
         f"ladder: Spearman of the world model's mean return against simulator success, {split.upper()}": target_row(
-            rho,
+            ladder.apart_spearman,
             f">= {LADDER_SPEARMAN} over >= {LADDER_RUNGS} policies the simulator tells apart",
-            rho is not None and rho >= LADDER_SPEARMAN and n >= LADDER_RUNGS and bool(ladder.told_apart),
-            f"{n} policies, {_apart(ladder.told_apart)}; simulator success "
+            (ladder.apart_spearman or -1.0) >= LADDER_SPEARMAN and len(apart) >= LADDER_RUNGS,
+            f"{_apart(ladder.told_apart, apart, n)}; over all {n}: {number(rho)}; simulator success "
             + ", ".join(f"{r:.2f}" for r in ladder.simulator_success_rate)
             + "; world-model mean return "
             + ", ".join(f"{r:.1f}" for r in ladder.world_model_mean_return),
@@ -283,7 +284,9 @@ def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split
     return targets
 
 
-def _apart(told_apart: bool | None) -> str:
+def _apart(told_apart: bool | None, apart: list[int], n: int) -> str:
     if told_apart is None:
-        return "their simulator intervals not recorded"
-    return "every rung's simulator interval apart from the next" if told_apart else "simulator intervals overlapping"
+        return f"{n} policies, their simulator intervals not recorded"
+    if told_apart:
+        return f"{n} policies, every rung's simulator interval apart from the next"
+    return f"{len(apart)} of {n} policies told apart (rungs {', '.join(map(str, apart))})"

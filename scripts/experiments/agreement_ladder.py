@@ -1,11 +1,11 @@
 """The world model's agreement with the simulator over a ladder of policies (issue 72): `roboscape_mlp` SFT'd by
 `lerobot-train` on the demonstrations of the first 1 and 8 training scenes (the first is the paper protocol's
 initial scene), a checkpoint every fifth of its steps, beside the policies the claim's experiment trained in RUN
-(each protocol's SFT, the last checkpoint of each of its PPO runs, or those --runs names) and any given with
+(each --protocols' SFT, the last checkpoint of each of its PPO runs, or those --runs names) and any given with
 --policies; then `roboscape-eval-agreement` over them all on RUN's world models as the experiment builds its env, in
 each of --splits: IND, OOD, or the paper protocol's initial scene alone (`initial`, its IND). The
-ladder counts only over rungs the simulator tells apart (their 95% intervals disjoint): its ladder.json says whether
-they are, and this prints the agreement targets.
+ladder's ranking counts only over the most rungs the simulator tells apart (their 95% intervals disjoint, ladder.json's
+`apart`), and this prints the agreement targets.
 
     python scripts/experiments/agreement_ladder.py outputs/bench --out outputs/bench/ladder --episodes 50
 """
@@ -41,11 +41,11 @@ def sft_rungs(cfg, demonstrations, out: Path, scene_counts: list[int], steps: in
     return rungs
 
 
-def experiment_rungs(run: Path, names: list[str] | None) -> list[Path]:
+def experiment_rungs(run: Path, protocols: list[str], names: list[str] | None) -> list[Path]:
     """What the claim's experiment trained in `run`, where it has: each protocol's SFT and its PPO runs' last
     checkpoints (of the runs `names`; None: of every run)."""
     rungs = []
-    for protocol in methods.PROTOCOLS:
+    for protocol in protocols:
         folder = run / layout.protocol_dir(protocol)
         sft = folder / layout.sft_dir(POLICY) / FINAL
         ppo = sorted((folder / layout.RL_DIR / POLICY).glob(f"*/{CHECKPOINTS}/*/{FINAL}"))
@@ -59,9 +59,12 @@ def main():
     parser.add_argument("run", type=Path, help="a pipeline run's output folder (its world models, done report, data)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--scale", default="bench")
-    parser.add_argument("--scenes", type=int, nargs="+", default=[1, 8], help="SFT rungs: on the first k scenes")
+    parser.add_argument("--scenes", type=int, nargs="*", default=[1, 8], help="SFT rungs: on the first k scenes")
     parser.add_argument("--sft_steps", type=int, help="steps of the SFT rungs' runs (default: the scale's)")
     parser.add_argument("--checkpoints", type=int, default=5, help="SFT checkpoints per rung's run")
+    parser.add_argument(
+        "--protocols", nargs="*", default=list(methods.PROTOCOLS), help="the protocols whose runs are rungs"
+    )
     parser.add_argument("--runs", nargs="*", help="the experiment's PPO runs taken as rungs (default: all)")
     parser.add_argument("--policies", nargs="*", default=[], help="more rungs: pretrained_model folders")
     parser.add_argument(
@@ -78,7 +81,7 @@ def main():
     trained = trained_stages(cfg, run)
     steps = args.sft_steps or cfg.sft.steps
     sft = sft_rungs(cfg, trained.demonstrations, out, args.scenes, steps, args.checkpoints)
-    rungs = [*sft, *experiment_rungs(run, args.runs), *args.policies]
+    rungs = [*sft, *experiment_rungs(run, args.protocols, args.runs), *args.policies]
     env = stages.world_model_env(
         cfg, trained.demonstrations, trained.tokenizer, trained.models, trained.done, trained.reward_models
     )

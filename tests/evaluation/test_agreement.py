@@ -201,6 +201,28 @@ def test_the_ladders_ranking_counts_only_over_rungs_the_simulator_tells_apart():
     assert spearman_met(ladder_summary([rung(25 * k, 100) for k in range(5)]))
 
 
+def test_the_ladder_is_judged_over_its_most_rungs_the_simulator_tells_apart():
+    """Rungs between others (their intervals overlapping both) are left out of the ranking, whatever the world model
+    says of them; the rest count, and the per-episode agreement is over their episodes."""
+    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+
+    def rung(successes, wm_return, n=100):
+        eps = [episode(i < successes, i < successes, wm_return=wm_return) for i in range(n)]
+        return {"policy": str(successes), "episodes": eps, "summary": agreement_summary(eps)}
+
+    # 0, 25, 50, 75, 100 of 100 ranked right; 30 and 55, each overlapping its neighbours, ranked backwards
+    ladder = ladder_summary(
+        [rung(50, 3.0), rung(30, 9.0), rung(0, 1.0), rung(100, 5.0), rung(25, 2.0), rung(75, 4.0), rung(55, 0.0)]
+    )
+    assert not ladder["told_apart"] and ladder["spearman_return_vs_success"] < 0.9
+    assert ladder["apart"]["rungs"] == [2, 4, 0, 5, 3]
+    assert ladder["apart"]["spearman_return_vs_success"] == pytest.approx(1.0)
+    assert ladder["apart"]["pooled"]["episodes"] == 500
+    target = next(t for name, t in agreement_targets(ladder).items() if name.startswith("ladder"))
+    assert target["met"] and target["value"] == pytest.approx(1.0)
+    assert "5 of 7 policies told apart" in target["detail"]
+
+
 def test_episode_clip_pairs_each_episodes_own_renders():
     """Batches of 3 episodes: simulator renders 2 px wide each, world-model renders 4 px wide, the world model's run
     one frame longer. Episode 1's clip holds its own columns of each, the simulator's last frame held."""
