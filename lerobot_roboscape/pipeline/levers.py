@@ -1,7 +1,9 @@
 """The guards against a policy that games the world model (issue 49), one entry each in `LEVERS`: its name on the
 command line (`--levers=[kl,...]`), its method (a run of PPO in the world model beside the plain one, judged by the
 simulator success of its checkpoints, OOD), its settings (`--lever.<name>.<field>`), the run it makes and how the
-report describes it. Adding a lever is a settings class, a field of `LeverSettings` and an entry here."""
+report describes it. Adding a lever is a settings class, a field of `LeverSettings` and an entry here; the plain run
+and every lever are also run at the other PPO seeds of `REPEAT_SEEDS` (`plain_seed1`, `kl_seed1`, ...), so a lever is
+judged by two seeds."""
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -14,7 +16,7 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, Roboscap
 from lerobot_roboscape.pipeline import data_stages, layout, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.pipeline.done_refresh import DoneRefresh, ppo_with_done_refresh
-from lerobot_roboscape.pipeline.methods import Method, initial_scene, world_model_variant
+from lerobot_roboscape.pipeline.methods import RL_WORLD_MODEL, Method, initial_scene, world_model_variant
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from roboscape_core.errors import InvalidInputError
 
@@ -264,6 +266,40 @@ LEVERS = {
             ),
         ),
     )
+}
+REPEAT_SEEDS = (1,)  # PPO's seeds the plain run and each lever are repeated at (`--levers=[kl_seed1]`): judged twice
+
+
+def _at_seed(lever: Lever, seed: int) -> Lever:
+    """`lever`'s run again at PPO's seed `seed`: its own row and folder."""
+    tag = lever.method.tag.removeprefix(f"{RL_WORLD_MODEL.tag}_")
+
+    def make(context: LeverContext, settings: LeverSettings) -> RLRun:
+        run = lever.make(context, settings)
+        return replace(run, settings=run.settings | {"seed": seed})
+
+    return Lever(
+        f"{lever.name}_seed{seed}",
+        world_model_variant(f"{lever.method.variant}, seed {seed}", f"{tag}_seed{seed}"),
+        make,
+        lambda settings: f"{lever.describe(settings)}; PPO's seed {seed}",
+        lever.simulator,
+    )
+
+
+def _plain_at_seed(seed: int) -> Lever:
+    return Lever(
+        f"plain_seed{seed}",
+        world_model_variant(f"seed {seed}", f"seed{seed}"),
+        lambda context, settings: RLRun(context.world_model, {"seed": seed}),
+        lambda settings: f"the plain run at PPO's seed {seed}",
+    )
+
+
+LEVERS |= {
+    repeat.name: repeat
+    for seed in REPEAT_SEEDS
+    for repeat in (_plain_at_seed(seed), *(_at_seed(lever, seed) for lever in list(LEVERS.values())))
 }
 BY_METHOD = {lever.method: lever for lever in LEVERS.values()}
 

@@ -170,3 +170,25 @@ def test_rl_runs_only_the_methods_asked_for(context, tmp_path):
     sft = {"mlp": tmp_path / "sft"}
     rl = policy_stages.rl(context.pipeline, tmp_path, context.demonstrations, None, sft, levers, only=[kl])
     assert list(rl["mlp"]) == [kl] and [Path(r).name for r in ran] == ["ppo_world_model_kl"]
+
+
+def test_the_plain_run_and_each_lever_repeat_at_another_ppo_seed(context, tmp_path):
+    """`kl_seed1` is the KL lever's run with PPO's seed 1, in its own folder and row; `plain_seed1` the plain run's."""
+    settings = LeverSettings(kl=dataclasses.replace(LeverSettings().kl, coef=0.3))
+    runs = lever_runs(["kl", "kl_seed1", "plain_seed1"], context, settings)
+    kl, kl_again, plain_again = (LEVERS[name].method for name in ("kl", "kl_seed1", "plain_seed1"))
+    assert runs[kl].settings == {"kl_coef": 0.3} and runs[kl_again].settings == {"kl_coef": 0.3, "seed": 1}
+    assert runs[plain_again].env == context.world_model and runs[plain_again].settings == {"seed": 1}
+    assert str(kl_again) == "RL w. World Model, KL to SFT, seed 1" and kl_again.ood_only
+    assert lever_descriptions([kl_again], settings)[kl_again] == "KL to the SFT policy x 0.3; PPO's seed 1"
+    built = {}
+
+    def runner(ppo_cfg, fresh):
+        built[Path(ppo_cfg.output_dir).name] = ppo_cfg.seed
+        return Path(ppo_cfg.output_dir) / "final"
+
+    levers = {method: dataclasses.replace(run, runner=runner) for method, run in runs.items()}
+    policy_stages.rl(
+        context.pipeline, tmp_path, context.demonstrations, None, {"mlp": tmp_path / "sft"}, levers, only=list(levers)
+    )
+    assert built == {"ppo_world_model_kl": 0, "ppo_world_model_kl_seed1": 1, "ppo_world_model_seed1": 1}
