@@ -268,6 +268,7 @@ CLAIM = "claim72_gpuwm/results.json"  # the paper protocol's latest run: PPO in 
 CLAIM_2_CORES = "claim72_chain/table1/results.json"  # the same protocol in the world models the 2 cores trained
 ALL_SCENES_2_CORES = "claim72_chain/all_scenes/results.json"  # the all-scene protocol in those world models
 ALL_SCENES_KL = "claim72_chain/all_scenes_kl/results.json"  # the same with KL to SFT, a lever's run
+LADDER_2_CORES = "claim72_chain/ladder_apart/wide/ladder.json"  # the agreement ladder on those world models
 PAPER_METHODS = ("Supervised finetune", "RL w. World Model", "RL w. ManiSkill (one scene)", "RL w. ManiSkill")
 
 
@@ -328,9 +329,13 @@ def agreement() -> str:
 
     accuracy, accuracy_ood = (ladder(split, "pooled", "balanced_accuracy") for split in ("initial", "ood"))
     rho, rho_ood = (ladder(split, "spearman_return_vs_success") for split in ("initial", "ood"))
+    wide = _measured(LADDER_2_CORES)
     return (
         f"over {len(ladder('initial', 'policies'))} policies in the initial scene, balanced accuracy {accuracy:.2f} "
-        f"per episode (OOD {accuracy_ood:.2f}; goal 0.8), Spearman {rho:.2f} (OOD {rho_ood:.2f}; goal 0.9)"
+        f"per episode (OOD {accuracy_ood:.2f}; goal 0.8), Spearman {rho:.2f} (OOD {rho_ood:.2f}; goal 0.9); the "
+        f"2-core models, over {len(wide['policies'])} policies from {_pct(min(wide['simulator_success_rate']))} to "
+        f"{_pct(max(wide['simulator_success_rate']))} in the simulator ({len(wide['apart']['rungs'])} told apart), "
+        f"read {wide['pooled']['balanced_accuracy']:.2f} and {wide['spearman_return_vs_success']:.2f}"
     )
 
 
