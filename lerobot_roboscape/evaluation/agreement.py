@@ -9,9 +9,7 @@ in the world model done >= the env's theta at any step. Per-episode outcomes and
 with videos (simulator left, world model and its goal right).
 
 Over several policies (a ladder from poor to good), the world model should rank them as the simulator does: the
-ladder's Spearman correlation between the world model's mean return and the simulator's success rate, over all rungs
-and over the most rungs whose simulator intervals are disjoint (a ranking among rungs the simulator cannot tell apart
-measures noise).
+ladder's Spearman correlation between the world model's mean return and the simulator's success rate (`ladder.py`).
 """
 
 import json
@@ -19,21 +17,17 @@ import logging
 import math
 from collections import Counter
 from dataclasses import asdict, dataclass, field
-from itertools import pairwise
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 from lerobot.configs.default import DatasetConfig
-from scipy.stats import spearmanr
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_frames, successful_episodes
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.evaluation.results import Cell
+from lerobot_roboscape.evaluation.ladder import agreement_summary, ladder_figure, ladder_markdown, ladder_summary
 from lerobot_roboscape.evaluation.success_rate import EvalConfig, eval_env_config, play
 from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.io.templates import render_report
 from lerobot_roboscape.rl.policy_loading import (
     PolicyIO,
     check_policy_fits_env,
@@ -44,9 +38,6 @@ from lerobot_roboscape.tasks import TASK_FAMILIES
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.training.records import write_video
 from roboscape_core.errors import InvalidInputError
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 
 logger = logging.getLogger(__name__)
 EPISODES = "episodes.jsonl"
@@ -165,90 +156,6 @@ def success_goals(dataset_cfg: DatasetConfig) -> dict[tuple[str, str], dict[str,
         if key not in goals:
             goals[key] = {cam: frames[0] for cam, frames in read_frames(dataset, index, [-1]).items()}
     return goals
-
-
-def balanced_accuracy(truth: np.ndarray, said: np.ndarray) -> float | None:
-    """The mean of the world model's recall of the simulator's successes and of its failures; None when the
-    simulator saw only one of them (then only the other recall is defined)."""
-    truth, said = np.asarray(truth, bool), np.asarray(said, bool)
-    if truth.all() or not truth.any():
-        return None
-    return float(0.5 * ((said & truth).sum() / truth.sum() + (~said & ~truth).sum() / (~truth).sum()))
-
-
-def agreement_summary(episodes: list[dict]) -> dict:
-    """Success in each env, the confusion table (simulator rows, world model columns), the agreement and the
-    balanced accuracy with the simulator as truth, and the mean returns."""
-    sim = np.array([e["sim_success"] for e in episodes], bool)
-    wm = np.array([e["wm_success"] for e in episodes], bool)
-    return {
-        "episodes": len(episodes),
-        "simulator": Cell.of(sim.tolist()).to_json(),
-        "world_model": Cell.of(wm.tolist()).to_json(),
-        "confusion": {
-            "sim_success_wm_success": int((sim & wm).sum()),
-            "sim_success_wm_failure": int((sim & ~wm).sum()),
-            "sim_failure_wm_success": int((~sim & wm).sum()),
-            "sim_failure_wm_failure": int((~sim & ~wm).sum()),
-        },
-        "agreement": float((sim == wm).mean()) if len(sim) else None,
-        "balanced_accuracy": balanced_accuracy(sim, wm),
-        "mean_return": {
-            "simulator": float(np.mean([e["sim_return"] for e in episodes])),
-            "world_model": float(np.mean([e["wm_return"] for e in episodes])),
-        },
-        "goals_reached": float(np.mean([e["goal_reached"] for e in episodes])),
-    }
-
-
-def ladder_summary(rungs: list[dict]) -> dict:
-    """Over the policies: how the world model ranks them against the simulator's success rates, and the
-    per-episode agreement of all their episodes pooled."""
-    sim_rate = [r["summary"]["simulator"]["success_rate"] for r in rungs]
-    wm_return = [r["summary"]["mean_return"]["world_model"] for r in rungs]
-    wm_rate = [r["summary"]["world_model"]["success_rate"] for r in rungs]
-    pooled = [e for r in rungs for e in r["episodes"]]
-
-    def rank(a, b):  # undefined with fewer than 3 rungs or a constant side
-        return None if len(a) < 3 or len(set(a)) < 2 or len(set(b)) < 2 else float(spearmanr(a, b).statistic)
-
-    intervals = [r["summary"]["simulator"]["ci95"] for r in rungs]
-    apart = apart_rungs(sim_rate, intervals)
-    return {
-        "policies": [r["policy"] for r in rungs],
-        "simulator_success_rate": sim_rate,
-        "simulator_ci95": intervals,
-        "told_apart": told_apart(sim_rate, intervals),
-        "world_model_mean_return": wm_return,
-        "world_model_success_rate": wm_rate,
-        "spearman_return_vs_success": rank(wm_return, sim_rate),
-        "spearman_wm_success_vs_success": rank(wm_rate, sim_rate),
-        "pooled": agreement_summary(pooled),
-        "apart": {
-            "rungs": apart,
-            "spearman_return_vs_success": rank([wm_return[k] for k in apart], [sim_rate[k] for k in apart]),
-            "pooled": agreement_summary([e for k in apart for e in rungs[k]["episodes"]]),
-        },
-    }
-
-
-def told_apart(rates: list[float], intervals: list[list[float]]) -> bool:
-    """Whether the simulator tells every rung from the next: their 95% intervals, in order of success, disjoint
-    (a ranking over rungs it cannot tell apart measures noise)."""
-    ordered = [interval for _, interval in sorted(zip(rates, intervals, strict=True))]
-    return all(high < low for (_, high), (low, _) in pairwise(ordered))
-
-
-def apart_rungs(rates: list[float], intervals: list[list[float]]) -> list[int]:
-    """The most rungs the simulator tells apart, in order of success: a largest set whose 95% intervals are pairwise
-    disjoint (interval scheduling: greedy by upper bound). Chosen from the simulator's readings alone, so the world
-    model's ranking over them is measured, not picked."""
-    chain, top = [], -math.inf
-    for k in sorted(range(len(rates)), key=lambda k: (intervals[k][1], intervals[k][0])):
-        if intervals[k][0] > top:
-            chain.append(k)
-            top = intervals[k][1]
-    return sorted(chain, key=lambda k: rates[k])
 
 
 def evaluate_agreement(cfg: AgreementConfig) -> dict:
@@ -386,23 +293,3 @@ def write_picture(path: Path, clips: list[list[np.ndarray]], columns: int = 8) -
 
 def _word(success: bool) -> str:
     return "success" if success else "failure"
-
-
-def ladder_markdown(ladder: dict) -> str:
-    return render_report("agreement_ladder.md", ladder=ladder)
-
-
-def ladder_figure(ladder: dict, path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(5, 4))
-    ax.scatter(ladder["simulator_success_rate"], ladder["world_model_mean_return"])
-    for k, (x, y) in enumerate(zip(ladder["simulator_success_rate"], ladder["world_model_mean_return"], strict=True)):
-        ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(4, 4))
-    ax.set_xlabel("simulator success rate")
-    ax.set_ylabel("world-model mean return")
-    ax.set_title("the ladder: world model against simulator")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    tmp.replace(path)

@@ -1,4 +1,4 @@
-"""The agreement ladder's readings as values (what `agreement.ladder_summary` writes into ladder.json): the policies'
+"""The agreement ladder's readings as values (what `ladder.ladder_summary` writes into ladder.json): the policies'
 success in the simulator beside their return in the world model, the ladder's rank correlation, and the per-episode
 agreement of every episode pooled."""
 

@@ -246,7 +246,7 @@ def reward_target(rewards: "RewardReadings | dict") -> dict:
 
 def agreement_targets(ladder: dict, open_loop_rewards: dict | None = None, split: str = "ood") -> dict:
     """Whether the world model judges policies as the simulator does: per-episode agreement and the ladder's ranking
-    (`evaluation/agreement.py`'s ladder.json), and the world-model return of held-out episodes generated open loop
+    (`evaluation/ladder.py`'s ladder.json), and the world-model return of held-out episodes generated open loop
     from their recorded actions (`roboscape-reward-report --frames=open_loop`)."""
     ladder = Ladder.from_json(ladder)
     c, n, rho = ladder.confusion, len(ladder.policies), ladder.spearman_return_vs_success

@@ -6,13 +6,8 @@ import pytest
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.evaluation import agreement
-from lerobot_roboscape.evaluation.agreement import (
-    AgreementConfig,
-    agreement_summary,
-    balanced_accuracy,
-    evaluate_agreement,
-    ladder_summary,
-)
+from lerobot_roboscape.evaluation.agreement import AgreementConfig, evaluate_agreement
+from lerobot_roboscape.evaluation.ladder import agreement_summary, balanced_accuracy, ladder_summary
 from roboscape_core.errors import InvalidInputError
 
 
