@@ -308,7 +308,7 @@ def headline() -> list[str]:
         _measured(claim, "levers", "roboscape_mlp", f"{world_model}, KL to SFT{seed}", "ood", "all")
         for claim, seed in ((ALL_SCENES_KL, ""), (ALL_SCENES_KL_SEED_1, ", seed 1"))
     ]
-    kl_paired = [paired_difference_interval(c["outcomes"], sft_cell["outcomes"])[1:] for c in with_kl]
+    kl_paired = [{"paired_ci95": paired_difference_interval(c["outcomes"], sft_cell["outcomes"])[1:]} for c in with_kl]
     return [
         f"PPO in the world model took the one-scene SFT policy from {rate(sft)} to {rate(world_model)} success "
         f"out of domain ({points}, paired 95% interval {interval(difference(sft))}, "
@@ -322,7 +322,7 @@ def headline() -> list[str]:
         f"{all_scenes(world_model)} (paired {interval(all_scenes_difference(sft))}); PPO in the simulator kept "
         f"{all_scenes(every_scene)}, PPO in it with KL to SFT {_pct(with_kl[0]['success_rate'])} and "
         f"{_pct(with_kl[1]['success_rate'])} (two PPO seeds; minus SFT, paired "
-        f"{interval({'paired_ci95': kl_paired[0]})} and {interval({'paired_ci95': kl_paired[1]})}).",
+        f"{interval(kl_paired[0])} and {interval(kl_paired[1])}).",
         "| roboscape_mlp, GPU-trained world models | " + " | ".join(rate(m) for m in PAPER_METHODS) + " |",
         "| roboscape_mlp, 2-core world models | " + " | ".join(here(m) for m in PAPER_METHODS) + " |",
     ]

@@ -299,7 +299,7 @@ def _plain_at_seed(seed: int) -> Lever:
 LEVERS |= {
     repeat.name: repeat
     for seed in REPEAT_SEEDS
-    for repeat in (_plain_at_seed(seed), *(_at_seed(lever, seed) for lever in list(LEVERS.values())))
+    for repeat in (_plain_at_seed(seed), *(_at_seed(lever, seed) for lever in LEVERS.values()))
 }
 BY_METHOD = {lever.method: lever for lever in LEVERS.values()}
 
