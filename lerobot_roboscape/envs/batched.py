@@ -9,6 +9,29 @@ from gymnasium.vector import AutoresetMode
 from lerobot_roboscape.robot import CONTROL_FREQ
 
 
+def start_groups(slot_families: list[str], group_size: int) -> np.ndarray:
+    """The group of each of the B episodes when `reset(options={"group_size": G})` starts G of them from one start
+    (the same scene and initial state: GRPO's group of rollouts): groups of G slots of one task family, taken in slot
+    order. group_size 1: every episode its own group."""
+    if group_size < 1:
+        raise ValueError(f"group_size must be >= 1, got {group_size}")
+    groups = np.empty(len(slot_families), dtype=np.int64)
+    for family in dict.fromkeys(slot_families):
+        slots = [i for i, f in enumerate(slot_families) if f == family]
+        if len(slots) % group_size:
+            raise ValueError(
+                f"group_size={group_size} does not divide the {len(slots)} parallel episodes of task family "
+                f"{family!r} ({len(slot_families)} in all, the families dealt in turn): choose num_envs as a "
+                "multiple of group_size x the number of families"
+            )
+        for k, i in enumerate(slots):
+            groups[i] = k // group_size
+    # Number the groups in the order of their first slot.
+    keys = [(slot_families[i], groups[i]) for i in range(len(slot_families))]
+    ids = {key: n for n, key in enumerate(dict.fromkeys(keys))}
+    return np.array([ids[key] for key in keys], dtype=np.int64)
+
+
 class BatchedEnv(gym.vector.VectorEnv):
     """B episodes stepped together. Autoreset is off: an ended episode stays frozen until `reset()`, which restarts
     all of them (LeRobot's evaluation and our PPO reset whole batches). Subclasses define `tasks()`, the

@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 
 from lerobot_roboscape.dataset.reader import family_horizons, open_dataset
-from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook, start_groups
 from lerobot_roboscape.envs.simulator_slots import Slots, SlotSpec, SlotWorkers, make_slots
 from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from lerobot_roboscape.robot import STATE_DIM
@@ -86,17 +86,19 @@ class RoboscapeManiSkillEnv(BatchedEnv):
         options = options or {}
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
+        groups = start_groups(self.slot_families, int(options.get("group_size", 1)))
+        n_groups = int(groups.max()) + 1
         scene_ids = options.get("scene_id")
         scene_ids = (
             list(np.broadcast_to(scene_ids, (self.num_envs,)))
             if scene_ids is not None
-            else [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), self.num_envs)]
+            else [self.scenes[i].id for i in self._rng.integers(0, len(self.scenes), n_groups)[groups]]
         )
-        episode_seeds = self._rng.integers(0, 2**31, self.num_envs)
+        episode_seeds = self._rng.integers(0, 2**31, n_groups)[groups]
         # The slots' latest observation (in-process slots update these arrays in place); `_observation` copies.
         self._images, self._state, self._tasks = self.slots.reset(episode_seeds, scene_ids)
         self._book = EpisodeBook(self.horizons, self.config.terminate_on_success, self._max_step_reward)
-        return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids)}
+        return self._observation(), {"task": list(self._tasks), "scene_id": np.array(scene_ids), "group": groups}
 
     def step(self, actions):
         if self._images is None:

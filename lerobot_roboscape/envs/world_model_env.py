@@ -32,7 +32,7 @@ import numpy as np
 import psutil
 import torch
 
-from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook, start_groups
 from lerobot_roboscape.envs.ensemble import Ensemble
 from lerobot_roboscape.envs.goal_bank import GoalBank
 from lerobot_roboscape.envs.loading import load_ensemble, load_models, load_rewards, model_refs
@@ -196,6 +196,9 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if (seed := self._seed_from(seed, options)) is not None:
             self._rng = np.random.default_rng(seed)
             self._generator.manual_seed(seed)  # world-model sampling; in place: a CUDA graph holds this generator
+        groups = start_groups([""] * self.num_envs, int(options.get("group_size", 1)))
+        if groups.max() + 1 < self.num_envs and ("frames" in options or "episode_index" in options):
+            raise ValueError("group_size repeats the starts the env draws: pass it without frames or episode_index")
         if "frames" in options:  # new starts: their goals are made now (or given), not cached
             horizons = self._max_episode_steps if options.get("horizon") is None else options["horizon"]
             state_dim = self.action_model.config.state_dim if self.action_model.config.state else None
@@ -214,7 +217,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
                     raise ValueError(f"episodes {missing} are not among this env's starts")
                 starts = [by_index[int(i)] for i in wanted]
             else:
-                starts = [self.starts[i] for i in self._rng.integers(0, len(self.starts), self.num_envs)]
+                drawn = self._rng.integers(0, len(self.starts), int(groups.max()) + 1)[groups]
+                starts = [self.starts[i] for i in drawn]
             goal_tokens, reached = self.goal_bank.goals_for(starts)
         first = torch.stack([s.first_tokens for s in starts])
         first_states = None
@@ -253,6 +257,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
             "start_frame": np.array([s.frame for s in starts]),
             "goal_from_text_model": np.array(reached),
             "goal": self._pixels(self._goals),
+            "group": groups,
         }
         return self._observation(), info
 

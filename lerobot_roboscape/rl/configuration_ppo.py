@@ -67,6 +67,16 @@ class PPOConfig:
         the SFT checkpoint), estimated on the rollout's samples (Schulman's k3 estimator: non-negative, unbiased).
         It keeps PPO where the SFT policy, and so the world model's data, went (issue 49); 0: none. A second copy
         of the starting policy is held, frozen.
+    init_std: the std of the policy's Gaussian when PPO starts (a fresh run, not a resume), in normalised action units;
+        null: the checkpoint's. SFT fits only the Gaussian's mean, so the std it leaves is its initial value, not
+        one the demonstrations chose (policies that sample tokens, OpenVLA, have none).
+    advantage: "gae" (a critic's, the default) or "group" (GRPO's, as SimpleVLA-RL and RLinf: `group_size` episodes
+        start from one scene and initial state, and each episode's advantage is its success minus its group's mean
+        success over their std, the same for all its decisions; no critic, no reward scaling).
+    group_size: episodes per start with advantage="group" (num_envs must be a multiple of it times the number of
+        task families).
+    keep_mixed_groups: with advantage="group", train only on groups whose episodes neither all succeeded nor all
+        failed (the others carry no signal; SimpleVLA-RL's dynamic sampling).
     norm_adv: normalise advantages over the iteration's samples.
     normalize_reward: divide rewards by the running standard deviation of the discounted return (as gymnasium's
         NormalizeReward in CleanRL), so the critic's targets stay near unit scale whatever the reward's weights.
@@ -102,6 +112,10 @@ class PPOConfig:
     ent_coef: float = 0.0
     target_kl: float | None = None
     kl_coef: float = 0.0
+    init_std: float | None = None
+    advantage: str = "gae"
+    group_size: int = 4
+    keep_mixed_groups: bool = True
     norm_adv: bool = True
     normalize_reward: bool = True
     critic_warmup_iterations: int | None = None
@@ -132,6 +146,15 @@ class PPOConfig:
             )
         if self.kl_coef < 0:
             raise InvalidInputError(f"kl_coef must be >= 0, got {self.kl_coef}")
+        if self.init_std is not None and self.init_std <= 0:
+            raise InvalidInputError(f"init_std must be > 0 or null (the checkpoint's), got {self.init_std}")
+        if self.advantage not in ("gae", "group"):
+            raise InvalidInputError(f"advantage must be gae or group, got {self.advantage!r}")
+        if self.advantage == "group" and (self.group_size < 2 or self.num_envs % self.group_size):
+            raise InvalidInputError(
+                f"advantage=group needs group_size >= 2 dividing num_envs, got group_size={self.group_size} "
+                f"and num_envs={self.num_envs}"
+            )
         if self.value_loss not in (None, "mse", "huber"):
             raise InvalidInputError(f"value_loss must be mse or huber, got {self.value_loss!r}")
         self.output_dir = Path(self.output_dir)

@@ -32,13 +32,13 @@ from lerobot_roboscape.rl.policy_loading import (
     check_policy_fits_frame_skip,
     load_policy,
 )
-from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
+from lerobot_roboscape.rl.ppo_losses import compute_gae, group_advantages, kl_to_reference, ppo_losses
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, last_checkpoint, publish_final
 from lerobot_roboscape.training.loop import resolve_mixed_precision
 from lerobot_roboscape.training.records import HISTORY, History, write_video
-from roboscape_core.errors import OutputExistsError
+from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
 
@@ -61,11 +61,16 @@ class Rollout(NamedTuple):
     frames: list[np.ndarray]  # render() per step, when recorded
     disagreement: np.ndarray | None  # (B,) an ensemble's disagreement summed over the episode; None: none reported
     halted: np.ndarray | None  # (B,) the episode ended by the env's halt; None: the env halts none
+    groups: np.ndarray  # (B,) the start each episode shares with its group (reset's group_size; else its own)
 
 
 @torch.no_grad()
-def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) -> Rollout:
-    observation, _ = env.reset(seed=seed)
+def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, group_size: int = 1) -> Rollout:
+    """One episode in each of the env's B slots; with `group_size` G, the env starts them in groups of G alike."""
+    observation, reset_info = env.reset(seed=seed, options={"group_size": group_size} if group_size > 1 else None)
+    if group_size > 1 and "group" not in reset_info:
+        raise InvalidInputError(f"{type(env).__name__} cannot start episodes in groups (advantage=group)")
+    groups = np.asarray(reset_info.get("group", np.arange(env.num_envs)))
     tasks = list(env.call("task"))
     steps, n = env.call("_max_episode_steps")[0], env.num_envs
     device = next(policy.parameters()).device
@@ -130,6 +135,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False) 
         frames,
         disagreement if reported else None,
         halted,
+        groups,
     )
 
 
@@ -159,19 +165,32 @@ def update(
     critic_only: bool,
     reference=None,
 ) -> dict[str, float]:
-    """PPO's epochs over one rollout; with a `reference` policy (the SFT checkpoint), its KL penalty too."""
-    rewards = rollout.rewards
-    if cfg.normalize_reward:
-        rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
-    advantages, returns = compute_gae(
-        rewards, rollout.values, rollout.terminated, rollout.truncated, rollout.last_value, cfg.gamma, cfg.gae_lambda
-    )
-    t_index, b_index = rollout.alive.nonzero(as_tuple=True)  # samples: the steps episodes were running
+    """PPO's epochs over one rollout; with a `reference` policy (the SFT checkpoint), its KL penalty too. With
+    advantage="group", GRPO's: every decision of an episode gets its episode's group-relative success, and the value
+    head is not trained."""
+    grouped = cfg.advantage == "group"
+    samples = rollout.alive  # the steps episodes were running
+    if grouped:
+        device = rollout.alive.device
+        episode_advantages, keep = group_advantages(
+            torch.as_tensor(rollout.successes), torch.as_tensor(rollout.groups), cfg.keep_mixed_groups
+        )
+        advantages = episode_advantages.to(device).expand_as(rollout.rewards)
+        returns = rollout.values  # no critic: its loss is zero and left out
+        samples = samples & keep.to(device)
+    else:
+        rewards = rollout.rewards
+        if cfg.normalize_reward:
+            rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
+        advantages, returns = compute_gae(
+            rewards, rollout.values, rollout.terminated, rollout.truncated, rollout.last_value, cfg.gamma, cfg.gae_lambda
+        )
+    t_index, b_index = samples.nonzero(as_tuple=True)
     b_advantages = advantages[t_index, b_index]
-    if cfg.norm_adv and len(b_advantages) > 1:
+    if cfg.norm_adv and not grouped and len(b_advantages) > 1:
         b_advantages = (b_advantages - b_advantages.mean()) / (b_advantages.std() + 1e-8)
     stats, n_samples, stopped = [], len(t_index), False
-    for _ in range(cfg.update_epochs):
+    for _ in range(cfg.update_epochs if n_samples else 0):  # GRPO's iteration with no mixed group: nothing to learn
         if stopped:
             break
         order = torch.randperm(n_samples, generator=generator).to(t_index.device)
@@ -194,7 +213,7 @@ def update(
                     cfg.value_loss,
                     cfg.huber_delta,
                 )
-                loss = cfg.vf_coef * losses.value
+                loss = losses.policy.new_zeros(()) if grouped else cfg.vf_coef * losses.value
                 if not critic_only:
                     loss = loss + losses.policy - cfg.ent_coef * losses.entropy
                 if reference is not None:
@@ -213,10 +232,13 @@ def update(
             if (k + 1) % cfg.grad_accum_steps == 0 or k + 1 == len(minibatches):
                 stats.append(_step(cfg, accelerator, optimizer, critic_only))
     summary = {key: float(np.mean([s[key] for s in stats if key in s])) for key in {k for s in stats for k in s}}
-    explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
+    if grouped:
+        summary["charts/groups_kept"] = float(len(set(rollout.groups[keep.numpy()].tolist())))
+    else:
+        explained = 1 - (returns - rollout.values)[rollout.alive].var() / returns[rollout.alive].var().clamp(min=1e-8)
+        summary["losses/explained_variance"] = float(explained)
     return {
         **summary,
-        "losses/explained_variance": float(explained),
         "charts/samples": n_samples,
         "charts/critic_only": float(critic_only),
         "charts/update_stopped_by_kl": float(stopped),
@@ -283,6 +305,10 @@ def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:
     check_actor_critic(policy, path)
     check_policy_fits_env(policy, cfg.env, path)
     cfg.with_policy_defaults(policy.name)
+    if cfg.init_std is not None and checkpoint is None:
+        if not hasattr(policy, "set_action_std"):
+            raise InvalidInputError(f"--init_std sets a Gaussian's std: the {policy.name!r} policy at {path} has none")
+        policy.set_action_std(cfg.init_std)
     reference = None
     if cfg.kl_coef > 0:  # always the starting policy, also when resuming from a later checkpoint
         reference = load_policy(cfg.policy_path, device)[0].eval().requires_grad_(False)
@@ -348,10 +374,11 @@ def train_ppo(cfg: PPOConfig) -> Path:
         record = cfg.video_freq > 0 and iteration % cfg.video_freq == 0 and accelerator.is_main_process
         started = time.perf_counter()
         run.policy.eval()
-        rollout = collect_rollout(env, run.policy, run.io, seed=stream % 2**31, record=record)
+        group_size = cfg.group_size if cfg.advantage == "group" else 1
+        rollout = collect_rollout(env, run.policy, run.io, seed=stream % 2**31, record=record, group_size=group_size)
         rollout_seconds = time.perf_counter() - started
         run.policy.train()  # dropout is 0 in both policies; train mode keeps OpenVLA's gradient checkpointing on
-        critic_only = iteration < cfg.critic_warmup_iterations
+        critic_only = cfg.advantage == "gae" and iteration < cfg.critic_warmup_iterations
         generator = torch.Generator().manual_seed(stream)
         metrics = update(
             cfg,

@@ -32,6 +32,21 @@ def compute_gae(
     return advantages, advantages + values
 
 
+def group_advantages(successes: Tensor, groups: Tensor, keep_mixed: bool) -> tuple[Tensor, Tensor]:
+    """GRPO's advantages (B,) of B episodes in groups that started alike: an episode's success (0 or 1) minus its
+    group's mean, over the group's std (1e-6 added), and which episodes to train on: all, or with `keep_mixed`
+    only those of groups with both outcomes (a group that all succeeded or all failed has no advantage to give)."""
+    outcome = successes.float()
+    n_groups = int(groups.max()) + 1
+    count = torch.zeros(n_groups).index_add_(0, groups, torch.ones_like(outcome))
+    mean = torch.zeros(n_groups).index_add_(0, groups, outcome) / count
+    var = torch.zeros(n_groups).index_add_(0, groups, (outcome - mean[groups]) ** 2) / count
+    advantages = (outcome - mean[groups]) / (var[groups].sqrt() + 1e-6)
+    mixed = (mean > 0) & (mean < 1)
+    keep = mixed[groups] if keep_mixed else torch.ones_like(outcome, dtype=torch.bool)
+    return advantages, keep
+
+
 class PPOLosses(NamedTuple):
     policy: Tensor
     value: Tensor

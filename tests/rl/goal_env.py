@@ -1,5 +1,5 @@
 """A tiny env with the paper's reward shape, where success must be learnt: a point on a line starts at -0.5 and
-must reach the goal at +0.5 (within 0.1). The shaping reward 1 - |x - goal| / 2 is positive everywhere; the sparse
+must reach the goal at +0.5 (within 0.1); `start` moves the start nearer. The shaping reward 1 - |x - goal| / 2 is positive everywhere; the sparse
 reward is paid at every step spent at the goal. The image's grey level shows the position. Episodes follow
 `EpisodeBook` (fixed horizon by default, or termination with its bonus). Registered as `ppo_test_goal`."""
 
@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 from lerobot.envs.configs import EnvConfig
 
-from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook
+from lerobot_roboscape.envs.batched import BatchedEnv, EpisodeBook, start_groups
 from lerobot_roboscape.reward.world_model_reward import max_step_reward
 from tests.rl.reach_env import ReachEnvConfig
 
@@ -25,7 +25,7 @@ class GoalEnv(BatchedEnv):
         )
         self.action_space = gym.spaces.Box(-1, 1, (num_envs, 7), np.float32)
         self.single_action_space = gym.spaces.Box(-1, 1, (7,), np.float32)
-        self.position = np.full(num_envs, START)
+        self.position = np.full(num_envs, config.start)
 
     def tasks(self):
         return ("move to the goal",) * self.num_envs
@@ -36,14 +36,15 @@ class GoalEnv(BatchedEnv):
         return {"pixels": {"third_view": np.repeat(grey[:, None, None, None], size, 1).repeat(size, 2).repeat(3, 3)}}
 
     def reset(self, *, seed=None, options=None):
-        self.position = np.full(self.num_envs, START)
+        self.position = np.full(self.num_envs, self.config.start)
+        groups = start_groups([""] * self.num_envs, int((options or {}).get("group_size", 1)))
         cfg = self.config
         self.book = EpisodeBook(
             np.full(self.num_envs, cfg.episode_length),
             cfg.terminate_on_success,
             max_step_reward(cfg.alpha, cfg.beta, cfg.sparse_reward),
         )
-        return self._observation(), {"task": self.tasks()}
+        return self._observation(), {"task": self.tasks(), "group": groups}
 
     def step(self, actions):
         actions, _ = self._check_actions(actions)
@@ -69,6 +70,7 @@ class GoalEnvConfig(ReachEnvConfig):
     beta: float = 0.5
     sparse_reward: float = 10.0
     task: str = "goal"
+    start: float = START
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
         return {self.type: {0: GoalEnv(self, n_envs)}}

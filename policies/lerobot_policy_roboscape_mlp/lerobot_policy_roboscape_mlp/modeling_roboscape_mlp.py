@@ -204,6 +204,11 @@ class RoboscapeMLPPolicy(PreTrainedPolicy):
     def predict_value(self, batch: dict) -> Tensor:
         return self.value(self.features(batch))
 
+    @torch.no_grad()
+    def set_action_std(self, std: float) -> None:
+        """The Gaussian's std on every action dimension (PPO's `init_std`: SFT trains only its mean)."""
+        self.action_log_std.fill_(float(torch.tensor(std).log()))
+
     # Internals.
 
     def value(self, features: Tensor) -> Tensor:

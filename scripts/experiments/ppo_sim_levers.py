@@ -1,0 +1,210 @@
+"""PPO where the truth is known (issue 100): PPO in `roboscape_maniskill` over every training scene from the
+all-scene SFT policy, one run per (lever, seed) at the same PPO clock, each judged by its checkpoint curve of
+deterministic success in the simulator (IND, the same initial states at every point) and a paired last cell.
+
+    python scripts/experiments/ppo_sim_levers.py train --lever grpo --seed 0 --minutes 15 --workers 1
+    python scripts/experiments/ppo_sim_levers.py curve --lever grpo --seed 0 --episodes 8
+    python scripts/experiments/ppo_sim_levers.py cell --lever grpo --seed 0 --episodes 50   # also: --lever sft
+    python scripts/experiments/ppo_sim_levers.py report --report docs/results/ppo_sim
+
+A run's folder is outputs/ppo_sim/<lever>_seed<seed>; a rerun skips what is complete.
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig  # noqa: E402
+from lerobot_roboscape.evaluation.results import paired_difference_interval  # noqa: E402
+from lerobot_roboscape.evaluation.success_rate import EVAL_JSON, EvalConfig, evaluate_success, read_cells  # noqa: E402
+from lerobot_roboscape.rl.configuration_ppo import PPOConfig  # noqa: E402
+from lerobot_roboscape.rl.history import read_ppo_history  # noqa: E402
+from lerobot_roboscape.rl.ppo import train_ppo  # noqa: E402
+from lerobot_roboscape.rl.ppo_state import checkpoint_seconds  # noqa: E402
+from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL  # noqa: E402
+
+FAMILIES = ["pick_place", "push"]
+HORIZON = 100
+CURVE_SEED, CELL_SEED = 400_000, 100_000  # the curve's starts; the last cell's (Table 1's)
+# Every lever over today's PPO (PPO_DEFAULTS["roboscape_mlp"]) at 16 parallel episodes per iteration.
+LEVERS = {
+    "plain": {},
+    "std": dict(init_std=0.1),
+    "std_warmup": dict(init_std=0.1, critic_warmup_iterations=6),
+    "grpo": dict(advantage="group", group_size=8, init_std=0.1),
+    "grpo_kl": dict(advantage="group", group_size=8, init_std=0.1, kl_coef=0.1),
+}
+
+
+def run_dir(out: Path, lever: str, seed: int) -> Path:
+    return out / f"{lever}_seed{seed}"
+
+
+def env_config(workers: int | None) -> RoboscapeManiSkillEnvConfig:
+    return RoboscapeManiSkillEnvConfig(families=FAMILIES, split="ind", episode_length=HORIZON, workers=workers)
+
+
+def train(args) -> None:
+    folder = run_dir(args.out, args.lever, args.seed)
+    if (folder / FINAL).exists():
+        return
+    cfg = PPOConfig(
+        policy_path=str(args.sft.resolve()),
+        env=env_config(args.workers),
+        output_dir=folder,
+        num_envs=16,
+        iterations=10_000,
+        time_budget_s=args.minutes * 60,
+        save_freq=args.save_freq,
+        seed=args.seed,
+        device="cpu",
+        resume=(folder / CHECKPOINTS).exists(),
+        **LEVERS[args.lever],
+    )
+    train_ppo(cfg)
+
+
+def evaluate(policy: Path, output_dir: Path, episodes: int, seed: int, workers: int | None) -> dict:
+    if not (output_dir / EVAL_JSON).exists():
+        evaluate_success(
+            EvalConfig(
+                policy_path=str(policy),
+                families=FAMILIES,
+                splits=["ind"],
+                episodes=episodes,
+                batch_size=8,
+                episode_length=HORIZON,
+                seed=seed,
+                videos=0,
+                workers=workers,
+                output_dir=output_dir,
+                device="cpu",
+                resume=output_dir.exists(),
+            )
+        )
+    return read_cells(output_dir, "ind")
+
+
+def checkpoints(folder: Path) -> list[Path]:
+    return sorted(p for p in (folder / CHECKPOINTS).iterdir() if p.name.isdigit())
+
+
+def curve(args) -> None:
+    """SFT (iteration 0) and every checkpoint of the run, on the same starts."""
+    folder = run_dir(args.out, args.lever, args.seed)
+    evaluate(args.sft.resolve(), args.out / "curve_sft", args.episodes, CURVE_SEED, args.workers)
+    for checkpoint in checkpoints(folder):
+        evaluate(checkpoint / FINAL, folder / "curve" / checkpoint.name, args.episodes, CURVE_SEED, args.workers)
+
+
+def cell(args) -> None:
+    if args.lever == "sft":
+        policy, output = args.sft.resolve(), args.out / "cell_sft"
+    else:
+        folder = run_dir(args.out, args.lever, args.seed)
+        policy, output = checkpoints(folder)[-1] / FINAL, folder / "cell"
+    evaluate(policy, output, args.episodes, CELL_SEED, args.workers)
+
+
+def read_curve(out: Path, folder: Path) -> list[dict]:
+    points = [{"iteration": 0, "minutes": 0.0, "cells": read_cells(out / "curve_sft", "ind")}]
+    for checkpoint in checkpoints(folder):
+        if (folder / "curve" / checkpoint.name / EVAL_JSON).exists():
+            points.append(
+                {
+                    "iteration": int(checkpoint.name),
+                    "minutes": checkpoint_seconds(checkpoint) / 60,
+                    "cells": read_cells(folder / "curve" / checkpoint.name, "ind"),
+                }
+            )
+    return points
+
+
+def report(args) -> None:
+    args.report.mkdir(parents=True, exist_ok=True)
+    runs = sorted(p for p in args.out.iterdir() if (p / CHECKPOINTS).is_dir())
+    sft_cell = read_cells(args.out / "cell_sft", "ind") if (args.out / "cell_sft" / EVAL_JSON).exists() else None
+    results, lines = {"sft_cell": None, "runs": {}}, []
+    if sft_cell:
+        results["sft_cell"] = {f: c.success_rate for f, c in sft_cell.items()}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for folder in runs:
+        points = read_curve(args.out, folder)
+        history = read_ppo_history(folder)
+        entry = {
+            "curve": [
+                {"iteration": p["iteration"], "minutes": round(p["minutes"], 2)}
+                | {f: c.success_rate for f, c in p["cells"].items()}
+                for p in points
+            ],
+            "episodes_per_point": points[0]["cells"]["all"].episodes,
+            "iterations": history[-1].iteration if history else 0,
+            "train_success_first_last5": [
+                sum(r.success for r in history[:5]) / max(1, len(history[:5])),
+                sum(r.success for r in history[-5:]) / max(1, len(history[-5:])),
+            ],
+        }
+        if sft_cell and (folder / "cell" / EVAL_JSON).exists():
+            ours = read_cells(folder / "cell", "ind")
+            entry["cell"] = {}
+            for family in ours:
+                d, low, high = paired_difference_interval(list(ours[family].outcomes), list(sft_cell[family].outcomes))
+                entry["cell"][family] = {
+                    "success": ours[family].success_rate,
+                    "sft": sft_cell[family].success_rate,
+                    "minus_sft": d,
+                    "paired_95": [low, high],
+                    "episodes": ours[family].episodes,
+                }
+        results["runs"][folder.name] = entry
+        minutes = [p["minutes"] for p in points]
+        axes[0].plot(minutes, [p["cells"]["all"].success_rate for p in points], marker="o", label=folder.name)
+        axes[1].plot([r.seconds / 60 for r in history], _smooth([r.success for r in history]), label=folder.name)
+    axes[0].set(xlabel="PPO minutes", ylabel="IND success, deterministic (simulator)", title="checkpoint curve")
+    axes[1].set(xlabel="PPO minutes", ylabel="sampled success in training (5-iteration mean)", title="training")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.report / "curves.png", dpi=110)
+    (args.report / "results.json").write_text(json.dumps(results, indent=1))
+    for name, entry in results["runs"].items():
+        curve_text = ", ".join(f"{p['minutes']:.0f}: {p['all']:.0%}" for p in entry["curve"])
+        lines.append(f"| {name} | {entry['iterations']} | {curve_text} |")
+        for family, c in entry.get("cell", {}).items():
+            lines.append(
+                f"|  | cell {family} | {c['success']:.0%} vs SFT {c['sft']:.0%}: {c['minus_sft']:+.0%} "
+                f"[{c['paired_95'][0]:+.0%}, {c['paired_95'][1]:+.0%}] ({c['episodes']} eps) |"
+            )
+    print("\n".join(lines))
+
+
+def _smooth(values: list[float], k: int = 5) -> list[float]:
+    return [sum(values[max(0, i - k + 1) : i + 1]) / len(values[max(0, i - k + 1) : i + 1]) for i in range(len(values))]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("step", choices=["train", "curve", "cell", "report"])
+    parser.add_argument("--lever", default="plain", help=f"one of {sorted(LEVERS)} (cell: also 'sft')")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sft", type=Path, default=Path("carried/bench72_run/sft_mlp/pretrained_model"))
+    parser.add_argument("--out", type=Path, default=Path("outputs/ppo_sim"))
+    parser.add_argument("--report", type=Path, default=Path("docs/results/ppo_sim"))
+    parser.add_argument("--minutes", type=float, default=15.0)
+    parser.add_argument("--save_freq", type=int, default=6)
+    parser.add_argument("--episodes", type=int, default=8, help="per family")
+    parser.add_argument("--workers", type=int, default=None)
+    args = parser.parse_args()
+    if args.step != "report" and args.lever not in LEVERS and not (args.step == "cell" and args.lever == "sft"):
+        parser.error(f"--lever must be one of {sorted(LEVERS)}")
+    {"train": train, "curve": curve, "cell": cell, "report": report}[args.step](args)
+
+
+if __name__ == "__main__":
+    main()
