@@ -183,7 +183,13 @@ def update(
         if cfg.normalize_reward:
             rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
         advantages, returns = compute_gae(
-            rewards, rollout.values, rollout.terminated, rollout.truncated, rollout.last_value, cfg.gamma, cfg.gae_lambda
+            rewards,
+            rollout.values,
+            rollout.terminated,
+            rollout.truncated,
+            rollout.last_value,
+            cfg.gamma,
+            cfg.gae_lambda,
         )
     t_index, b_index = samples.nonzero(as_tuple=True)
     b_advantages = advantages[t_index, b_index]

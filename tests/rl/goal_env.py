@@ -1,7 +1,8 @@
-"""A tiny env with the paper's reward shape, where success must be learnt: a point on a line starts at -0.5 and
-must reach the goal at +0.5 (within 0.1); `start` moves the start nearer. The shaping reward 1 - |x - goal| / 2 is positive everywhere; the sparse
-reward is paid at every step spent at the goal. The image's grey level shows the position. Episodes follow
-`EpisodeBook` (fixed horizon by default, or termination with its bonus). Registered as `ppo_test_goal`."""
+"""A tiny env with the paper's reward shape, where success must be learnt: a point on a line starts at -0.5 and must
+reach the goal at +0.5 (within 0.1); `start` moves the start nearer. The shaping reward 1 - |x - goal| / 2 is
+positive everywhere; the sparse reward is paid at every step spent at the goal. The image's grey level shows the
+position. Episodes follow `EpisodeBook` (fixed horizon by default, or termination with its bonus). Registered as
+`ppo_test_goal`."""
 
 from dataclasses import dataclass
 

@@ -141,7 +141,14 @@ def test_grpo_learns_a_success_that_only_the_success_pays_for(fresh_mlp, tmp_pat
     # outcomes, and group-relative success alone (no critic, no shaping) is the signal.
     env = GoalEnvConfig(start=0.0, episode_length=4)
     cfg = ppo_config(
-        fresh_mlp, tmp_path / "grpo", env=env, num_envs=16, iterations=12, advantage="group", group_size=4, policy_lr=1e-2
+        fresh_mlp,
+        tmp_path / "grpo",
+        env=env,
+        num_envs=16,
+        iterations=12,
+        advantage="group",
+        group_size=4,
+        policy_lr=1e-2,
     )
     train_ppo(cfg)
     success, kept = logged(tmp_path / "grpo", "charts/success"), logged(tmp_path / "grpo", "charts/groups_kept")
