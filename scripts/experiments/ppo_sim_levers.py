@@ -84,8 +84,8 @@ def train(args) -> None:
         env=env_config(args.protocol, args.workers),
         output_dir=folder,
         num_envs=16,  # world model: 16 starts of 2 families; group_size 4 repeats 4 of them
-        iterations=10_000,
-        time_budget_s=args.minutes * 60,
+        iterations=args.iterations or 10_000,
+        time_budget_s=None if args.iterations else args.minutes * 60,
         save_freq=args.save_freq,
         seed=args.seed,
         device="cpu",
@@ -126,7 +126,8 @@ def curve(args) -> None:
     folder = run_dir(args.out, args.lever, args.seed)
     scenes = scenes_of(args.protocol)
     evaluate(args.sft.resolve(), args.out / "curve_sft", args.episodes, CURVE_SEED, args.workers, scenes)
-    for checkpoint in checkpoints(folder):
+    saved = checkpoints(folder)
+    for checkpoint in sorted(set(saved[:: args.every] + saved[-1:])):
         output = folder / "curve" / checkpoint.name
         evaluate(checkpoint / FINAL, output, args.episodes, CURVE_SEED, args.workers, scenes)
 
@@ -234,6 +235,8 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("outputs/ppo_sim"))
     parser.add_argument("--report", type=Path, default=Path("docs/results/ppo_sim"))
     parser.add_argument("--minutes", type=float, default=15.0)
+    parser.add_argument("--iterations", type=int, default=None, help="train this many instead of --minutes")
+    parser.add_argument("--every", type=int, default=1, help="curve: every k-th checkpoint (and the last)")
     parser.add_argument("--save_freq", type=int, default=6)
     parser.add_argument("--episodes", type=int, default=8, help="per family")
     parser.add_argument("--workers", type=int, default=None)
