@@ -20,6 +20,11 @@ class DatasetError(InvalidInputError):
     pass
 
 
+# The columns a frame's done label is read from, the first a dataset has: `next.success` (this project's collection),
+# else `next.done` (lerobot-record's episode end). Only the done head needs one.
+DONE_LABEL_COLUMNS = (SUCCESS, DONE)
+
+
 def open_dataset(repo_id: str, root: str | Path | None = None, episodes: list[int] | None = None) -> LeRobotDataset:
     """A LeRobotDataset with at least one camera and one episode, or a `DatasetError` naming what is missing."""
     if root is not None:
@@ -58,8 +63,47 @@ def check_finite(dataset: LeRobotDataset) -> None:
         require_finite(values, f"dataset {dataset.root}", key, lambda row: f"episode {episode[row]} frame {frame[row]}")
 
 
+def camera_name(key: str) -> str:
+    """A camera's name from its dataset key: `observation.images.<name>` (LeRobot's convention for several cameras),
+    or a lone camera's key after `observation.` (`observation.image`, LeRobot's PushT layout: "image")."""
+    return key.removeprefix(f"{OBS_IMAGES}.") if key.startswith(f"{OBS_IMAGES}.") else key.removeprefix("observation.")
+
+
 def camera_names(dataset: LeRobotDataset) -> list[str]:
-    return [key.removeprefix(f"{OBS_IMAGES}.") for key in dataset.meta.camera_keys]
+    return [camera_name(key) for key in dataset.meta.camera_keys]
+
+
+@dataclass
+class DatasetLayout:
+    """What a LeRobot dataset's meta/info.json says of it: its cameras (name -> the dataset's key), their side, the
+    widths of its actions and states (0: none) and its fps."""
+
+    cameras: dict[str, str]
+    image_size: int
+    action_dim: int
+    state_dim: int
+    fps: int
+
+
+def read_layout(root: str | Path) -> DatasetLayout:
+    """The layout of the dataset at `root`, from its meta/info.json alone (no frame is read)."""
+    path = Path(root) / "meta" / "info.json"
+    if not path.is_file():
+        raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json is missing)")
+    info = json.loads(path.read_text())
+    features = info["features"]
+    cameras = {camera_name(k): k for k, f in features.items() if f.get("dtype") in ("video", "image")}
+    if not cameras:
+        raise DatasetError(f"dataset {root} has no camera features (dtype video or image in {path})")
+    if ACTION not in features:
+        raise DatasetError(f"dataset {root} has no '{ACTION}' feature ({path})")
+    sides = {tuple(features[k]["shape"][:2]) for k in cameras.values()}
+    if len(sides) != 1 or len(side := sides.pop()) != 2 or side[0] != side[1]:
+        raise DatasetError(f"dataset {root} cameras must be square and of one size, got {sorted(sides)} ({path})")
+    state = features.get(OBS_STATE)
+    return DatasetLayout(
+        cameras, side[0], features[ACTION]["shape"][0], state["shape"][0] if state else 0, int(info["fps"])
+    )
 
 
 def image_size(dataset: LeRobotDataset) -> int:
@@ -79,10 +123,15 @@ class EpisodeData:
     task: str
     images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
     action: np.ndarray  # (T, action_dim) float32
-    state: np.ndarray  # (T, state_dim) float32: `observation.state` of frame t
-    done_label: np.ndarray  # (T,) float32: 1 where the task is accomplished in frame t
+    state: np.ndarray  # (T, state_dim) float32: `observation.state` of frame t ((T, 0) when the dataset has none)
+    done_label: np.ndarray  # (T,) float32: 1 where the task is accomplished in frame t (0 when unlabelled)
     reward_label: np.ndarray  # (T,) float32: the rule-based reward of frame t (0 when the dataset has none)
     info: dict  # the roboscape per-episode facts (family, scene, split, optimal, ...) when recorded
+    done_column: str | None = SUCCESS  # the column of DONE_LABEL_COLUMNS its done labels came from (None: none)
+
+    @property
+    def has_done_labels(self) -> bool:
+        return self.done_column is not None
 
 
 def episode_indices(dataset: LeRobotDataset) -> list[int]:
@@ -96,8 +145,9 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
     rows = dataset.hf_dataset.select(range(*_local_range(dataset, start, stop)))
     images = _decode_cameras(dataset, episode_index, [float(t) for t in rows["timestamp"]])
     # `next.success` at t is the outcome of action t, i.e. the state of frame t + 1.
-    flags = SUCCESS if SUCCESS in rows.column_names else DONE
-    outcome = np.asarray(rows[flags], dtype=np.float32).reshape(-1)
+    flags = next((column for column in DONE_LABEL_COLUMNS if column in rows.column_names), None)
+    length = len(rows)
+    outcome = np.zeros(length, np.float32) if flags is None else np.asarray(rows[flags], np.float32).reshape(-1)
     done_label = np.concatenate([[0.0], outcome[:-1]]).astype(np.float32)
     if REWARD in rows.column_names:  # like success, `next.reward` at t scores frame t + 1
         rewards = np.asarray(rows[REWARD], dtype=np.float32).reshape(-1)
@@ -110,10 +160,11 @@ def read_episode(dataset: LeRobotDataset, episode_index: int) -> EpisodeData:
         task=meta["tasks"][0],
         images=images,
         action=np.asarray(rows[ACTION], dtype=np.float32),
-        state=np.asarray(rows[OBS_STATE], dtype=np.float32),
+        state=np.asarray(rows[OBS_STATE], np.float32) if OBS_STATE in rows.column_names else np.zeros((length, 0)),
         done_label=done_label,
         reward_label=reward_label,
         info=info,
+        done_column=flags,
     )
 
 
@@ -125,7 +176,9 @@ def read_frames(dataset: LeRobotDataset, episode_index: int, frames: list[int]) 
 
 def read_states(dataset: LeRobotDataset, episode_index: int, frames: list[int]) -> np.ndarray:
     """`observation.state` (k, state_dim) of selected frames of one episode (negative indices count from its end),
-    without decoding its videos."""
+    without decoding its videos; (k, 0) when the dataset has no states."""
+    if OBS_STATE not in dataset.features:
+        return np.zeros((len(frames), 0), np.float32)
     meta = dataset.meta.episodes[episode_index]
     rows = dataset.hf_dataset.select(
         range(*_local_range(dataset, meta["dataset_from_index"], meta["dataset_to_index"]))
@@ -142,7 +195,7 @@ def _decode_cameras(dataset: LeRobotDataset, episode_index: int, timestamps: lis
         path = dataset.root / dataset.meta.get_video_file_path(episode_index, key)
         offset = meta[f"videos/{key}/from_timestamp"]
         decoded = decode_video_frames(path, [offset + t for t in timestamps], dataset.tolerance_s, return_uint8=True)
-        images[key.removeprefix(f"{OBS_IMAGES}.")] = decoded.permute(0, 2, 3, 1).numpy()
+        images[camera_name(key)] = decoded.permute(0, 2, 3, 1).numpy()
     return images
 
 

@@ -2,12 +2,14 @@
 
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import gymnasium as gym
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
+from lerobot_roboscape.dataset.reader import read_layout
 from lerobot_roboscape.robot import ACTION_NAMES, CAMERA_NAMES, CONTROL_FREQ, STATE_DIM
 from lerobot_roboscape.training.loop import native_bf16, resolve_device
 from roboscape_core.errors import InvalidInputError
@@ -22,12 +24,16 @@ def check_episode_length(episode_length: int | None) -> None:
         raise InvalidInputError(f"episode_length must be >= 1 or null (per-family horizons), got {episode_length}")
 
 
-def camera_features(image_size: int, cameras=CAMERAS) -> tuple[dict, dict]:
-    features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(ACTION_NAMES),))}
+def camera_features(
+    image_size: int, cameras=CAMERAS, keys: dict[str, str] | None = None, action_dim: int = len(ACTION_NAMES)
+) -> tuple[dict, dict]:
+    """LeRobot's env features: each camera's `pixels/<camera>`, mapped to its dataset key (`keys`: a dataset's own,
+    as `read_layout` gives them; by default `observation.images.<camera>`), and the action."""
+    features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))}
     features_map = {ACTION: ACTION}
     for cam in cameras:
         features[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=(image_size, image_size, 3))
-        features_map[f"pixels/{cam}"] = f"{OBS_IMAGES}.{cam}"
+        features_map[f"pixels/{cam}"] = (keys or {}).get(cam, f"{OBS_IMAGES}.{cam}")
     return features, features_map
 
 
@@ -204,9 +210,18 @@ class RoboscapeWorldModelEnvConfig(EnvConfig):
             raise InvalidInputError(f"state_margin must be >= 0 (or null), got {self.state_margin}")
         if not 0 < self.theta <= 1 or not 0 < self.theta_sps <= 1:
             raise InvalidInputError(f"theta and theta_sps must be in (0, 1], got {self.theta}, {self.theta_sps}")
-        self.features, self.features_map = camera_features(self.image_size)
+        state_dim = STATE_DIM
+        if self.dataset_root and (Path(self.dataset_root) / "meta" / "info.json").is_file():
+            # A user's dataset: its cameras, their keys, its image size and its action and state widths.
+            layout = read_layout(self.dataset_root)
+            self.image_size, state_dim = layout.image_size, layout.state_dim
+            self.features, self.features_map = camera_features(
+                layout.image_size, tuple(layout.cameras), layout.cameras, layout.action_dim
+            )
+        else:
+            self.features, self.features_map = camera_features(self.image_size)
         if self.include_state:
-            self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,))
+            self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(state_dim,))
             self.features_map["agent_pos"] = OBS_STATE
 
     @property

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.utils.constants import OBS_STATE, SUCCESS
 from tqdm import tqdm
 
 from lerobot_roboscape.dataset.reader import camera_names, episode_indices, image_size, read_episode
@@ -98,6 +99,16 @@ class TokenCache:
     @property
     def state_dim(self) -> int:
         return self.states.shape[1]
+
+    @property
+    def done_column(self) -> str | None:
+        """The dataset column its done labels came from (`next.success`, `next.done`), None where it had neither
+        (caches written before this was recorded came from this project's datasets, labelled by success)."""
+        return self.manifest.get("done_column", SUCCESS)
+
+    @property
+    def has_done_labels(self) -> bool:
+        return self.done_column is not None
 
 
 def open_token_cache(path: str | Path, dataset_fp: str | None = None, tokenizer_fp: str | None = None) -> TokenCache:
@@ -173,14 +184,16 @@ def build_token_cache(
         tokens = np.lib.format.open_memmap(tmp / "tokens.npy", "w+", np.uint16, (n, len(cameras), side, side))
         action_dim = dataset.meta.features["action"]["shape"][0]
         actions = np.lib.format.open_memmap(tmp / "actions.npy", "w+", np.float32, (n, action_dim))
-        state_dim = dataset.meta.features["observation.state"]["shape"][0]
+        state = dataset.meta.features.get(OBS_STATE)  # a dataset may have none: the state channel is then off
+        state_dim = state["shape"][0] if state else 0
         states = np.lib.format.open_memmap(tmp / "states.npy", "w+", np.float32, (n, state_dim))
         done = np.lib.format.open_memmap(tmp / "done.npy", "w+", np.float32, (n,))
         rewards = np.lib.format.open_memmap(tmp / "rewards.npy", "w+", np.float32, (n,))
         tokenizer = tokenizer.to(device).eval()
-        rows, row = [], 0
+        rows, row, done_columns = [], 0, set()
         for index in tqdm(episodes, desc="tokenizing", unit="episode", leave=False):
             episode = read_episode(dataset, index)
+            done_columns.add(episode.done_column)
             length = len(episode.action)
             for c, camera in enumerate(cameras):
                 tokens[row : row + length, c] = encode_frames(tokenizer, episode.images[camera], batch_size)
@@ -201,6 +214,7 @@ def build_token_cache(
             "tokens_per_side": side,
             "vocab_size": tokenizer.config.codebook_size,
             "num_frames": n,
+            "done_column": done_columns.pop() if len(done_columns) == 1 else None,
         }
         (tmp / "episodes.json").write_text(json.dumps(rows))
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from lerobot.utils.constants import SUCCESS
 
 from lerobot_roboscape.tokenizer.token_cache import TokenCache
 from roboscape_core.errors import InvalidInputError
@@ -14,7 +15,8 @@ def select_episodes(
     cache: TokenCache, episodes: list[int] | None = None, only_optimal: bool = False, only_successful: bool = False
 ) -> list[dict]:
     """Episodes of the cache kept for training. Episodes without roboscape facts (converted datasets) count as
-    optimal; their success is read from the done labels."""
+    optimal; their success is read from `next.success` labels, and where the dataset has none (a user's recordings,
+    whose `next.done` marks only an episode's end) they count as successful: demonstrations."""
     known = {row["episode_index"] for row in cache.episodes}
     if episodes is not None and (missing := sorted(set(episodes) - known)):
         raise InvalidInputError(
@@ -26,14 +28,16 @@ def select_episodes(
             continue
         if only_optimal and not row.get("optimal", True):
             continue
-        succeeded = row.get("success", bool(cache.done[row["start"] : row["start"] + row["length"]].max() > 0.5))
+        done = cache.done[row["start"] : row["start"] + row["length"]]
+        succeeded = row.get("success", bool(done.max() > 0.5) if cache.done_column == SUCCESS else True)
         if only_successful and not succeeded:
             continue
         rows.append(row)
     if not rows:
         raise InvalidInputError(
             f"no episodes of {cache.root} left for training (episodes={episodes}, "
-            f"only_optimal={only_optimal}, only_successful={only_successful})"
+            f"only_optimal={only_optimal}, only_successful={only_successful}: --only_optimal=false and "
+            "--only_successful=false keep every episode)"
         )
     return rows
 

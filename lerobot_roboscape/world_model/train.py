@@ -13,7 +13,7 @@ from lerobot.configs.default import DatasetConfig
 from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from lerobot_roboscape.dataset.reader import open_dataset
+from lerobot_roboscape.dataset.reader import DONE_LABEL_COLUMNS, open_dataset
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.similarity import TokenizerPerceptualDistance
 from lerobot_roboscape.tokenizer.token_cache import (
@@ -156,7 +156,7 @@ def prepare_token_cache(
         stats = json.loads((Path(token_cache) / STATS_FILE).read_text())
         return cache, {key: {k: np.asarray(v) for k, v in stats[key].items()} for key in STATS_KEYS}
     dataset = open_dataset(dataset_cfg.repo_id, dataset_cfg.root)  # the cache covers all episodes
-    stats = {key: dataset.meta.stats[key] for key in STATS_KEYS}
+    stats = {key: dataset.meta.stats[key] for key in STATS_KEYS if key in dataset.meta.stats}  # state: optional
     if token_cache is not None:
         cache = open_token_cache(token_cache, dataset_fingerprint(dataset.root), tokenizer_fingerprint(tokenizer))
     else:
@@ -191,14 +191,31 @@ def fit_config_to_cache(wm: WorldModelConfig, cache: TokenCache, stats: dict) ->
             logger.info("wm.%s = %s (from the token cache; the preset had %s)", name, value, getattr(wm, name))
             setattr(wm, name, value)
     for name, key, moments in STATISTICS_KEPT:
+        if key not in stats:  # a dataset without states: the state channel is off (check_cache_fits)
+            continue
         for moment in moments:
             setattr(wm, f"{name}_{moment}", np.asarray(stats[key][moment], dtype=np.float64).reshape(-1).tolist())
     wm.__post_init__()  # the statistics must fit the action and state layouts
     return wm
 
 
+def check_cache_fits(wm: WorldModelConfig, cache: TokenCache, dataset: str) -> None:
+    """The columns the model's parts learn from, which a user's dataset may lack: one line naming the column and the
+    flag that turns that part off."""
+    if wm.done_weight > 0 and not cache.has_done_labels:
+        raise InvalidInputError(
+            f"dataset {dataset} has no {' or '.join(map(repr, DONE_LABEL_COLUMNS))} column, which the done head "
+            "learns from: add one, or train without the done loss with --wm.done_weight=0"
+        )
+    if wm.state and cache.state_dim == 0:
+        raise InvalidInputError(
+            f"dataset {dataset} has no '{OBS_STATE}' column, which the state channel reads: pass --wm.state=false"
+        )
+
+
 def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
     cache, stats = prepare_token_cache(cfg.dataset, cfg.tokenizer, cfg.cache_dir, cfg.token_cache, cfg.device)
+    check_cache_fits(cfg.wm, cache, cfg.dataset.root or cfg.dataset.repo_id)
     text = cfg.wm.control == "text"
     episodes = select_episodes(
         cache,
@@ -237,7 +254,7 @@ def train_world_model(cfg: TrainWorldModelConfig) -> STWorldModel:
         )
         share = cfg.exploration_share
         batches = ClipMixture([sampler, explore], [1 - share, share], cfg.train.batch_size, cfg.train.seed)
-        stats = {key: aggregate_feature_stats([stats[key], explore_stats[key]]) for key in STATS_KEYS}
+        stats = {key: aggregate_feature_stats([stats[key], explore_stats[key]]) for key in stats}
         run_config["exploration_token_cache"] = str(explore_cache.root)
     device = resolve_device("auto")  # where fit trains (Accelerate's choice)
     if cfg.train.resident if cfg.train.resident is not None else device == "cuda":
