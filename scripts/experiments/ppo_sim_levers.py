@@ -36,6 +36,7 @@ CURVE_SEED, CELL_SEED = 400_000, 100_000  # the curve's starts; the last cell's 
 INITIAL_SCENE = "red_cube-plate-wooden"  # the paper protocol's one scene
 CARRIED = Path("carried")
 SCENE_SFT = CARRIED / "bench72_run/protocol_paper/sft_mlp/pretrained_model"
+NUM_ENVS = 16  # episodes per PPO iteration, 8 per family; GRPO: 4 groups of 4 from one start
 THETA = 0.9106324911117554  # the done threshold the bench's done stage chose (carried/bench72/action/done_tuning.json)
 # Every lever over today's PPO (PPO_DEFAULTS["roboscape_mlp"]) at 16 parallel episodes per iteration. At std 0.1
 # one iteration of today's update moved the policy 0.15-0.41 nats (clip fraction 0.56-0.77, the first try): each
@@ -83,7 +84,7 @@ def train(args) -> None:
         policy_path=str(args.sft.resolve()),
         env=env_config(args.protocol, args.workers),
         output_dir=folder,
-        num_envs=16,  # world model: 16 starts of 2 families; group_size 4 repeats 4 of them
+        num_envs=NUM_ENVS,
         iterations=args.iterations or 10_000,
         time_budget_s=None if args.iterations else args.minutes * 60,
         save_freq=args.save_freq,
@@ -198,11 +199,14 @@ def report(args) -> None:
                     "episodes": ours[family].episodes,
                 }
         results["runs"][folder.name] = entry
-        minutes = [p["minutes"] for p in points]
-        axes[0].plot(minutes, [p["cells"]["all"].success_rate for p in points], marker="o", label=folder.name)
-        axes[1].plot([r.seconds / 60 for r in history], _smooth([r.success for r in history]), label=folder.name)
-    axes[0].set(xlabel="PPO minutes", ylabel="IND success, deterministic (simulator)", title="checkpoint curve")
-    axes[1].set(xlabel="PPO minutes", ylabel="sampled success in training (5-iteration mean)", title="training")
+        # By episodes played, not minutes: the seed-1 runs shared the cores with other runs.
+        episodes = [p["iteration"] * NUM_ENVS for p in points]
+        axes[0].plot(episodes, [p["cells"]["all"].success_rate for p in points], marker="o", label=folder.name)
+        axes[1].plot(
+            [r.iteration * NUM_ENVS for r in history], _smooth([r.success for r in history]), label=folder.name
+        )
+    axes[0].set(xlabel="PPO episodes", ylabel="IND success, deterministic (16 episodes)", title="checkpoint curve")
+    axes[1].set(xlabel="PPO episodes", ylabel="sampled success in training (5-iteration mean)", title="training")
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -210,7 +214,7 @@ def report(args) -> None:
     fig.savefig(args.report / "curves.png", dpi=110)
     (args.report / "results.json").write_text(json.dumps(results, indent=1))
     for name, entry in results["runs"].items():
-        curve_text = ", ".join(f"{p['minutes']:.0f}: {p['all']:.0%}" for p in entry["curve"])
+        curve_text = ", ".join(f"{p['iteration'] * NUM_ENVS}: {p['all']:.0%}" for p in entry["curve"])
         lines.append(f"| {name} | {entry['iterations']} | {curve_text} |")
         for family, c in entry.get("cell", {}).items():
             lines.append(
