@@ -65,6 +65,20 @@ def write_dataset(root, layout: Layout, episodes: int = 3, length: int = 12) -> 
     dataset.finalize()
 
 
+def train_tiny_tokenizer(root, side: int, output_dir) -> None:
+    """One step of the tests' tokenizer at the dataset's image size, through the real training loop."""
+    train_tokenizer(
+        TrainTokenizerConfig(
+            dataset=DatasetConfig(repo_id="user/own", root=str(root)),
+            tokenizer=TinyTokenizerConfig(**(TEST_TOKENIZER | {"image_size": side})),
+            train=TrainingConfig(steps=1, batch_size=4, save_freq=1, log_freq=1),
+            output_dir=output_dir,
+            num_workers=0,
+            allow_random_lpips=True,
+        )
+    )
+
+
 def wm_args(root, tokenizer, layout: Layout, control: str, out, cache) -> list[str]:
     args = [
         "--dataset.repo_id=user/own",
@@ -95,16 +109,7 @@ def test_a_users_dataset_trains_both_models_and_serves_roboscape_wm(name, tmp_pa
     episode = read_episode(open_dataset("user/own", root), 0)
     assert episode.has_done_labels == layout.done and episode.state.shape == (12, layout.state_dim)
 
-    tokenizer = TinyTokenizerConfig(**(TEST_TOKENIZER | {"image_size": layout.side}))
-    cfg = TrainTokenizerConfig(
-        dataset=DatasetConfig(repo_id="user/own", root=str(root)),
-        tokenizer=tokenizer,
-        train=TrainingConfig(steps=1, batch_size=4, save_freq=1, log_freq=1),
-        output_dir=tmp_path / "tokenizer",
-        num_workers=0,
-        allow_random_lpips=True,
-    )
-    train_tokenizer(cfg)
+    train_tiny_tokenizer(root, layout.side, tmp_path / "tokenizer")
     models = {}
     for control in ("action", "text"):
         out = tmp_path / f"wm_{control}"
@@ -143,16 +148,7 @@ def test_a_users_dataset_trains_both_models_and_serves_roboscape_wm(name, tmp_pa
 def test_a_missing_column_is_one_line_naming_the_dataset_the_column_and_the_flag(tmp_path):
     layout, root = LAYOUTS["camera_only"], tmp_path / "dataset"
     write_dataset(root, layout, episodes=2, length=6)
-    tokenizer = TinyTokenizerConfig(**(TEST_TOKENIZER | {"image_size": layout.side}))
-    cfg = TrainTokenizerConfig(
-        dataset=DatasetConfig(repo_id="user/own", root=str(root)),
-        tokenizer=tokenizer,
-        train=TrainingConfig(steps=1, batch_size=4, save_freq=1, log_freq=1),
-        output_dir=tmp_path / "tokenizer",
-        num_workers=0,
-        allow_random_lpips=True,
-    )
-    train_tokenizer(cfg)
+    train_tiny_tokenizer(root, layout.side, tmp_path / "tokenizer")
     args = wm_args(root, tmp_path / "tokenizer" / FINAL, replace(layout, done=True), "action", tmp_path / "a", tmp_path)
     with pytest.raises(
         InvalidInputError,
