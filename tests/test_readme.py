@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from lerobot_roboscape.evaluation.results import paired_difference_interval
-from lerobot_roboscape.pipeline.claim_markdown import README_BEGIN, README_END
+from lerobot_roboscape.experiments.claim_markdown import README_BEGIN, README_END
 from lerobot_roboscape.pipeline.run import STAGES
 
 ROOT = Path(__file__).resolve().parents[1]

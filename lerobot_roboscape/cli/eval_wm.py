@@ -12,7 +12,7 @@ import logging
 import draccus
 
 from lerobot_roboscape.cli import one_line_errors
-from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.measures.fidelity import FidelityConfig, evaluate_fidelity
 
 
 @one_line_errors("roboscape-eval-wm")

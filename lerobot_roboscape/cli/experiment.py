@@ -2,7 +2,7 @@
 SFT checkpoint in `roboscape_wm`, in `roboscape_maniskill` in one scene and in every training scene at equal
 wall-clock (and the reward ablation), success in the simulator IND and OOD with 95% intervals of the differences,
 the simulator success of PPO's checkpoints along its run, world-model rollouts replayed in the simulator, and the
-report (lerobot_roboscape/pipeline/experiment.py). A rerun skips the steps already complete.
+report (lerobot_roboscape/experiments/experiment.py). A rerun skips the steps already complete.
 
     roboscape-experiment --pipeline.scale=bench --pipeline.output_dir=outputs/bench --report_dir=docs/results/bench
     roboscape-experiment ... --sft_checkpoint=path/to/pretrained_model   # start PPO from a policy you have
@@ -12,8 +12,8 @@ import logging
 import sys
 
 from lerobot_roboscape.cli import one_line_errors
+from lerobot_roboscape.experiments.experiment import ExperimentConfig, Packed, run_or_pack
 from lerobot_roboscape.pipeline.config import parse_config
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig, Packed, run_or_pack
 
 
 @one_line_errors("roboscape-experiment")

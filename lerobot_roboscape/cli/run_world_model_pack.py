@@ -12,7 +12,7 @@ import logging
 import draccus
 
 from lerobot_roboscape.cli import one_line_errors
-from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
+from lerobot_roboscape.experiments.world_model_runs import RunPackConfig, run_pack
 
 
 @one_line_errors("run_world_model_pack")

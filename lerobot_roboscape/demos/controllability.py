@@ -5,7 +5,7 @@ For each start (family, scene, seed) the planner runs for `steps` actions: that 
 replay sequence 0's actions open loop, each with its own constant offset added to the TCP translation (a random
 direction of length `offset`), so the arm drifts a different way in each while doing the same thing otherwise.
 A world model that follows its actions must tell the K futures apart from the same first frames
-(world_model/controllability.py). Episodes record which start and sequence they are (`start`, `sequence`).
+(world_model/measures/controllability.py). Episodes record which start and sequence they are (`start`, `sequence`).
 """
 
 import logging

@@ -28,8 +28,8 @@ from lerobot_roboscape.hub.cards import (
 from lerobot_roboscape.hub.pull import WORLD_MODELS_MANIFEST
 from lerobot_roboscape.io.weights import looks_like_repo_id
 from lerobot_roboscape.training.checkpoints import PPO_CONFIG_JSON
-from lerobot_roboscape.world_model.fidelity import REPORT_JSON as FIDELITY_JSON
-from lerobot_roboscape.world_model.fidelity import read_fidelity
+from lerobot_roboscape.world_model.measures.fidelity import REPORT_JSON as FIDELITY_JSON
+from lerobot_roboscape.world_model.measures.fidelity import read_fidelity
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 WORLD_MODEL_FOLDERS = {

@@ -13,9 +13,9 @@ from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stag
 from lerobot_roboscape.pipeline.artifacts import ArtifactKind, Artifacts, load_artifact
 from lerobot_roboscape.pipeline.clock import StageClock, StopAfter
 from lerobot_roboscape.pipeline.config import PipelineConfig, preset
-from lerobot_roboscape.pipeline.report import write_report
+from lerobot_roboscape.pipeline.report.write import write_report
 from lerobot_roboscape.tokenizer import report as tokenizer_report
-from lerobot_roboscape.world_model import fidelity as fidelity_report
+from lerobot_roboscape.world_model.measures import fidelity as fidelity_report
 
 # The demo's stages, in order; each header names one, with the details of this run.
 STAGES = (

@@ -47,7 +47,7 @@ from lerobot_roboscape.tokenizer.report import TokenizerReportConfig, evaluate_t
 from lerobot_roboscape.tokenizer.train import TrainTokenizerConfig, train_tokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig
-from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
+from lerobot_roboscape.world_model.measures.fidelity import FidelityConfig, evaluate_fidelity, read_fidelity
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 
 logger = logging.getLogger(__name__)

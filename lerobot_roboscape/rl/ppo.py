@@ -1,11 +1,10 @@
-"""PPO for LeRobot policies in the roboscape envs (paper Algorithm 1), on Accelerate, read top to bottom:
-rollout -> update -> the training loop (GAE and the losses in ppo_losses.py; the settings in configuration_ppo.py;
-the running return statistics that scale rewards, and the checkpoints, in ppo_state.py).
+"""PPO for LeRobot policies in the roboscape envs (paper Algorithm 1), on Accelerate: the rollout (rollout.py), then
+read top to bottom, the update and the training loop (GAE and the losses in ppo_losses.py; the settings in
+configuration_ppo.py; the running return statistics that scale rewards, and the checkpoints, in ppo_state.py).
 
 One iteration runs one episode of fixed horizon in each of the batched envs (all start together: N scenes at
 once), scales its rewards by the running spread of the discounted return, scores it with GAE, and updates the
-policy for a few epochs of minibatches. A policy that acts in chunks (k actions per look, as it is evaluated)
-makes one decision per k env steps and is paid their summed reward. The first `critic_warmup_iterations` train
+policy for a few epochs of minibatches. The first `critic_warmup_iterations` train
 the value head only, so the critic of a freshly SFT'd policy catches up before its advantages steer the policy.
 A process of `accelerate launch` steps its own share of the envs; Accelerate averages the gradients.
 """
@@ -15,7 +14,6 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -34,6 +32,7 @@ from lerobot_roboscape.rl.policy_loading import (
 )
 from lerobot_roboscape.rl.ppo_losses import compute_gae, group_advantages, kl_to_reference, ppo_losses
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats, load_checkpoint, save_checkpoint
+from lerobot_roboscape.rl.rollout import Rollout, collect_rollout, rollout_metrics
 from lerobot_roboscape.robot import CONTROL_FREQ
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, last_checkpoint, publish_final
 from lerobot_roboscape.training.loop import resolve_mixed_precision
@@ -41,105 +40,6 @@ from lerobot_roboscape.training.records import HISTORY, History, write_video
 from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
-
-# Rollout.
-
-
-class Rollout(NamedTuple):
-    pixels: dict[str, np.ndarray]  # camera -> (T, B, H, W, C) uint8
-    tasks: list[str]  # (B,)
-    raw_actions: Tensor  # (T, B, ...)
-    log_probs: Tensor  # (T, B)
-    values: Tensor  # (T, B)
-    rewards: Tensor  # (T, B)
-    terminated: Tensor  # (T, B) episode ended by termination at this step
-    truncated: Tensor  # (T, B) episode ended by its horizon at this step
-    alive: Tensor  # (T, B) the episode was running at this step
-    last_value: Tensor  # (B,) value after the last step
-    returns: np.ndarray  # (B,) episode returns
-    successes: np.ndarray  # (B,) success at any step
-    frames: list[np.ndarray]  # render() per step, when recorded
-    disagreement: np.ndarray | None  # (B,) an ensemble's disagreement summed over the episode; None: none reported
-    halted: np.ndarray | None  # (B,) the episode ended by the env's halt; None: the env halts none
-    groups: np.ndarray  # (B,) the start each episode shares with its group (reset's group_size; else its own)
-
-
-@torch.no_grad()
-def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, group_size: int = 1) -> Rollout:
-    """One episode in each of the env's B slots; with `group_size` G, the env starts them in groups of G alike."""
-    observation, reset_info = env.reset(seed=seed, options={"group_size": group_size} if group_size > 1 else None)
-    if group_size > 1 and "group" not in reset_info:
-        raise InvalidInputError(f"{type(env).__name__} cannot start episodes in groups (advantage=group)")
-    groups = np.asarray(reset_info.get("group", np.arange(env.num_envs)))
-    tasks = list(env.call("task"))
-    steps, n = env.call("_max_episode_steps")[0], env.num_envs
-    device = next(policy.parameters()).device
-    # Storage for the whole horizon, (steps, num_envs, ...) as in CleanRL, cut to the decisions made at the end.
-    pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in observation["pixels"].items()}
-    log_probs, values, rewards = (torch.zeros((steps, n), device=device) for _ in range(3))
-    terminated, truncated, alive_at = (torch.zeros((steps, n), dtype=torch.bool, device=device) for _ in range(3))
-    raw_actions = None  # shaped as the policy's choice: a Gaussian sample, or OpenVLA's action token ids
-    alive = np.ones(n, dtype=bool)
-    returns, successes, frames = np.zeros(n), np.zeros(n, dtype=bool), []
-    disagreement, halted = np.zeros(n), None  # roboscape_wm reports its halts, and with an ensemble its disagreement
-    reported = False
-    for t in range(steps):
-        for cam, image in observation["pixels"].items():
-            pixels[cam][t] = image
-        sample = policy.sample_action(io.batch(observation["pixels"], tasks))
-        if raw_actions is None:
-            raw_actions = torch.zeros((steps, *sample.raw_action.shape), dtype=sample.raw_action.dtype, device=device)
-        chunk = io.env_action(sample.action)
-        chunk = chunk[:, None] if chunk.ndim == 2 else chunk  # (B, k, action_dim): k env steps per decision
-        reward, ended_by_task, ended_by_time = np.zeros(n), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-        for k in range(chunk.shape[1]):
-            running = alive & ~(ended_by_task | ended_by_time)
-            if not running.any():
-                break
-            observation, step_reward, task_ended, time_ended, info = env.step(chunk[:, k])
-            if record:
-                frames.append(np.concatenate(env.render(), axis=1))
-            reward += step_reward * running
-            successes |= np.asarray(info.get("is_success", np.zeros(n, dtype=bool)), dtype=bool) & running
-            if "disagreement" in info:
-                reported = True
-                disagreement += np.asarray(info["disagreement"]) * running
-            if "halted" in info:
-                halted = (np.zeros(n, dtype=bool) if halted is None else halted) | (info["halted"] & running)
-            ended_by_task |= task_ended & running
-            ended_by_time |= time_ended & running
-        returns += reward
-        raw_actions[t], log_probs[t], values[t] = sample.raw_action, sample.log_prob, sample.value
-        rewards[t] = torch.as_tensor(reward, device=device)
-        alive_at[t] = torch.as_tensor(alive, device=device)
-        terminated[t] = torch.as_tensor(ended_by_task, device=device)
-        truncated[t] = torch.as_tensor(ended_by_time, device=device)
-        alive &= ~(ended_by_task | ended_by_time)
-        if not alive.any():
-            break
-    last_value = policy.predict_value(io.batch(observation["pixels"], tasks))
-    T = t + 1
-    return Rollout(
-        {cam: array[:T] for cam, array in pixels.items()},
-        tasks,
-        raw_actions[:T],
-        log_probs[:T],
-        values[:T],
-        rewards[:T],
-        terminated[:T],
-        truncated[:T],
-        alive_at[:T],
-        last_value,
-        returns,
-        successes,
-        frames,
-        disagreement if reported else None,
-        halted,
-        groups,
-    )
-
-
-# Update.
 
 
 class ActionScorer(nn.Module):
@@ -169,28 +69,7 @@ def update(
     advantage="group", GRPO's: every decision of an episode gets its episode's group-relative success, and the value
     head is not trained."""
     grouped = cfg.advantage == "group"
-    samples = rollout.alive  # the steps episodes were running
-    if grouped:
-        device = rollout.alive.device
-        episode_advantages, keep = group_advantages(
-            torch.as_tensor(rollout.successes), torch.as_tensor(rollout.groups), cfg.keep_mixed_groups
-        )
-        advantages = episode_advantages.to(device).expand_as(rollout.rewards)
-        returns = rollout.values  # no critic: its loss is zero and left out
-        samples = samples & keep.to(device)
-    else:
-        rewards = rollout.rewards
-        if cfg.normalize_reward:
-            rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
-        advantages, returns = compute_gae(
-            rewards,
-            rollout.values,
-            rollout.terminated,
-            rollout.truncated,
-            rollout.last_value,
-            cfg.gamma,
-            cfg.gae_lambda,
-        )
+    advantages, returns, samples, keep = _advantages(cfg, rollout, return_stats)
     t_index, b_index = samples.nonzero(as_tuple=True)
     b_advantages = advantages[t_index, b_index]
     if cfg.norm_adv and not grouped and len(b_advantages) > 1:
@@ -205,30 +84,10 @@ def update(
             t, b = t_index[minibatch].cpu().numpy(), b_index[minibatch].cpu().numpy()
             batch = io.batch({cam: array[t, b] for cam, array in rollout.pixels.items()}, [rollout.tasks[i] for i in b])
             with accelerator.autocast():
-                evaluation = scorer(batch, rollout.raw_actions[t, b])
-                losses = ppo_losses(
-                    evaluation.log_prob,
-                    rollout.log_probs[t, b],
-                    b_advantages[minibatch],
-                    evaluation.value,
-                    rollout.values[t, b],
-                    returns[t, b],
-                    evaluation.entropy,
-                    cfg.clip_coef,
-                    cfg.value_clip_coef,
-                    cfg.value_loss,
-                    cfg.huber_delta,
+                losses, loss, kl_stats = _minibatch_loss(
+                    cfg, scorer, batch, rollout, (t, b), b_advantages[minibatch], returns, critic_only, reference
                 )
-                loss = losses.policy.new_zeros(()) if grouped else cfg.vf_coef * losses.value
-                if not critic_only:
-                    loss = loss + losses.policy - cfg.ent_coef * losses.entropy
-                if reference is not None:
-                    with torch.no_grad():
-                        reference_log_prob = reference.evaluate_actions(batch, rollout.raw_actions[t, b]).log_prob
-                    kl = kl_to_reference(evaluation.log_prob, reference_log_prob)
-                    stats.append({"losses/kl_to_reference": float(kl.detach())})
-                    if not critic_only:
-                        loss = loss + cfg.kl_coef * kl
+            stats.append(kl_stats)
             stats.append({f"losses/{name}": float(value.detach()) for name, value in losses._asdict().items()})
             if not critic_only and cfg.target_kl is not None and losses.approx_kl > cfg.target_kl:
                 optimizer.zero_grad(set_to_none=True)  # the policy moved far enough: drop what is accumulated
@@ -250,6 +109,60 @@ def update(
         "charts/update_stopped_by_kl": float(stopped),
         "charts/return_std": math.sqrt(return_stats.var),
     }
+
+
+def _advantages(cfg: PPOConfig, rollout: Rollout, return_stats: RunningReturnStats):
+    """(advantages, returns, samples, keep): GAE's on the (scaled) rewards; with advantage="group", each episode's
+    group-relative success at every decision, the samples only of the groups kept and no critic's returns."""
+    if cfg.advantage == "group":
+        device = rollout.alive.device
+        episode_advantages, keep = group_advantages(
+            torch.as_tensor(rollout.successes), torch.as_tensor(rollout.groups), cfg.keep_mixed_groups
+        )
+        advantages = episode_advantages.to(device).expand_as(rollout.rewards)
+        returns = rollout.values  # no critic: its loss is zero and left out
+        return advantages, returns, rollout.alive & keep.to(device), keep
+    rewards = rollout.rewards
+    if cfg.normalize_reward:
+        rewards = return_stats.scale_rewards(rewards, rollout.alive, cfg.gamma)
+    advantages, returns = compute_gae(
+        rewards, rollout.values, rollout.terminated, rollout.truncated, rollout.last_value, cfg.gamma, cfg.gae_lambda
+    )
+    return advantages, returns, rollout.alive, None
+
+
+def _minibatch_loss(
+    cfg: PPOConfig, scorer, batch: dict, rollout: Rollout, index, advantages, returns, critic_only, reference
+):
+    """The minibatch's PPO losses and the loss to step on: the value's only while the critic warms up, none with
+    GRPO (no critic); with a `reference`, its KL penalty too (and its reading)."""
+    t, b = index
+    evaluation = scorer(batch, rollout.raw_actions[t, b])
+    losses = ppo_losses(
+        evaluation.log_prob,
+        rollout.log_probs[t, b],
+        advantages,
+        evaluation.value,
+        rollout.values[t, b],
+        returns[t, b],
+        evaluation.entropy,
+        cfg.clip_coef,
+        cfg.value_clip_coef,
+        cfg.value_loss,
+        cfg.huber_delta,
+    )
+    loss = losses.policy.new_zeros(()) if cfg.advantage == "group" else cfg.vf_coef * losses.value
+    if not critic_only:
+        loss = loss + losses.policy - cfg.ent_coef * losses.entropy
+    kl_stats = {}
+    if reference is not None:
+        with torch.no_grad():
+            reference_log_prob = reference.evaluate_actions(batch, rollout.raw_actions[t, b]).log_prob
+        kl = kl_to_reference(evaluation.log_prob, reference_log_prob)
+        kl_stats["losses/kl_to_reference"] = float(kl.detach())
+        if not critic_only:
+            loss = loss + cfg.kl_coef * kl
+    return losses, loss, kl_stats
 
 
 def _step(cfg: PPOConfig, accelerator: Accelerator, optimizer, critic_only: bool) -> dict[str, float]:
@@ -326,26 +239,13 @@ def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:
     return _Start(policy, io, optimizer, reference, path, iteration, return_stats, elapsed)
 
 
-def _rollout_metrics(accelerator: Accelerator, rollout: Rollout, seconds: float, rollout_seconds: float) -> dict:
-    """The iteration's episodes over every process: return, success, length, speed and, where an ensemble guards
-    the run, its disagreement per decision; the share of episodes the env halted, where it halts any."""
-    device = accelerator.device
-    episodes = accelerator.gather(torch.tensor(rollout.returns, device=device)).cpu().numpy()
-    successes = accelerator.gather(torch.tensor(rollout.successes, device=device)).cpu().numpy()
-    metrics = {
-        "charts/episode_return": float(episodes.mean()),
-        "charts/success": float(successes.mean()),
-        "charts/episode_length": float(rollout.alive.sum(0).float().mean()),
-        "charts/episodes_per_s": len(episodes) / seconds,
-        "charts/env_steps_per_s": float(rollout.alive.sum()) / rollout_seconds,
+def _postfix(metrics: dict) -> dict[str, str]:
+    """What the progress bar shows of an iteration."""
+    return {
+        "ret": f"{metrics['charts/episode_return']:.2f}",
+        "success": f"{metrics['charts/success']:.0%}",
+        "episodes_per_s": f"{metrics['charts/episodes_per_s']:.2f}",
     }
-    if rollout.disagreement is not None:  # the guard's own reading: does the policy leave the data?
-        disagreement = accelerator.gather(torch.tensor(rollout.disagreement, device=device)).sum()
-        decisions = accelerator.gather(rollout.alive.sum(0).float()).sum().clamp_min(1)
-        metrics["charts/disagreement"] = float(disagreement / decisions)  # nats per decision
-    if rollout.halted is not None:
-        metrics["charts/halted"] = float(accelerator.gather(torch.tensor(rollout.halted, device=device)).float().mean())
-    return metrics
 
 
 def train_ppo(cfg: PPOConfig) -> Path:
@@ -399,16 +299,12 @@ def train_ppo(cfg: PPOConfig) -> Path:
             run.reference,
         )
         seconds = time.perf_counter() - started
-        metrics |= _rollout_metrics(accelerator, rollout, seconds, rollout_seconds)
+        metrics |= rollout_metrics(accelerator, rollout, seconds, rollout_seconds)
         run.elapsed += seconds
         accelerator.log(metrics, step=iteration + 1)
         if history is not None:
             history.append({"iteration": iteration + 1, "seconds": run.elapsed} | metrics)
-        progress.set_postfix(
-            ret=f"{metrics['charts/episode_return']:.2f}",
-            success=f"{metrics['charts/success']:.0%}",
-            episodes_per_s=f"{metrics['charts/episodes_per_s']:.2f}",
-        )
+        progress.set_postfix(_postfix(metrics))
         if record:
             fps = env.metadata.get("render_fps", CONTROL_FREQ)
             write_video(cfg.output_dir / "videos" / f"iteration_{iteration + 1:06d}.mp4", rollout.frames, fps)

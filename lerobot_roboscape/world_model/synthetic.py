@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig
+from lerobot_roboscape.world_model.measures.retrieval import retrieval_accuracy
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.retrieval import retrieval_accuracy
 
 WORLDS = ("wiring", "motion", "text")
 ACTION_SCALE = 0.35  # the planner uses at most this share of the translation range

@@ -29,9 +29,13 @@ from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig, fit, resolve_device, save_atomically
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, select_episodes
 from lerobot_roboscape.world_model.configuration_world_model import TinyWorldModelConfig, WorldModelConfig
-from lerobot_roboscape.world_model.controllability import control_summary, load_control_starts, read_control_set
 from lerobot_roboscape.world_model.done_tuning import done_features, tune_done_head
 from lerobot_roboscape.world_model.goals import goal_summary, load_goal_starts
+from lerobot_roboscape.world_model.measures.controllability import (
+    control_summary,
+    load_control_starts,
+    read_control_set,
+)
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 
@@ -73,7 +77,7 @@ class TrainWorldModelConfig:
     heldout_control: a controllability set (`roboscape-collect-control`, OOD starts) on which the action model's
         retrieval and action gain are read every --train.eval_freq steps (output_dir/heldout_curve.jsonl).
     heldout_horizon: control steps of those rollouts.
-    heldout_starts: controllability sets already read (world_model/controllability.py: save_control_starts, e.g. on
+    heldout_starts: controllability sets already read (`measures/controllability.py`: save_control_starts, e.g. on
         a machine without the datasets' videos), measured beside heldout_control; the curve names each measure
         after its file (`<file stem>/retrieval_whole_frame`).
     done_tuning_steps: after training, fit the done head alone on the model's own open-loop frames of training

@@ -16,8 +16,9 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import ActionScorer, collect_rollout, make_optimizer, update
+from lerobot_roboscape.rl.ppo import ActionScorer, make_optimizer, update
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats
+from lerobot_roboscape.rl.rollout import collect_rollout
 
 
 def measure(env_cfg, checkpoint: Path, batch_size: int, iterations: int) -> tuple[float, float]:

@@ -15,11 +15,11 @@ import json
 from pathlib import Path
 
 from lerobot_roboscape.evaluation.agreement import AgreementConfig, evaluate_agreement
+from lerobot_roboscape.experiments.trained import trained_stages
 from lerobot_roboscape.pipeline import layout, methods, policy_stages, stages
 from lerobot_roboscape.pipeline.config import scale_config
 from lerobot_roboscape.pipeline.lerobot_cli import lerobot_sft
-from lerobot_roboscape.pipeline.trained import trained_stages
-from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+from lerobot_roboscape.pipeline.report.world_model_targets import agreement_targets
 from lerobot_roboscape.tasks import select_scenes
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LAST
 

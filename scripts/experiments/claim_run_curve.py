@@ -16,14 +16,14 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from lerobot_roboscape.experiments.curves import checkpoint_curves
+from lerobot_roboscape.experiments.experiment import Experiment, ExperimentConfig, lever_context, sft_policy
+from lerobot_roboscape.experiments.levers import lever_runs
+from lerobot_roboscape.experiments.replay import replay_in_simulator
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.pipeline import layout, methods, policy_stages
 from lerobot_roboscape.pipeline.config import parse_config
-from lerobot_roboscape.pipeline.curves import checkpoint_curves
-from lerobot_roboscape.pipeline.experiment import Experiment, ExperimentConfig, lever_context, sft_policy
-from lerobot_roboscape.pipeline.figures import gaming_figure
-from lerobot_roboscape.pipeline.levers import lever_runs
-from lerobot_roboscape.pipeline.replay import replay_in_simulator
+from lerobot_roboscape.pipeline.report.figures import gaming_figure
 
 
 def main():

@@ -4,7 +4,7 @@ From `roboscape-demo`'s output_dir (the bench scale: its datasets, tokenizer and
 - demos.xz, explore.xz: the token caches of the demonstrations and of the exploratory episodes, with their datasets'
   action statistics (tokenizer/token_cache.py: export_token_cache), built here first if the run has not yet;
 - ind.safetensors.xz, ood.safetensors.xz: the controllability sets of the training scenes (new initial states) and
-  of the held-out scenes, read for the world model's frame skip and horizon (world_model/controllability.py:
+  of the held-out scenes, read for the world model's frame skip and horizon (world_model/measures/controllability.py:
   save_control_starts), their real frames included, so that retrieval is measured there as here;
 - tokenizer/: the tokenizer (the controllability sets' frames are decoded from the rollouts' codes with it);
 - sizes.json: the bytes of each, and the seconds the packing took.
@@ -36,7 +36,7 @@ from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.tokenizer.token_cache import export_token_cache
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts, spread
+from lerobot_roboscape.world_model.measures.controllability import read_control_set, save_control_starts, spread
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
 

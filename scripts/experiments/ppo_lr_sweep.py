@@ -10,9 +10,9 @@ and clip fraction (docs/results/bench/ppo_learning_rate.md).
 import argparse
 from pathlib import Path
 
+from lerobot_roboscape.experiments.trained import trained_stages
 from lerobot_roboscape.pipeline import methods, policy_stages, stages
 from lerobot_roboscape.pipeline.config import scale_config
-from lerobot_roboscape.pipeline.trained import trained_stages
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.ppo import train_ppo

@@ -14,6 +14,7 @@ A run's folder is outputs/ppo_sim/<lever>_seed<seed>; a rerun skips what is comp
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
 import matplotlib
@@ -48,6 +49,9 @@ LEVERS = {
     "grpo": dict(advantage="group", group_size=4, init_std=0.1, target_kl=0.02),
     "grpo_kl": dict(advantage="group", group_size=4, init_std=0.1, target_kl=0.02, kl_coef=0.1),
 }
+# The same GRPO continued past its 400 episodes (`train --lever grpo_long --extend grpo --iterations 75`): its run
+# starts as a copy of the grpo run's folder, so the first 25 iterations and their curve are shared, not replayed.
+LEVERS["grpo_long"] = LEVERS["grpo"]
 
 
 def run_dir(out: Path, lever: str, seed: int) -> Path:
@@ -80,6 +84,11 @@ def train(args) -> None:
     folder = run_dir(args.out, args.lever, args.seed)
     if (folder / FINAL).exists():
         return
+    if args.extend and not folder.exists():
+        source = run_dir(args.out, args.extend, args.seed)
+        # Not the run's final policy nor its last cell: they become this run's when it ends.
+        top_only = lambda d, names: [n for n in names if Path(d) == source and n in (FINAL, "cell")]  # noqa: E731
+        shutil.copytree(source, folder, symlinks=True, ignore=top_only)
     cfg = PPOConfig(
         policy_path=str(args.sft.resolve()),
         env=env_config(args.protocol, args.workers),
@@ -240,6 +249,7 @@ def main():
     parser.add_argument("--report", type=Path, default=Path("docs/results/ppo_sim"))
     parser.add_argument("--minutes", type=float, default=15.0)
     parser.add_argument("--iterations", type=int, default=None, help="train this many instead of --minutes")
+    parser.add_argument("--extend", default=None, help="train: continue this lever's run of the same seed")
     parser.add_argument("--every", type=int, default=1, help="curve: every k-th checkpoint (and the last)")
     parser.add_argument("--save_freq", type=int, default=6)
     parser.add_argument("--episodes", type=int, default=8, help="per family")

@@ -17,7 +17,7 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.evaluation.results import paired_difference_interval
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import collect_rollout
+from lerobot_roboscape.rl.rollout import collect_rollout
 
 
 def main():

@@ -214,7 +214,7 @@ def figure(rows: list[dict], path: Path) -> None:
 
 def write_targets(eval_json: Path, out: Path) -> None:
     from lerobot_roboscape.pipeline.methods import SFT
-    from lerobot_roboscape.pipeline.targets import sft_targets
+    from lerobot_roboscape.pipeline.report.targets import sft_targets
 
     result = json.loads(eval_json.read_text())
     families = [family for family in result["splits"]["ind"] if family != "all"]

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.world_model.controllability import control_summary, load_control_starts
+from lerobot_roboscape.world_model.measures.controllability import control_summary, load_control_starts
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 COLUMNS = ("retrieval_whole_frame", "action_gain_db", "retrieval_state", "tcp_error_share_of_moved", "arm_psnr")

@@ -26,7 +26,7 @@ from lerobot_roboscape.pipeline.layout import (
     VALIDATION_DIR,
     WorldModelPaths,
 )
-from lerobot_roboscape.pipeline.world_model_targets import done_ind_targets, done_targets
+from lerobot_roboscape.pipeline.report.world_model_targets import done_ind_targets, done_targets
 from lerobot_roboscape.reward.done_readings import DoneReport
 from lerobot_roboscape.reward.done_report import read_done_report
 

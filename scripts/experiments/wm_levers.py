@@ -41,8 +41,8 @@ from lerobot_roboscape.pipeline.layout import (
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.world_model.configuration_world_model import WorldModelConfig
-from lerobot_roboscape.world_model.controllability import read_control_set, save_control_starts, spread
 from lerobot_roboscape.world_model.goals import read_goal_starts, save_goal_starts
+from lerobot_roboscape.world_model.measures.controllability import read_control_set, save_control_starts, spread
 from lerobot_roboscape.world_model.train import prepare_token_cache
 
 # Each lever alone against today's model, then all of them; --wm fields of the bench preset (which now corrupts its

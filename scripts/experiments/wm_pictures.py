@@ -17,7 +17,7 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.pipeline.layout import CONTROL_IND_DIR, TOKENIZER_DIR
 from lerobot_roboscape.training.checkpoints import FINAL
-from lerobot_roboscape.world_model.controllability import ControllabilityReportConfig, evaluate_controllability
+from lerobot_roboscape.world_model.measures.controllability import ControllabilityReportConfig, evaluate_controllability
 
 
 def main():

@@ -24,16 +24,16 @@ import re
 import shutil
 from pathlib import Path
 
-from lerobot_roboscape.pipeline.figures import world_model_figure
 from lerobot_roboscape.pipeline.layout import (
     DONE_REPORT_DIR,
     FIDELITY_DIR,
     FIDELITY_IND_DIR,
     REWARD_REPORT_DIR,
 )
-from lerobot_roboscape.pipeline.report import WorldModelReports, machine
-from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
-from lerobot_roboscape.world_model.fidelity import read_fidelity
+from lerobot_roboscape.pipeline.report.figures import world_model_figure
+from lerobot_roboscape.pipeline.report.world_model_targets import agreement_targets
+from lerobot_roboscape.pipeline.report.write import WorldModelReports, machine
+from lerobot_roboscape.world_model.measures.fidelity import read_fidelity
 
 FIGURES = {
     FIDELITY_DIR: ("fidelity.png", "controllability.png"),

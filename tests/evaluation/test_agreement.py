@@ -148,7 +148,7 @@ def test_success_goals_are_the_last_frames_of_each_scenes_first_success(demo_dat
 
 
 def test_agreement_targets_are_met_or_missed_by_the_measured_values():
-    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+    from lerobot_roboscape.pipeline.report.world_model_targets import agreement_targets
 
     def rung(name, successes, wm_return, n=100, wm=None):
         sim = [i < successes for i in range(n)]
@@ -179,7 +179,7 @@ def test_agreement_targets_are_met_or_missed_by_the_measured_values():
 
 def test_the_ladders_ranking_counts_only_over_rungs_the_simulator_tells_apart():
     """A perfect ranking is not met over rungs whose simulator intervals overlap, nor over fewer than five."""
-    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+    from lerobot_roboscape.pipeline.report.world_model_targets import agreement_targets
 
     def rung(successes, n):
         eps = [episode(i < successes, i < successes, wm_return=float(successes)) for i in range(n)]
@@ -199,7 +199,7 @@ def test_the_ladders_ranking_counts_only_over_rungs_the_simulator_tells_apart():
 def test_the_ladder_is_judged_over_its_most_rungs_the_simulator_tells_apart():
     """Rungs between others (their intervals overlapping both) are left out of the ranking, whatever the world model
     says of them; the rest count, and the per-episode agreement is over their episodes."""
-    from lerobot_roboscape.pipeline.world_model_targets import agreement_targets
+    from lerobot_roboscape.pipeline.report.world_model_targets import agreement_targets
 
     def rung(successes, wm_return, n=100):
         eps = [episode(i < successes, i < successes, wm_return=wm_return) for i in range(n)]

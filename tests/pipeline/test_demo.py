@@ -13,10 +13,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.pipeline.claim_markdown import README_BEGIN, README_END
+from lerobot_roboscape.experiments.claim_markdown import README_BEGIN, README_END
+from lerobot_roboscape.experiments.experiment import STEPS, ExperimentConfig, run_experiment, run_or_pack
 from lerobot_roboscape.pipeline.clock import header
 from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
-from lerobot_roboscape.pipeline.experiment import STEPS, ExperimentConfig, run_experiment, run_or_pack
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.pipeline.run import STAGES, run_pipeline
 from lerobot_roboscape.rl.policy_loading import load_policy
@@ -182,10 +182,10 @@ def test_the_runs_in_the_world_model_go_where_its_models_are_and_come_back(demo,
     SFT imitates demonstrations collected in the initial scene for it (--pipeline.data.initial_scene_episodes)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    from lerobot_roboscape.experiments.levers import LEVERS
+    from lerobot_roboscape.experiments.world_model_runs import RunPackConfig, run_pack
     from lerobot_roboscape.pipeline.layout import INITIAL_SCENE_DIR, INITIAL_SCENE_REPO_ID, eval_dir, rl_dir, sft_dir
-    from lerobot_roboscape.pipeline.levers import LEVERS
     from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_WORLD_MODEL, SFT, Method, initial_scene
-    from lerobot_roboscape.pipeline.world_model_runs import RunPackConfig, run_pack
 
     run = demo[0] / "demo"
     args = [

@@ -8,8 +8,8 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.pipeline import methods, policy_stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.targets import measure_targets, sft_targets, tokenizer_targets
-from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
+from lerobot_roboscape.pipeline.report.targets import measure_targets, sft_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.report.world_model_targets import world_model_targets
 
 
 def cell(rate: float, n: int = 10) -> dict:
@@ -210,7 +210,7 @@ def test_tokenizer_targets_are_one_row_per_view_and_measure():
 
 def report_markdown(scale: str, *flags: str) -> str:
     from lerobot_roboscape.pipeline.config import scale_config
-    from lerobot_roboscape.pipeline.report import markdown
+    from lerobot_roboscape.pipeline.report.write import markdown
 
     cfg = scale_config(scale, ("--data.families=[push]", *flags))
     table = {"roboscape_mlp": {methods.SFT: {s: {"push": cell(0.0, 50), "all": cell(0.0, 50)} for s in ("ind", "ood")}}}

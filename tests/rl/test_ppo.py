@@ -13,8 +13,9 @@ from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.history import read_ppo_history
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
+from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.rl.ppo_losses import compute_gae, kl_to_reference, ppo_losses
+from lerobot_roboscape.rl.rollout import collect_rollout
 from lerobot_roboscape.training.checkpoints import CHECKPOINTS, FINAL, LOGS, PPO_CONFIG_JSON, last_checkpoint
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig

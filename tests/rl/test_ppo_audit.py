@@ -13,9 +13,10 @@ from torch.distributions import Normal
 
 from lerobot_roboscape.envs.batched import start_groups
 from lerobot_roboscape.rl.policy_loading import PolicyIO, load_policy
-from lerobot_roboscape.rl.ppo import collect_rollout, train_ppo
+from lerobot_roboscape.rl.ppo import train_ppo
 from lerobot_roboscape.rl.ppo_losses import group_advantages
 from lerobot_roboscape.rl.ppo_state import RunningReturnStats
+from lerobot_roboscape.rl.rollout import collect_rollout
 from tests.rl.goal_env import GoalEnvConfig
 from tests.rl.reach_env import ReachEnvConfig
 from tests.rl.test_ppo import logged, mlp_checkpoint, ppo_config

@@ -11,8 +11,8 @@ from lerobot_roboscape.demos.controllability import ControllabilityConfig, colle
 from lerobot_roboscape.robot import TCP_POSITION
 from lerobot_roboscape.tokenizer.configuration_tokenizer import TinyTokenizerConfig
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.world_model.arm_measures import arm_measures, summarise_arm
-from lerobot_roboscape.world_model.controllability import (
+from lerobot_roboscape.world_model.measures.arm_measures import arm_measures, summarise_arm
+from lerobot_roboscape.world_model.measures.controllability import (
     ControllabilityReportConfig,
     ControlStart,
     evaluate_controllability,
@@ -170,7 +170,7 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
 
     _, root = control_set
     # The same set read once and saved, as the device machine (without the videos) gets it: measured beside it.
-    from lerobot_roboscape.world_model.controllability import load_control_starts, save_control_starts
+    from lerobot_roboscape.world_model.measures.controllability import load_control_starts, save_control_starts
 
     saved = tmp_path / "sets" / "ind.safetensors"
     saved.parent.mkdir()
@@ -196,7 +196,7 @@ def test_action_model_training_reads_retrieval_and_action_gain_on_the_control_se
     curve = read_curve(tmp_path)
     assert [point["step"] for point in curve] == [2, 4]
     # The last reading is the final model's (the done head's refit after training leaves the frames as they are).
-    from lerobot_roboscape.world_model.controllability import control_summary
+    from lerobot_roboscape.world_model.measures.controllability import control_summary
 
     model = STWorldModel.from_pretrained(str(tmp_path / "pretrained_model")).eval()
     tokenizer = VisualTokenizer.from_pretrained(str(trained_tokenizer)).eval()

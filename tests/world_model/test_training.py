@@ -10,7 +10,7 @@ import torch
 from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint
 from lerobot_roboscape.training.loop import TRAIN_LOG
 from lerobot_roboscape.world_model.clips import ClipMixture, ClipSampler, ResidentClips, gather, select_episodes
-from lerobot_roboscape.world_model.fidelity import FidelityConfig, evaluate_fidelity
+from lerobot_roboscape.world_model.measures.fidelity import FidelityConfig, evaluate_fidelity
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.robot_state import UNIT_STATE_STATS
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model

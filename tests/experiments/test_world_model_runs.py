@@ -10,10 +10,10 @@ import torch
 from safetensors.torch import load_file
 
 from lerobot_roboscape.dataset.reader import open_dataset
-from lerobot_roboscape.pipeline import world_model_runs
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig, take_world_model_runs
+from lerobot_roboscape.experiments import world_model_runs
+from lerobot_roboscape.experiments.experiment import ExperimentConfig, take_world_model_runs
+from lerobot_roboscape.experiments.pack_format import PLAN, RESULTS, ReplayPlan, read_plan, read_results, rollouts_file
 from lerobot_roboscape.pipeline.layout import rl_dir
-from lerobot_roboscape.pipeline.pack_format import PLAN, RESULTS, ReplayPlan, read_plan, read_results, rollouts_file
 from lerobot_roboscape.pipeline.resume import STAGE_FILE
 from lerobot_roboscape.reward.done_report import (
     DoneReportConfig,
@@ -178,8 +178,8 @@ def test_a_pack_or_results_of_another_kind_are_refused_by_name(tmp_path):
 
 
 def test_the_experiment_names_what_it_needs_without_world_models(tmp_path):
+    from lerobot_roboscape.experiments.trained import trained_stages
     from lerobot_roboscape.pipeline.config import PipelineConfig
-    from lerobot_roboscape.pipeline.trained import trained_stages
 
     with pytest.raises(FileNotFoundError, match="--stop_after=tokenizer"):
         trained_stages(PipelineConfig(output_dir=str(tmp_path)), Path(tmp_path), world_models=False)

@@ -5,8 +5,8 @@ before a field existed read with its empty value), so that the report and the RE
 from dataclasses import dataclass, field
 
 from lerobot_roboscape.evaluation.results import Difference, Results
+from lerobot_roboscape.experiments.replay import Replay
 from lerobot_roboscape.io.records import OMIT_EMPTY, from_record, to_record
-from lerobot_roboscape.pipeline.replay import Replay
 
 
 @dataclass(frozen=True)

@@ -6,15 +6,17 @@ from lerobot_roboscape.envs.reward_readings import RewardReadings
 from lerobot_roboscape.evaluation.agreement_readings import Ladder
 from lerobot_roboscape.io.templates import number
 from lerobot_roboscape.pipeline.methods import REWARD_BASELINES
-from lerobot_roboscape.pipeline.target_row import target_row
+from lerobot_roboscape.pipeline.report.target_row import target_row
 from lerobot_roboscape.reward.done_readings import DoneReport
 from lerobot_roboscape.training.loop import TrainingTime
-from lerobot_roboscape.world_model.fidelity_readings import ArmReading, FidelityReadings
+from lerobot_roboscape.world_model.measures.fidelity_readings import ArmReading, FidelityReadings
 
 # The world models', done and reward, on held-out OOD episodes with failures (issue 28).
 WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the fidelity report's horizon (16 control steps), below the tokenizer's
 WM_PSNR_GAP_IND_DB = 2.0  # the same, from new starts of the training scenes (issue 47)
-RETRIEVAL = 0.9  # rollouts nearer their own real future than the K - 1 others' (world_model/controllability.py), IND
+RETRIEVAL = (
+    0.9  # rollouts nearer their own real future than the K - 1 others' (world_model/measures/controllability.py), IND
+)
 RETRIEVAL_OOD = 0.75  # from starts in scenes the model never saw (issue 47)
 ACTION_GAIN_DB = 3.0  # Genie's delta-PSNR: true actions against another episode's
 # The arm (issue 70), over the same steps: the predicted state's TCP position error as a share of the distance the

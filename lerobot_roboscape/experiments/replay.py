@@ -11,9 +11,10 @@ import numpy as np
 
 from lerobot_roboscape.demos.rollout import EpisodeJob, replay_actions, worker_env
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.experiments import world_model_runs
 from lerobot_roboscape.io.atomic import write_text_atomically
 from lerobot_roboscape.io.records import from_record
-from lerobot_roboscape.pipeline import resume, world_model_runs
+from lerobot_roboscape.pipeline import resume
 from lerobot_roboscape.pipeline.config import PipelineConfig
 from lerobot_roboscape.rl.ppo_state import trained_world_model
 from lerobot_roboscape.robot import CONTROL_FREQ

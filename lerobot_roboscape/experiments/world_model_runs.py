@@ -28,9 +28,7 @@ import torch
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
 from lerobot_roboscape.envs.starts import SELECTION, export_starts
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.io.atomic import write_text_atomically
-from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
-from lerobot_roboscape.pipeline.pack_format import (
+from lerobot_roboscape.experiments.pack_format import (
     PLAN,
     RESULTS,
     PackResults,
@@ -41,6 +39,8 @@ from lerobot_roboscape.pipeline.pack_format import (
     read_plan,
     rollouts_file,
 )
+from lerobot_roboscape.io.atomic import write_text_atomically
+from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.pipeline.ppo_run import ppo
 from lerobot_roboscape.pipeline.resume import stage_seconds
 from lerobot_roboscape.reward.done_readings import DoneReport

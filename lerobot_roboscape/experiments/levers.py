@@ -13,9 +13,9 @@ from pathlib import Path
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
+from lerobot_roboscape.experiments.done_refresh import DoneRefresh, ppo_with_done_refresh
 from lerobot_roboscape.pipeline import data_stages, layout, stages
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.done_refresh import DoneRefresh, ppo_with_done_refresh
 from lerobot_roboscape.pipeline.methods import RL_WORLD_MODEL, Method, initial_scene, world_model_variant
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from roboscape_core.errors import InvalidInputError

@@ -13,12 +13,9 @@ from draccus.utils import ParsingError
 from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig, RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.pipeline import policy_stages
-from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
-from lerobot_roboscape.pipeline.done_refresh import ppo_with_done_refresh
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.layout import rl_dir
-from lerobot_roboscape.pipeline.levers import (
+from lerobot_roboscape.experiments.done_refresh import ppo_with_done_refresh
+from lerobot_roboscape.experiments.experiment import ExperimentConfig
+from lerobot_roboscape.experiments.levers import (
     LEVERS,
     EnsembleSettings,
     LeverContext,
@@ -27,6 +24,9 @@ from lerobot_roboscape.pipeline.levers import (
     lever_descriptions,
     lever_runs,
 )
+from lerobot_roboscape.pipeline import policy_stages
+from lerobot_roboscape.pipeline.config import PipelineConfig, parse_config
+from lerobot_roboscape.pipeline.layout import rl_dir
 from lerobot_roboscape.pipeline.methods import REWARD_ABLATION, RL_WORLD_MODEL, SFT, Method, initial_scene
 from lerobot_roboscape.pipeline.policy_stages import RLRun
 from lerobot_roboscape.pipeline.ppo_run import ppo

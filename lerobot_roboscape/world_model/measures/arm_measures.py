@@ -1,4 +1,4 @@
-"""Measures that see the arm, of the rollouts of one controllability start (world_model/controllability.py): a
+"""Measures that see the arm, of the rollouts of one controllability start (world_model/measures/controllability.py): a
 model can keep the table and lose the arm and still score well on the whole frame.
 
 - the state (a model with a state channel): the TCP position the rollout predicts against the simulator's, at the
@@ -20,7 +20,7 @@ from lerobot_roboscape.dataset.segmentation import ROBOT
 from lerobot_roboscape.metrics.image_fidelity import OBJECT_DILATION, dilate, psnr
 from lerobot_roboscape.robot import TCP_POSITION
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
-from lerobot_roboscape.world_model.retrieval import retrieval_accuracy
+from lerobot_roboscape.world_model.measures.retrieval import retrieval_accuracy
 
 
 @torch.no_grad()

@@ -8,7 +8,7 @@ import draccus
 import torch
 
 from lerobot_roboscape.envs.configs import RoboscapeManiSkillEnvConfig
-from lerobot_roboscape.pipeline.done_refresh import REFRESH_DIR, DoneRefresh, ppo_with_done_refresh, refresh_rounds
+from lerobot_roboscape.experiments.done_refresh import REFRESH_DIR, DoneRefresh, ppo_with_done_refresh, refresh_rounds
 from lerobot_roboscape.pipeline.methods import initial_scene
 from lerobot_roboscape.rl.configuration_ppo import PPOConfig
 from lerobot_roboscape.rl.ppo_state import trained_world_model

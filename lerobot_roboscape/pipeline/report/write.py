@@ -17,7 +17,6 @@ from lerobot_roboscape.evaluation.results import Results
 from lerobot_roboscape.evaluation.tables import format_table, read_table
 from lerobot_roboscape.io.templates import number, render_report
 from lerobot_roboscape.pipeline.config import JUDGED_SCALES, PipelineConfig
-from lerobot_roboscape.pipeline.figures import WM_FIGURE_FRAMES, ppo_curves, world_model_figure
 from lerobot_roboscape.pipeline.layout import (
     CONTROL_DIR,
     CONVERTED_DIR,
@@ -47,14 +46,15 @@ from lerobot_roboscape.pipeline.methods import (
     RL_WORLD_MODEL,
     SUCCESS_CLASSIFIER,
 )
+from lerobot_roboscape.pipeline.report.figures import WM_FIGURE_FRAMES, ppo_curves, world_model_figure
+from lerobot_roboscape.pipeline.report.targets import measure_targets, tokenizer_targets
+from lerobot_roboscape.pipeline.report.world_model_targets import world_model_targets
 from lerobot_roboscape.pipeline.resume import stage_seconds
-from lerobot_roboscape.pipeline.targets import measure_targets, tokenizer_targets
-from lerobot_roboscape.pipeline.world_model_targets import world_model_targets
 from lerobot_roboscape.reward import done_report
 from lerobot_roboscape.tokenizer import report as tokenizer_report
 from lerobot_roboscape.training.loop import TrainingTime
-from lerobot_roboscape.world_model import fidelity as fidelity_report
-from lerobot_roboscape.world_model.fidelity_readings import FidelityReadings
+from lerobot_roboscape.world_model.measures import fidelity as fidelity_report
+from lerobot_roboscape.world_model.measures.fidelity_readings import FidelityReadings
 
 matplotlib.use("Agg")
 

@@ -17,12 +17,16 @@ from lerobot_roboscape.evaluation.tables import (
     TABLES_JSON,
     write_table,
 )
+from lerobot_roboscape.experiments.claim_markdown import markdown, readme_block, update_readme
+from lerobot_roboscape.experiments.claim_summary import ClaimSummary, OtherProtocol, PpoRun, WorldModelRunsRecord
+from lerobot_roboscape.experiments.claim_targets import claim_targets, signal_targets
+from lerobot_roboscape.experiments.curves import Curves
+from lerobot_roboscape.experiments.done_refresh import refresh_rounds
+from lerobot_roboscape.experiments.levers import lever_descriptions
+from lerobot_roboscape.experiments.pack_format import PackResults
+from lerobot_roboscape.experiments.replay import REPLAY_PNG, Replay
+from lerobot_roboscape.experiments.world_model_runs import GOALS, RUNS_DIR
 from lerobot_roboscape.io.records import from_record
-from lerobot_roboscape.pipeline.claim_markdown import markdown, readme_block, update_readme
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, OtherProtocol, PpoRun, WorldModelRunsRecord
-from lerobot_roboscape.pipeline.curves import Curves
-from lerobot_roboscape.pipeline.done_refresh import refresh_rounds
-from lerobot_roboscape.pipeline.figures import curve_figure, gaming_figure, ppo_curves
 from lerobot_roboscape.pipeline.layout import (
     CURVE_DIR,
     EVAL_DIR,
@@ -32,7 +36,6 @@ from lerobot_roboscape.pipeline.layout import (
     replay_dir,
     rl_dir,
 )
-from lerobot_roboscape.pipeline.levers import lever_descriptions
 from lerobot_roboscape.pipeline.methods import (
     PROTOCOLS,
     REWARD_ABLATION,
@@ -42,12 +45,9 @@ from lerobot_roboscape.pipeline.methods import (
     SFT,
     Method,
 )
-from lerobot_roboscape.pipeline.pack_format import PackResults
-from lerobot_roboscape.pipeline.replay import REPLAY_PNG, Replay
-from lerobot_roboscape.pipeline.report import machine
+from lerobot_roboscape.pipeline.report.figures import curve_figure, gaming_figure, ppo_curves
+from lerobot_roboscape.pipeline.report.write import machine
 from lerobot_roboscape.pipeline.resume import stage_seconds
-from lerobot_roboscape.pipeline.targets import claim_targets, signal_targets
-from lerobot_roboscape.pipeline.world_model_runs import GOALS, RUNS_DIR
 from lerobot_roboscape.rl.history import read_ppo_history
 
 matplotlib.use("Agg")

@@ -17,8 +17,8 @@ actions do but whose decoding hides it scores here and not in the rollouts; a mo
 The action gain is Genie's delta-PSNR: the PSNR of each rollout to its real future, minus the PSNR to that future
 of the rollout from the same start under another start's actions (the next start's sequence of the same index).
 
-Beside them, the measures that see the arm (world_model/arm_measures.py): the TCP's error and retrieval by state, the
-arm region's PSNR and the motion ratio.
+Beside them, the measures that see the arm (`arm_measures.py`): the TCP's error and retrieval by state, the arm
+region's PSNR and the motion ratio.
 """
 
 import json
@@ -39,9 +39,9 @@ from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.metrics.image_fidelity import OBJECT, OBJECT_DILATION, dilate, psnr
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
-from lerobot_roboscape.world_model.arm_measures import arm_measures, summarise_arm
+from lerobot_roboscape.world_model.measures.arm_measures import arm_measures, summarise_arm
+from lerobot_roboscape.world_model.measures.retrieval import retrieval_accuracy
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from lerobot_roboscape.world_model.retrieval import retrieval_accuracy
 from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)

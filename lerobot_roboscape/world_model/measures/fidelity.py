@@ -6,7 +6,7 @@ decoded prediction against the real frame, next to the tokenizer's own reconstru
 the world model could do), on the whole frame, on the task object's region and on the arm's (the robot's mask, dilated
 as the object's); and the motion ratio, the prediction's mean change from frame to frame over the real frames' (a
 model that stops moving keeps a good PSNR and a ratio near 0). The done signals have their own
-report (reward/done_report.py), and so does whether the model follows its actions (world_model/controllability.py).
+report (reward/done_report.py), and so does whether the model follows its actions (`controllability.py`).
 """
 
 import json
@@ -31,7 +31,7 @@ from lerobot_roboscape.metrics.perceptual import load_lpips
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device
 from lerobot_roboscape.world_model.clips import model_frames
-from lerobot_roboscape.world_model.controllability import ControllabilityReportConfig, evaluate_controllability
+from lerobot_roboscape.world_model.measures.controllability import ControllabilityReportConfig, evaluate_controllability
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 
 matplotlib.use("Agg")
@@ -81,7 +81,7 @@ class FidelityConfig:
     max_episodes: episodes evaluated, at most.
     video_episodes: episodes shown in the side-by-side video.
     controllability: a controllability set (`roboscape-collect-control`); when given, the report also says whether
-        the model follows its actions (world_model/controllability.py, controllability.json).
+        the model follows its actions (world_model/measures/controllability.py, controllability.json).
     long_horizon: control steps of a second, longer controllability reading (output_dir/long_horizon); null: none.
     lpips_weights: torchvision trunk weights for LPIPS (default: the torch hub cache).
     allow_random_lpips: report LPIPS from a random trunk when no weights are found (marked in the report).

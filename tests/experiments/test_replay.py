@@ -3,7 +3,7 @@ capped and spread over the rollouts, then as many of its failures."""
 
 import numpy as np
 
-from lerobot_roboscape.pipeline.replay import picked
+from lerobot_roboscape.experiments.replay import picked
 
 
 def test_successes_come_first_spread_over_the_rollouts_then_as_many_failures():

@@ -7,14 +7,14 @@ import pytest
 
 from lerobot_roboscape.evaluation.results import Cell, Results
 from lerobot_roboscape.evaluation.tables import format_table
-from lerobot_roboscape.pipeline.claim_markdown import command, markdown, paper_methods
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
+from lerobot_roboscape.experiments.claim_markdown import command, markdown, paper_methods
+from lerobot_roboscape.experiments.claim_summary import ClaimSummary
+from lerobot_roboscape.experiments.claim_targets import claim_targets
+from lerobot_roboscape.experiments.experiment import ExperimentConfig
+from lerobot_roboscape.experiments.experiment_report import differences
+from lerobot_roboscape.experiments.levers import LEVERS, KLSettings, LeverSettings, lever_descriptions
 from lerobot_roboscape.pipeline.config import DataConfig, PipelineConfig, parse_config, scale_config
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import differences
-from lerobot_roboscape.pipeline.levers import LEVERS, KLSettings, LeverSettings, lever_descriptions
 from lerobot_roboscape.pipeline.methods import RL_MANISKILL, RL_MANISKILL_ONE_SCENE, RL_WORLD_MODEL, SFT
-from lerobot_roboscape.pipeline.targets import claim_targets
 from roboscape_core.errors import InvalidInputError
 
 RL_WORLD_MODEL_KL, ENSEMBLE = LEVERS["kl"].method, LEVERS["ensemble"].method
@@ -233,9 +233,9 @@ def test_the_paper_protocols_scene_column_sits_under_the_papers_ind_and_has_its_
 
 
 def test_the_signal_targets_read_the_done_share_and_the_replayed_successes():
-    from lerobot_roboscape.pipeline.claim_summary import PpoRun
-    from lerobot_roboscape.pipeline.replay import Replay
-    from lerobot_roboscape.pipeline.targets import signal_targets
+    from lerobot_roboscape.experiments.claim_summary import PpoRun
+    from lerobot_roboscape.experiments.claim_targets import signal_targets
+    from lerobot_roboscape.experiments.replay import Replay
 
     def run(method, last_success):
         return PpoRun("mlp", method, 40, 360.0, 8600, 0.1, 0.5, 0.0, last_success, 400.0)

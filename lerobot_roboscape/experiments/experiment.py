@@ -17,17 +17,18 @@ from lerobot.configs.default import DatasetConfig
 
 from lerobot_roboscape.dataset.reader import open_dataset
 from lerobot_roboscape.envs.configs import RoboscapeWorldModelEnvConfig
-from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages, world_model_runs
+from lerobot_roboscape.experiments import world_model_runs
+from lerobot_roboscape.experiments.curves import Curves, checkpoint_curves
+from lerobot_roboscape.experiments.experiment_report import write_experiment_report
+from lerobot_roboscape.experiments.levers import BY_METHOD, LEVERS, LeverContext, LeverSettings, lever_runs
+from lerobot_roboscape.experiments.pack_format import RESULTS, PackResults, read_results
+from lerobot_roboscape.experiments.replay import replay_in_simulator
+from lerobot_roboscape.experiments.trained import TrainedStages, trained_stages
+from lerobot_roboscape.pipeline import data_stages, layout, methods, policy_stages, resume, stages
 from lerobot_roboscape.pipeline.clock import StageClock
 from lerobot_roboscape.pipeline.config import PipelineConfig
-from lerobot_roboscape.pipeline.curves import Curves, checkpoint_curves
-from lerobot_roboscape.pipeline.experiment_report import write_experiment_report
-from lerobot_roboscape.pipeline.levers import BY_METHOD, LEVERS, LeverContext, LeverSettings, lever_runs
 from lerobot_roboscape.pipeline.methods import Method
-from lerobot_roboscape.pipeline.pack_format import RESULTS, PackResults, read_results
 from lerobot_roboscape.pipeline.policy_stages import RLRun
-from lerobot_roboscape.pipeline.replay import replay_in_simulator
-from lerobot_roboscape.pipeline.trained import TrainedStages, trained_stages
 from lerobot_roboscape.reward.done_report import token_episodes
 from lerobot_roboscape.tokenizer.modeling_tokenizer import VisualTokenizer
 from lerobot_roboscape.training.loop import resolve_device

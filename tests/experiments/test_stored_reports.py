@@ -11,13 +11,13 @@ import pytest
 
 from lerobot_roboscape.envs.reward_readings import RewardReadings
 from lerobot_roboscape.evaluation.tables import format_table
-from lerobot_roboscape.pipeline.claim_markdown import markdown
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary
+from lerobot_roboscape.experiments.claim_markdown import markdown
+from lerobot_roboscape.experiments.claim_summary import ClaimSummary
+from lerobot_roboscape.experiments.claim_targets import claim_targets
+from lerobot_roboscape.experiments.experiment import ExperimentConfig
+from lerobot_roboscape.experiments.experiment_report import differences
 from lerobot_roboscape.pipeline.config import parse_config
-from lerobot_roboscape.pipeline.experiment import ExperimentConfig
-from lerobot_roboscape.pipeline.experiment_report import differences
-from lerobot_roboscape.pipeline.targets import claim_targets
-from lerobot_roboscape.pipeline.world_model_targets import done_targets, goal_targets
+from lerobot_roboscape.pipeline.report.world_model_targets import done_targets, goal_targets
 from lerobot_roboscape.reward.done_readings import DoneReport
 
 RESULTS = Path(__file__).parents[2] / "docs" / "results"

@@ -11,7 +11,8 @@ from lerobot_roboscape.evaluation.tables import (
     SPLIT_NAMES,
     format_table,
 )
-from lerobot_roboscape.pipeline.claim_summary import ClaimSummary, WorldModelRunsRecord
+from lerobot_roboscape.experiments.claim_summary import ClaimSummary, WorldModelRunsRecord
+from lerobot_roboscape.experiments.replay import agreed
 from lerobot_roboscape.pipeline.config import changed_flags, settings_flags
 from lerobot_roboscape.pipeline.methods import (
     PAPER_PROTOCOL,
@@ -22,8 +23,7 @@ from lerobot_roboscape.pipeline.methods import (
     Method,
     initial_scene,
 )
-from lerobot_roboscape.pipeline.replay import agreed
-from lerobot_roboscape.pipeline.report import render_pipeline_report
+from lerobot_roboscape.pipeline.report.write import render_pipeline_report
 
 README_BEGIN, README_END = "<!-- bench-results:begin -->", "<!-- bench-results:end -->"
 UPSTREAM_REPORTS = {
