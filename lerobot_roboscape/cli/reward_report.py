@@ -13,7 +13,7 @@ import logging
 import draccus
 
 from lerobot_roboscape.cli import one_line_errors
-from lerobot_roboscape.envs.reward_report import RewardReportConfig, write_reward_report
+from lerobot_roboscape.envs.reward_report import RewardReportConfig, auc_text, write_reward_report
 
 
 @one_line_errors("roboscape-reward-report")
@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None):
     cfg = draccus.parse(RewardReportConfig, args=argv)
     report = write_reward_report(cfg)
     for kind, summary in report["summary"].items():
-        print(f"{kind:18s} ROC-AUC of return: {summary['roc_auc_of_return']}")
+        print(f"{kind:18s} {auc_text(summary)} of the return")
     print(f"Report in {cfg.output_dir.resolve()}: reward_report.md, reward_report.json, reward_curves.png")
 
 

@@ -327,7 +327,14 @@ def _mean(values: np.ndarray) -> float | None:
 
 def headline(report: dict) -> str:
     """The report in one line, for a run's console: each reward's ROC-AUC of the return."""
-    return ", ".join(f"{kind} ROC-AUC {s['roc_auc_of_return']}" for kind, s in report["summary"].items())
+    return ", ".join(f"{kind} {auc_text(s)}" for kind, s in report["summary"].items())
+
+
+def auc_text(summary: dict) -> str:
+    """A reward's ROC-AUC of the return in words: why there is none where there is none."""
+    if summary["roc_auc_of_return"] is None:
+        return "ROC-AUC not defined (the episodes are all successes or all failures)"
+    return f"ROC-AUC {summary['roc_auc_of_return']:.3f}"
 
 
 def markdown(report: dict, episodes: int, successes: int) -> str:

@@ -1,4 +1,5 @@
 import gymnasium as gym
+import torch
 
 from lerobot_roboscape.tasks import ENV_IDS, TASK_FAMILIES
 from roboscape_core.errors import InvalidInputError
@@ -7,7 +8,9 @@ CONTROL_MODE = "pd_ee_delta_pose"  # 7-D: xyz delta, rotation delta (XYZ Euler),
 
 
 def make_task_env(family: str, scene_id: str, image_size: int = 64, obs_mode: str = "rgb", **kwargs) -> gym.Env:
-    """One ManiSkill env of a task family in one scene, with both cameras at `image_size` pixels square."""
+    """One ManiSkill env of a task family in one scene, with both cameras at `image_size` pixels square. It renders
+    on the CPU where no CUDA device is visible: asked for the GPU there, ManiSkill falls back to the CPU anyway and
+    warns once per env."""
     if family not in ENV_IDS:
         raise InvalidInputError(f"Unknown task family {family!r}; expected one of {TASK_FAMILIES}")
     return gym.make(
@@ -17,5 +20,5 @@ def make_task_env(family: str, scene_id: str, image_size: int = 64, obs_mode: st
         control_mode=CONTROL_MODE,
         robot_uids="panda_wristcam",
         sensor_configs=dict(width=image_size, height=image_size),
-        **kwargs,
+        **{"render_backend": "gpu" if torch.cuda.is_available() else "cpu"} | kwargs,
     )

@@ -203,9 +203,13 @@ def curve_figure(curve: list[dict], cameras: list[str], path: Path) -> None:
 
 def headline(report: dict) -> str:
     """The report in one line, for a run's console."""
-    return ", ".join(
-        f"{view} PSNR {m.psnr:.1f} dB, object survives {m.object_survival}" for view, m in view_readings(report).items()
-    )
+    return ", ".join(f"{view} PSNR {m.psnr:.1f} dB, {_survival(m)}" for view, m in view_readings(report).items())
+
+
+def _survival(m: ViewReading) -> str:
+    if m.object_survival is None:  # no segmentation masks, or no frame where the object covers >= 4 px
+        return "object survival not measured (no object masks in these frames)"
+    return f"object survives in {m.object_survival:.0%} of frames"
 
 
 def markdown(report: dict) -> str:

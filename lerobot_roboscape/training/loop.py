@@ -24,6 +24,7 @@ from torch import nn
 from tqdm import tqdm
 
 from lerobot_roboscape.io.atomic import make_tmp_dir
+from lerobot_roboscape.io.console import say_once
 from lerobot_roboscape.training.checkpoints import (
     CHECKPOINTS,
     FINAL,
@@ -36,6 +37,9 @@ from lerobot_roboscape.training.throughput import Throughput, peak_flops
 from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
+# A model with tied weights (a head sharing its embedding's) is saved once per tensor by Accelerate, which says so
+# at every checkpoint; the weights reload tied.
+say_once("accelerate.utils.other", "Removed shared tensor")
 # One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.
 HELDOUT_CURVE = "heldout_curve.jsonl"
 # One line per logging step: the losses, and the throughput since the previous one (samples/s, TFLOP/s, MFU).
