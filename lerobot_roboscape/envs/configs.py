@@ -7,7 +7,7 @@ from pathlib import Path
 import gymnasium as gym
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_IMAGES, OBS_STATE
 
 from lerobot_roboscape.dataset.reader import read_layout
 from lerobot_roboscape.robot import ACTION_NAMES, CAMERA_NAMES, CONTROL_FREQ, STATE_DIM
@@ -24,13 +24,22 @@ def check_episode_length(episode_length: int | None) -> None:
         raise InvalidInputError(f"episode_length must be >= 1 or null (per-family horizons), got {episode_length}")
 
 
+PIXELS = "pixels"  # LeRobot's observation key of an env's images
+
+
 def camera_features(
     image_size: int, cameras=CAMERAS, keys: dict[str, str] | None = None, action_dim: int = len(ACTION_NAMES)
 ) -> tuple[dict, dict]:
     """LeRobot's env features: each camera's `pixels/<camera>`, mapped to its dataset key (`keys`: a dataset's own,
-    as `read_layout` gives them; by default `observation.images.<camera>`), and the action."""
+    as `read_layout` gives them; by default `observation.images.<camera>`), or one `pixels` for a lone camera under
+    `observation.image`; and the action."""
     features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))}
     features_map = {ACTION: ACTION}
+    if keys is not None and list(keys.values()) == [OBS_IMAGE]:
+        # LeRobot's one-camera layout (PushT): its envs give `pixels` as one array, which LeRobot reads as
+        # observation.image (a dict of views it reads as observation.images.<camera>).
+        features[PIXELS] = PolicyFeature(type=FeatureType.VISUAL, shape=(image_size, image_size, 3))
+        return features, features_map | {PIXELS: OBS_IMAGE}
     for cam in cameras:
         features[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=(image_size, image_size, 3))
         features_map[f"pixels/{cam}"] = (keys or {}).get(cam, f"{OBS_IMAGES}.{cam}")

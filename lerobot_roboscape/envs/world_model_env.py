@@ -54,8 +54,8 @@ def free_memory_bytes(device: str) -> int:
 class RoboscapeWorldModelEnv(BatchedEnv):
     """B episodes of the world models, side by side.
 
-    **Observation:** {"pixels": {camera: (B, H, W, 3) uint8}}, the tokenizer's decoding of the current model frame,
-    every view the dataset has.
+    **Observation:** {"pixels": {camera: (B, H, W, 3) uint8}} (a lone camera under `observation.image`: its array),
+    the tokenizer's decoding of the current model frame, every view the dataset has.
     **Action:** (B, A) in [-1, 1], one control step; the action model reads a chunk of `frame_skip` of them.
     **Reward:** paid at the last step of each chunk, 0 between: alpha x `sparse_reward` while done >= theta_sps,
     plus beta x (1 - the similarity distance of the frame to its goal) (`WorldModelReward`); or a baseline reward
@@ -112,6 +112,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         if config.goal_file and config.goal_source == "text_model":
             self.goal_bank.use_file(Path(config.goal_file), self.starts)
 
+        # A lone camera under LeRobot's `observation.image` (PushT) is one array, as LeRobot's own envs give it.
+        self._bare_pixels = "pixels" in config.features
         self._make_spaces()
         self.render_mode = "rgb_array"
         self._max_episode_steps = max(s.horizon for s in self.starts)
@@ -124,7 +126,7 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         """Each camera's pixels (and the robot's state as `agent_pos` with include_state); actions in [-1, 1]."""
         size, config = self.tokenizer.config.image_size, self.config
         pixels = {cam: gym.spaces.Box(0, 255, (size, size, 3), np.uint8) for cam in self.cameras}
-        observation = {"pixels": gym.spaces.Dict(pixels)}
+        observation = {"pixels": next(iter(pixels.values())) if self._bare_pixels else gym.spaces.Dict(pixels)}
         if config.include_state:
             if not self.action_model.config.state:
                 raise InvalidInputError(
@@ -375,7 +377,8 @@ class RoboscapeWorldModelEnv(BatchedEnv):
         return {cam: uint8[:, i] for i, cam in enumerate(self.cameras)}
 
     def _observation(self) -> dict:
-        observation = {"pixels": self._pixels(self._frames)}
+        pixels = self._pixels(self._frames)
+        observation = {"pixels": next(iter(pixels.values())) if self._bare_pixels else pixels}
         if self.config.include_state:
             observation["agent_pos"] = self._rollout.state.float().cpu().numpy()
         return observation

@@ -98,7 +98,7 @@ class PolicyIO:
     def __init__(self, preprocessor, postprocessor):
         self.preprocessor, self.postprocessor = preprocessor, postprocessor
 
-    def batch(self, pixels: dict[str, np.ndarray], tasks: list[str]) -> dict:
+    def batch(self, pixels: dict[str, np.ndarray] | np.ndarray, tasks: list[str]) -> dict:
         observation = preprocess_observation({"pixels": pixels})
         observation["task"] = list(tasks)
         return self.preprocessor(observation)

@@ -82,7 +82,7 @@ def update(
         minibatches = order.split(cfg.minibatch_size)
         for k, minibatch in enumerate(minibatches):
             t, b = t_index[minibatch].cpu().numpy(), b_index[minibatch].cpu().numpy()
-            batch = io.batch({cam: array[t, b] for cam, array in rollout.pixels.items()}, [rollout.tasks[i] for i in b])
+            batch = io.batch(rollout.pixels_at(t, b), [rollout.tasks[i] for i in b])
             with accelerator.autocast():
                 losses, loss, kl_stats = _minibatch_loss(
                     cfg, scorer, batch, rollout, (t, b), b_advantages[minibatch], returns, critic_only, reference

@@ -15,7 +15,7 @@ from roboscape_core.errors import InvalidInputError
 
 
 class Rollout(NamedTuple):
-    pixels: dict[str, np.ndarray]  # camera -> (T, B, H, W, C) uint8
+    pixels: dict[str, np.ndarray] | np.ndarray  # camera -> (T, B, H, W, C) uint8; one array where the env gave one
     tasks: list[str]  # (B,)
     raw_actions: Tensor  # (T, B, ...)
     log_probs: Tensor  # (T, B)
@@ -32,6 +32,12 @@ class Rollout(NamedTuple):
     halted: np.ndarray | None  # (B,) the episode ended by the env's halt; None: the env halts none
     groups: np.ndarray  # (B,) the start each episode shares with its group (reset's group_size; else its own)
 
+    def pixels_at(self, t: np.ndarray, b: np.ndarray) -> dict[str, np.ndarray] | np.ndarray:
+        """The observations' pixels at steps `t` of episodes `b`, in the form the env gave them."""
+        if isinstance(self.pixels, dict):
+            return {cam: array[t, b] for cam, array in self.pixels.items()}
+        return self.pixels[t, b]
+
 
 @torch.no_grad()
 def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, group_size: int = 1) -> Rollout:
@@ -44,7 +50,9 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, 
     steps, n = env.call("_max_episode_steps")[0], env.num_envs
     device = next(policy.parameters()).device
     # Storage for the whole horizon, (steps, num_envs, ...) as in CleanRL, cut to the decisions made at the end.
-    pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in observation["pixels"].items()}
+    bare = not isinstance(observation["pixels"], dict)  # LeRobot's one-camera layout: one array, no views
+    views = lambda obs: {"": obs["pixels"]} if bare else obs["pixels"]  # noqa: E731
+    pixels = {cam: np.zeros((steps, *image.shape), np.uint8) for cam, image in views(observation).items()}
     log_probs, values, rewards = (torch.zeros((steps, n), device=device) for _ in range(3))
     terminated, truncated, alive_at = (torch.zeros((steps, n), dtype=torch.bool, device=device) for _ in range(3))
     raw_actions = None  # shaped as the policy's choice: a Gaussian sample, or OpenVLA's action token ids
@@ -53,7 +61,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, 
     disagreement, halted = np.zeros(n), None  # roboscape_wm reports its halts, and with an ensemble its disagreement
     reported = False
     for t in range(steps):
-        for cam, image in observation["pixels"].items():
+        for cam, image in views(observation).items():
             pixels[cam][t] = image
         sample = policy.sample_action(io.batch(observation["pixels"], tasks))
         if raw_actions is None:
@@ -89,7 +97,7 @@ def collect_rollout(env, policy, io: PolicyIO, seed: int, record: bool = False, 
     last_value = policy.predict_value(io.batch(observation["pixels"], tasks))
     T = t + 1
     return Rollout(
-        {cam: array[:T] for cam, array in pixels.items()},
+        pixels[""][:T] if bare else {cam: array[:T] for cam, array in pixels.items()},
         tasks,
         raw_actions[:T],
         log_probs[:T],

@@ -7,6 +7,8 @@ the tests start imports that tree's packages (PYTHONPATH names the tree's roots,
 checkout's). Each side runs the README's test command (pytest-xdist's default workers).
 
     .venv/bin/python scripts/benchmarks/benchmark_suite.py --reference 07c1919 --tier fast
+    .venv/bin/python scripts/benchmarks/benchmark_suite.py --reference ed0bca8 --tier readme  # (a reference before
+    # the e2e tier runs its whole suite under -m 'not e2e')
 """
 
 import argparse
@@ -35,7 +37,7 @@ def run_suite(tree: Path, tier: str, extra: list[str]) -> dict:
     """One run of the test command in `tree` (`extra`: more pytest arguments): its wall seconds, pytest's own count
     line, the tests that failed (pytest's `FAILED` lines) and its exit code."""
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *extra]
-    cmd += ["-m", "not slow"] if tier == "fast" else []
+    cmd += {"fast": ["-m", "not slow"], "readme": ["-m", "not e2e"], "all": []}[tier]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(package_roots(tree))}
     start = time.perf_counter()
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
@@ -49,7 +51,9 @@ def run_suite(tree: Path, tier: str, extra: list[str]) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--reference", required=True, help="the commit to compare against")
-    parser.add_argument("--tier", choices=("all", "fast"), default="all", help="fast: -m 'not slow'")
+    parser.add_argument(
+        "--tier", choices=("all", "readme", "fast"), default="all", help="readme: -m 'not e2e'; fast: -m 'not slow'"
+    )
     parser.add_argument("--head-first", action="store_true", help="run this checkout before the reference")
     args, extra = parser.parse_known_args()  # the rest goes to pytest (e.g. a test file, to try the script)
     with tempfile.TemporaryDirectory(prefix="suite_reference_") as tmp:

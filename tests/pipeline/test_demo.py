@@ -23,7 +23,7 @@ from lerobot_roboscape.rl.policy_loading import load_policy
 from roboscape_core.errors import MissingInputError
 from tests.harness import command, kill_at_line, output_differences, run
 
-pytestmark = pytest.mark.slow  # the simulator, or commands in subprocesses
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]  # the simulator, or commands in subprocesses
 
 
 def killed_at_every_boundary(name: str, args: list[str], stages: tuple[str, ...], out: Path) -> list[str]:

@@ -9,7 +9,7 @@ import torch
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from lerobot_roboscape.world_model.synthetic import SyntheticWorld, drift, retrieval, train_on_world, world_model
 
-pytestmark = pytest.mark.slow  # the tiny model trained to solve three worlds: minutes on 2 cores
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]  # the tiny model trained to solve three worlds: minutes on 2 cores
 GRID, WINDOW, HORIZON = 5, 5, 4
 # Training stops once retrieval reaches SOLVED twice in a row (read every EVAL_EVERY steps), at most MAX_STEPS; the
 # model trained on unlinked controls then trains as many steps. On 8x8 grids the tiny model with AdaLN reached 0.9
