@@ -231,6 +231,8 @@ def _start(cfg: PPOConfig, accelerator: Accelerator) -> _Start:
     reference = None
     if cfg.kl_coef > 0:  # always the starting policy, also when resuming from a later checkpoint
         reference = load_policy(cfg.policy_path, device)[0].eval().requires_grad_(False)
+        if cfg.init_std is not None:  # the policy as PPO starts it: a KL to SFT's init std would pull the std back
+            reference.set_action_std(cfg.init_std)
     optimizer = make_optimizer(policy, cfg)
     if checkpoint is not None:
         load_optimizer_state(optimizer, checkpoint / "training_state")

@@ -107,6 +107,14 @@ def test_init_std_sets_the_std_ppo_starts_from_and_a_resume_keeps_the_trained_on
         ppo_config(fresh_mlp, tmp_path / "x", init_std=0.0)
 
 
+def test_the_kl_to_sft_is_to_the_policy_ppo_starts_from_at_its_init_std(fresh_mlp, tmp_path):
+    """With init_std, the reference of --kl_coef is SFT at that std too: at the first update (an lr too small to move
+    the policy) the KL is 0, not that of two Gaussians of different spreads, which would pull the std back."""
+    cfg = dict(iterations=1, init_std=0.05, kl_coef=0.1, policy_lr=1e-9, value_lr=1e-9, critic_warmup_iterations=0)
+    train_ppo(ppo_config(fresh_mlp, tmp_path / "ppo", **cfg))
+    assert logged(tmp_path / "ppo", "losses/kl_to_reference")[0] == pytest.approx(0.0, abs=1e-4)
+
+
 def test_rollout_and_update_score_actions_alike_in_eval_and_train_mode(fresh_mlp):
     policy, preprocessor, postprocessor = load_policy(fresh_mlp, "cpu")
     io = PolicyIO(preprocessor, postprocessor)
