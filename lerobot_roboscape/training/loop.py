@@ -37,8 +37,7 @@ from lerobot_roboscape.training.throughput import Throughput, peak_flops
 from roboscape_core.errors import InvalidInputError, OutputExistsError
 
 logger = logging.getLogger(__name__)
-# A model with tied weights (a head sharing its embedding's) is saved once per tensor by Accelerate, which says so
-# at every checkpoint; the weights reload tied.
+# Accelerate warns at every checkpoint of a model with tied weights (they reload tied): once is enough.
 say_once("accelerate.utils.other", "Removed shared tensor")
 # One {"step", "seconds" (of training, evaluations excluded), <measure>: value} line per held-out evaluation.
 HELDOUT_CURVE = "heldout_curve.jsonl"
