@@ -10,14 +10,27 @@ import lerobot_roboscape.training.loop  # noqa: F401  (says Accelerate's tied-we
 from lerobot_roboscape.io.console import say_once
 
 
+def test_each_distinct_message_once_without_a_marker(caplog):
+    say_once("roboscape.test.distinct")
+    logger = logging.getLogger("roboscape.test.distinct")
+    with caplog.at_level(logging.WARNING, logger="roboscape.test.distinct"):
+        for episode in (1, 2, 1, 2, 3):
+            logger.warning("episode %d: no goal", episode)
+    assert [r.getMessage() for r in caplog.records] == [
+        "episode 1: no goal",
+        "episode 2: no goal",
+        "episode 3: no goal",
+    ]
+
+
 def test_a_warning_said_once_lets_other_messages_through(caplog):
     say_once("roboscape.test.console", "same old")
     logger = logging.getLogger("roboscape.test.console")
     with caplog.at_level(logging.WARNING, logger="roboscape.test.console"):
         for _ in range(3):
-            logger.warning("same old thing")
+            logger.warning("[RANK 0] same old thing")
             logger.warning("something new")
-    assert [r.getMessage() for r in caplog.records] == ["same old thing"] + ["something new"] * 3
+    assert [r.getMessage() for r in caplog.records] == ["[RANK 0] same old thing"] + ["something new"] * 3
 
 
 def test_accelerate_says_it_removed_a_tied_tensor_once_per_process(caplog):

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import torch
 
+from lerobot_roboscape.io.console import say_once
 from lerobot_roboscape.io.tensor_files import load_tensors, save_tensors
 from lerobot_roboscape.io.weights import weights_digest
 from lerobot_roboscape.world_model.goals import generate_goals
@@ -21,6 +22,8 @@ from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
+# Every env made over the same starts generates their goals again: an episode's warning is said once.
+say_once(__name__)
 GOAL_SOURCES = ("text_model", "dataset_last_frame")
 # Goals are generated in batches of this fixed size (padded), so a start's goal never depends on which other
 # starts shared its batch: the same seed gives the same goals in a fresh, a resumed or a longer run.

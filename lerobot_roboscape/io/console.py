@@ -1,23 +1,27 @@
-"""A quiet console: a library's warning that a user can do nothing about is said once per process, not at every
-env made or checkpoint saved."""
+"""A quiet console: a warning is said once per process, not at every env made, checkpoint saved or episode read."""
 
 import logging
 
 
 class _Once(logging.Filter):
-    def __init__(self, prefix: str):
+    def __init__(self, marker: str | None):
         super().__init__()
-        self.prefix, self.seen = prefix, False
+        self.marker, self.seen = marker, set()
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if not record.getMessage().startswith(self.prefix):
+        message = record.getMessage()
+        if self.marker is not None and self.marker not in message:
             return True
-        seen, self.seen = self.seen, True
-        return not seen
+        key = message if self.marker is None else self.marker
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
 
 
-def say_once(logger_name: str, prefix: str) -> None:
-    """Let the records of `logger_name` whose message starts with `prefix` through the first time only."""
+def say_once(logger_name: str, marker: str | None = None) -> None:
+    """Let the records of `logger_name` that contain `marker` through the first time only (Accelerate prefixes its
+    own with "[RANK 0] "); without a marker, each distinct message once."""
     logger = logging.getLogger(logger_name)
-    if not any(isinstance(f, _Once) and f.prefix == prefix for f in logger.filters):
-        logger.addFilter(_Once(prefix))
+    if not any(isinstance(f, _Once) and f.marker == marker for f in logger.filters):
+        logger.addFilter(_Once(marker))

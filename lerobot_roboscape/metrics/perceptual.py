@@ -14,9 +14,12 @@ import lpips
 import torch
 import torchvision
 
+from lerobot_roboscape.io.console import say_once
 from roboscape_core.errors import InvalidInputError, MissingInputError
 
 logger = logging.getLogger(__name__)
+# Each env, report and training run loads LPIPS: a missing trunk is said once.
+say_once(__name__)
 
 # torchvision's published trunk weights, as they are named in the torch hub cache.
 TRUNK_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}
