@@ -207,10 +207,9 @@ def report(args) -> None:
             [r.iteration * NUM_ENVS for r in history], _smooth([r.success for r in history]), label=folder.name
         )
     where = "IND" if args.protocol == "all_scenes" else "initial scene"
-    told = "" if args.protocol == "all_scenes" else " (the world model's done)"
-    axes[0].set(xlabel="PPO episodes", ylabel=f"{where} success, simulator, deterministic (16 episodes)")
-    axes[0].set_title("checkpoint curve")
-    axes[1].set(xlabel="PPO episodes", ylabel=f"sampled success in training{told}, 5-iteration mean", title="training")
+    told = "sampled success" if args.protocol == "all_scenes" else "the world model's done"
+    axes[0].set(xlabel="PPO episodes", ylabel=f"{where} success (simulator, 16 episodes)", title="checkpoint curve")
+    axes[1].set(xlabel="PPO episodes", ylabel=f"{told} (5-iteration mean)", title="training")
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
