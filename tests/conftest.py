@@ -216,8 +216,9 @@ def world_models(demo_dataset, trained_tokenizer, token_cache, tmp_path_factory)
     return dirs
 
 
-def lerobot_train(root, out, steps, *policy_args) -> Path:
-    """Run `lerobot-train` on `demo_dataset` in a subprocess; returns the last checkpoint's pretrained_model."""
+def lerobot_train(root, out, steps, *policy_args, repo_id: str = "test/demos") -> Path:
+    """Run `lerobot-train` on `demo_dataset` (or the dataset `repo_id` at `root`) in a subprocess; returns the last
+    checkpoint's pretrained_model."""
     import subprocess
     import sys
 
@@ -225,7 +226,7 @@ def lerobot_train(root, out, steps, *policy_args) -> Path:
         sys.executable,
         "-m",
         "lerobot.scripts.lerobot_train",
-        "--dataset.repo_id=test/demos",
+        f"--dataset.repo_id={repo_id}",
         f"--dataset.root={root}",
         "--policy.device=cpu",
         "--policy.push_to_hub=false",

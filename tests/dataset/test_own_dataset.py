@@ -18,7 +18,7 @@ from lerobot_roboscape.training.checkpoints import FINAL
 from lerobot_roboscape.training.loop import TrainingConfig
 from lerobot_roboscape.world_model.train import TrainWorldModelConfig, train_world_model
 from roboscape_core.errors import InvalidInputError
-from tests.conftest import TEST_TOKENIZER, TEST_WM_ARGS
+from tests.conftest import TEST_TOKENIZER, TEST_WM_ARGS, lerobot_train
 
 
 @dataclass(frozen=True)
@@ -244,31 +244,20 @@ def test_a_pusht_recording_trains_both_models_and_lerobot_trains_and_evaluates_i
         "--env.episode_length=8",
         "--env.max_goal_steps=4",
     ]
-    train = [
-        sys.executable,
-        "-m",
-        "lerobot.scripts.lerobot_train",
-        "--dataset.repo_id=user/pusht",
-        f"--dataset.root={root}",
+    policy = lerobot_train(
+        root,
+        tmp_path / "train",
+        2,
         "--policy.type=roboscape_mlp",
         "--policy.hidden_dim=32",
         "--policy.image_feature_dim=32",
-        "--policy.device=cpu",
-        "--policy.push_to_hub=false",
-        "--steps=2",
-        "--batch_size=2",
-        "--num_workers=0",
-        "--save_freq=2",
         "--env_eval_freq=2",
         "--eval.n_episodes=1",
         "--eval.batch_size=1",
-        f"--output_dir={tmp_path / 'train'}",
         *env_args,
-    ]
-    result = subprocess.run(train, capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr[-3000:]
+        repo_id="user/pusht",
+    )
     assert len(list((tmp_path / "train" / "eval" / "videos_step_000002").rglob("*.mp4"))) == 1
-    policy = tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model"
     evaluate = [
         sys.executable,
         "-m",

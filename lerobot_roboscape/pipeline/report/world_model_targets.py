@@ -14,9 +14,7 @@ from lerobot_roboscape.world_model.measures.fidelity_readings import ArmReading,
 # The world models', done and reward, on held-out OOD episodes with failures (issue 28).
 WM_PSNR_GAP_DB = 3.0  # open-loop PSNR over the fidelity report's horizon (16 control steps), below the tokenizer's
 WM_PSNR_GAP_IND_DB = 2.0  # the same, from new starts of the training scenes (issue 47)
-RETRIEVAL = (
-    0.9  # rollouts nearer their own real future than the K - 1 others' (world_model/measures/controllability.py), IND
-)
+RETRIEVAL = 0.9  # rollouts nearer their own real future than the K - 1 others' (measures/controllability.py), IND
 RETRIEVAL_OOD = 0.75  # from starts in scenes the model never saw (issue 47)
 ACTION_GAIN_DB = 3.0  # Genie's delta-PSNR: true actions against another episode's
 # The arm (issue 70), over the same steps: the predicted state's TCP position error as a share of the distance the
