@@ -1,18 +1,14 @@
-import logging
+"""roboscape_wm, the world models as a LeRobot env: gymnasium's checks, batched steps, precision, determinism, its
+starts (from the dataset, branched, a file, given frames), its state, and the inputs it refuses."""
 
 import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-from lerobot_roboscape.dataset.reader import episode_facts, open_dataset, read_episode, read_frames
+from lerobot_roboscape.dataset.reader import open_dataset, read_episode, read_frames
 from lerobot_roboscape.envs.batched import SingleEnv
-from lerobot_roboscape.envs.goal_bank import GoalBank, goal_generation_seconds
-from lerobot_roboscape.envs.reward_report import replay_rewards
 from lerobot_roboscape.envs.world_model_env import RoboscapeWorldModelEnv
-from lerobot_roboscape.metrics.perceptual import load_lpips
-from lerobot_roboscape.reward.world_model_reward import WorldModelReward
-from lerobot_roboscape.world_model.clips import model_frames
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
 from roboscape_core.errors import InvalidInputError
 from tests.conftest import IMAGE_SIZE
@@ -138,42 +134,6 @@ def test_missing_world_model_is_named(env_config, tmp_path):
         RoboscapeWorldModelEnv(env_config(action_world_model=str(tmp_path / "nowhere")))
 
 
-def test_goal_never_reached_is_explicit(env_config, caplog):
-    env = RoboscapeWorldModelEnv(env_config(theta=1.0, max_goal_steps=2), num_envs=2)
-    with caplog.at_level(logging.WARNING):
-        _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
-    assert not info["goal_from_text_model"].any()
-    assert "done stayed below theta=1.00 for 2 control steps" in caplog.text
-
-
-def test_goal_file_holds_every_start_and_is_read_back(env_config, tmp_path, monkeypatch):
-    path = tmp_path / "goals.safetensors"
-    env = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
-    assert path.is_file() and set(env.goal_bank.cache) == {s.episode_index for s in env.starts}  # made at creation
-    assert goal_generation_seconds(path) > 0
-    _, info = env.reset(seed=0, options={"episode_index": [0, 2]})
-
-    def no_generation(*args):
-        raise AssertionError("goals were generated again")
-
-    monkeypatch.setattr(GoalBank, "_fill", no_generation)
-    again = RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
-    _, info_again = again.reset(seed=0, options={"episode_index": [0, 2]})
-    np.testing.assert_array_equal(info_again["goal"]["wrist"], info["goal"]["wrist"])
-    with pytest.raises(InvalidInputError, match=r"goals.safetensors was made with other settings \{'theta'"):
-        RoboscapeWorldModelEnv(env_config(goal_file=str(path), theta=0.5), num_envs=2)
-    # A text model retrained in the same folder: its weights differ, so the goals of the one it replaced are refused.
-    retrained = again.text_model
-    with torch.no_grad():
-        next(retrained.parameters()).add_(1.0)
-    monkeypatch.setattr(
-        "lerobot_roboscape.envs.world_model_env.load_models",
-        lambda *args, **kwargs: (again.tokenizer, again.action_model, retrained),
-    )
-    with pytest.raises(InvalidInputError, match=r"goals.safetensors was made with other settings \{'weights'"):
-        RoboscapeWorldModelEnv(env_config(goal_file=str(path)), num_envs=2)
-
-
 def test_starts_per_scene_keeps_the_first_episodes_of_each_scene(env_config, demo_dataset):
     env = RoboscapeWorldModelEnv(env_config(starts_per_scene=1), num_envs=1)
     every = RoboscapeWorldModelEnv(env_config(), num_envs=1)
@@ -239,62 +199,6 @@ def test_starts_saved_to_a_file_run_the_env_without_its_dataset(env_config, tmp_
     (tmp_path / "not_starts.safetensors").write_bytes(b"nonsense")
     with pytest.raises(InvalidInputError, match="not_starts.safetensors is not a file that export_starts writes"):
         RoboscapeWorldModelEnv(env_config(starts_file=str(tmp_path / "not_starts.safetensors")), num_envs=1)
-
-
-def test_goal_from_the_dataset_episode(env_config, token_cache):
-    env = RoboscapeWorldModelEnv(env_config(goal_source="dataset_last_frame", text_world_model=None), num_envs=1)
-    _, info = env.reset(seed=0, options={"episode_index": 1})
-    row = next(r for r in token_cache.episodes if r["episode_index"] == 1)
-    last = torch.from_numpy(token_cache.tokens[row["start"] + row["length"] - 1].astype(np.int64)).reshape(1, -1)
-    expected = env._pixels(env.decode(last))
-    np.testing.assert_array_equal(info["goal"]["wrist"], expected["wrist"])
-
-
-def test_reward_is_higher_at_the_goal():
-    reward = WorldModelReward(load_lpips(allow_random_trunk=True), alpha=0.5, beta=0.5, theta_sps=0.9)
-    g = torch.Generator().manual_seed(0)
-    goal = torch.rand(4, 2, 3, 32, 32, generator=g)
-    other = torch.rand(4, 2, 3, 32, 32, generator=g)
-    at_goal = reward(goal, goal, torch.zeros(4))
-    elsewhere = reward(other, goal, torch.zeros(4))
-    assert torch.allclose(at_goal.dense, torch.ones(4)) and (at_goal.reward > elsewhere.reward).all()
-    done = reward(other, goal, torch.tensor([0.95, 0.5, 0.9, 0.0]))
-    assert done.sparse.tolist() == [10.0, 0.0, 10.0, 0.0]
-    torch.testing.assert_close(done.reward, 0.5 * done.sparse + 0.5 * done.dense)
-
-
-@pytest.mark.parametrize("terminate_on_success", [False, True])
-def test_frames_that_reach_the_goal_return_more(env_config, demo_dataset, terminate_on_success):
-    """The default reward along a real successful episode (done where the recording shows success) against the
-    same start standing still: reaching the goal must pay more, whether success ends the episode or not."""
-    _, root = demo_dataset
-    config = env_config(
-        goal_source="dataset_last_frame",
-        text_world_model=None,
-        episode_length=None,
-        terminate_on_success=terminate_on_success,
-    )
-    env = RoboscapeWorldModelEnv(config, num_envs=1)
-    data = open_dataset("test/demos", root)
-    k = env.frame_skip
-    episode = next(
-        e
-        for e in map(lambda i: read_episode(data, i), range(data.meta.total_episodes))
-        if e.done_label[::k].max() > 0 and e.info["task_family"] == "push"  # success shows in a model frame
-    )
-    start = next(s for s in env.starts if s.episode_index == episode.index)
-    facts = [episode_facts(data, i) for i in range(data.meta.total_episodes)]
-    assert start.horizon == max(
-        data.meta.episodes[i]["length"] for i, f in enumerate(facts) if f["task_family"] == "push" and f["success"]
-    )  # the longest successful push
-    frames = model_frames(len(episode.action), k)  # what the action model would have made, a frame per k steps
-    tokens = env.encode({cam: episode.images[cam][frames] for cam in env.cameras})
-    reached, reached_success = replay_rewards(env, episode.index, tokens, torch.from_numpy(episode.done_label[frames]))
-    still, still_success = replay_rewards(env, episode.index, tokens[:1].expand(2, -1), torch.zeros(2))
-    assert reached_success and not still_success
-    assert len(reached) == len(still) == start.horizon
-    assert reached.sum() > still.sum()
-    assert (reached[np.arange(start.horizon) % k != k - 1] == 0).all()  # paid at each chunk's last step only
 
 
 def test_action_range_of_the_dataset(env_config, demo_dataset, mlp_checkpoint):
@@ -423,94 +327,3 @@ def test_a_batch_whose_cache_cannot_fit_is_refused_at_construction(env_config):
     refusal = rf"{too_many} episodes at once need .* GiB of key/value cache \(window .* GiB are free on cpu"
     with pytest.raises(InvalidInputError, match=refusal):
         RoboscapeWorldModelEnv(env_config(precision="float32"), num_envs=too_many)
-
-
-def test_an_ensemble_that_agrees_changes_nothing_and_one_that_parts_penalises_and_halts(env_config, tmp_path):
-    """The env's own model as the ensemble's member agrees everywhere: the rewards are those of no ensemble. A member
-    with other weights disagrees: the reward drops by exactly lambda x the reported disagreement, and a threshold
-    below it halts every episode at its first frame (terminated, nothing paid after)."""
-    from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-
-    own = env_config().action_world_model
-    other = STWorldModel.from_pretrained(own)
-    with torch.no_grad():
-        torch.manual_seed(0)
-        for p in other.parameters():
-            p.add_(p.abs().mean() * torch.randn_like(p))
-    other.save_pretrained(tmp_path / "other")
-
-    def run(**overrides):
-        env = RoboscapeWorldModelEnv(env_config(precision="float32", episode_length=8, **overrides), num_envs=2)
-        env.reset(seed=0)
-        steps = [env.step(np.full((2, 7), 0.3, np.float32)) for _ in range(8)]
-        return [(reward, terminated, info) for _, reward, terminated, _, info in steps]
-
-    plain, same = run(), run(ensemble=[own], disagreement_penalty=5.0)
-    assert "disagreement" not in plain[0][2]  # no ensemble: nothing to report (PPO logs none)
-    for (reward, _, _), (reward_same, _, info) in zip(plain, same, strict=True):
-        np.testing.assert_allclose(reward_same, reward, atol=1e-4)
-        assert (info["disagreement"] < 1e-4).all()
-    other = [str(tmp_path / "other")]
-    free, paid = run(ensemble=other), run(ensemble=other, disagreement_penalty=2)
-    parted = np.stack([info["disagreement"] for _, _, info in free])
-    assert parted.max() > 1e-3 and parted.max() <= np.log(2) + 1e-4  # two models: log 2 nats at most
-    for (reward, _, _), (reward_paid, _, info) in zip(free, paid, strict=True):
-        np.testing.assert_allclose(reward_paid, reward - 2 * info["disagreement"], atol=1e-4)
-    first = next(t for t, (_, _, info) in enumerate(free) if (info["disagreement"] > 0).all())
-    halted = run(ensemble=other, disagreement_threshold=float(parted[first].min()) / 2)
-    _, terminated, info = halted[first]
-    assert terminated.all() and info["halted"].all()
-    assert np.array_equal(info["is_success"], free[first][2]["is_success"])  # the halted frame's own success stands
-    assert all((reward == 0).all() for reward, _, _ in halted[first + 1 :])
-    with pytest.raises(InvalidInputError, match="need ensemble"):
-        env_config(disagreement_penalty=1.0)
-
-
-def test_a_state_margin_halts_an_episode_whose_predicted_state_leaves_the_datas_range(
-    env_config, demo_dataset, tmp_path
-):
-    """The action model keeps its training states' range. A margin that the rollout cannot leave changes nothing; a
-    range the first predicted state lies outside halts every episode at that frame: terminated, unpaid, no success,
-    although the done (theta near 0) calls every frame a success."""
-    _, root = demo_dataset
-    own = env_config().action_world_model
-    model = STWorldModel.from_pretrained(own)
-    dataset = open_dataset("test/demos", root)
-    states = np.concatenate([read_episode(dataset, e).state for e in range(dataset.meta.total_episodes)])
-    np.testing.assert_allclose(model.config.state_min, states.min(0), atol=1e-5)  # the data's range, saved
-    np.testing.assert_allclose(model.config.state_max, states.max(0), atol=1e-5)
-    model.config.state_min = model.config.state_max = (states.min(0) - 1).tolist()  # no state lies there
-    model.save_pretrained(tmp_path / "walled")
-
-    def run(**overrides):
-        env = RoboscapeWorldModelEnv(env_config(precision="float32", episode_length=8, theta=1e-6, **overrides), 2)
-        env.reset(seed=0)
-        return [env.step(np.full((2, 7), 0.9, np.float32))[1:] for _ in range(8)]
-
-    plain, wide = run(), run(state_margin=1e6)
-    for (reward, *_), (reward_wide, terminated_wide, _, info_wide) in zip(plain, wide, strict=True):
-        np.testing.assert_array_equal(reward_wide, reward)
-        assert not terminated_wide.any() and not info_wide["halted"].any()
-    assert wide[-1][3]["is_success"].all()  # from the first generated frame on
-    walled = run(action_world_model=str(tmp_path / "walled"), state_margin=0.0)
-    k = RoboscapeWorldModelEnv(env_config(), 1).frame_skip
-    reward, terminated, _, info = walled[k - 1]  # the first generated frame
-    assert terminated.all() and info["halted"].all() and not info["is_success"].any() and (reward == 0).all()
-    assert all((reward == 0).all() and not info["is_success"].any() for reward, _, _, info in walled[k:])
-    model.config.state_min = model.config.state_max = None
-    model.save_pretrained(tmp_path / "unbounded")
-    with pytest.raises(InvalidInputError, match="carries no range of its training data's states"):
-        RoboscapeWorldModelEnv(env_config(action_world_model=str(tmp_path / "unbounded"), state_margin=0.1), 1)
-    with pytest.raises(InvalidInputError, match="state_margin must be >= 0"):
-        env_config(state_margin=-0.1)
-
-
-def test_mutual_information_of_models_that_agree_and_of_models_sure_of_different_tokens():
-    from lerobot_roboscape.envs.ensemble import mutual_information
-
-    logits = torch.randn(3, 5, 16)
-    assert torch.allclose(mutual_information([logits, logits, logits]), torch.zeros(3), atol=1e-6)
-    sure = torch.full((1, 5, 16), -1e4)
-    a, b = sure.clone(), sure.clone()
-    a[..., 0], b[..., 1] = 0.0, 0.0  # each certain, of another token
-    torch.testing.assert_close(mutual_information([a, b]), torch.tensor([np.log(2)], dtype=torch.float32))

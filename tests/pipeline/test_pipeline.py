@@ -18,12 +18,34 @@ def cell(rate: float, n: int = 10) -> dict:
     return Cell.of([True] * round(rate * n) + [False] * (n - round(rate * n))).to_json()
 
 
-def test_targets_compare_the_measured_values_with_the_goals():
-    retrieval = lambda value, starts=32: {"retrieval": value, "starts": starts}  # noqa: E731
+def retrieval(value: float, starts: int = 32) -> dict:
+    return {"retrieval": value, "starts": starts}
+
+
+def done_mode(auc: float, failed_called: int) -> dict:
+    """A done source's reading in one mode: its ROC-AUCs and its confusion on 10 successes and 10 failures."""
+    confusion = {
+        "success_called_done": 9,
+        "success_missed": 1,
+        "failed_called_done": failed_called,
+        "failed_not_done": 10 - failed_called,
+        "failed_called_done_rate": failed_called / 10,
+    }
+    return {"frame_roc_auc": auc, "episode_roc_auc": auc, "confusion": confusion}
+
+
+def fidelity_reports() -> tuple[dict, dict]:
+    """(OOD, IND) fidelity reports; IND's new starts of the training scenes have stricter goals and the arm's
+    measures (issue 70), which OOD's report predates."""
     fidelity = {
         "config": {"horizon": 16, "long_horizon": 48},
         "mean": {"reconstruction_psnr": 27.0},
-        "per_step": {"prediction_psnr": [26.0, 25.0, 24.0, 25.0], "reconstruction_psnr": [27.0] * 4},
+        "per_step": {
+            "prediction_psnr": [26.0, 25.0, 24.0, 25.0],
+            "reconstruction_psnr": [27.0] * 4,
+            "prediction_object_psnr": [20.0] * 4,
+            "reconstruction_object_psnr": [24.0] * 4,
+        },
         "controllability": {
             "world_model": {"whole_frame": retrieval(0.95), "object": retrieval(0.6)},
             "ignoring_actions": {"whole_frame": retrieval(0.25), "object": retrieval(0.25)},
@@ -34,42 +56,60 @@ def test_targets_compare_the_measured_values_with_the_goals():
             "action_gain_db": 1.5,
         },
     }
-    confusion = lambda failed_called: {  # noqa: E731
-        "success_called_done": 9,
-        "success_missed": 1,
-        "failed_called_done": failed_called,
-        "failed_not_done": 10 - failed_called,
-        "failed_called_done_rate": failed_called / 10,
+    fidelity_ind = json.loads(json.dumps(fidelity))
+    fidelity_ind["controllability"]["world_model"]["whole_frame"] = retrieval(0.8, starts=128)
+    fidelity_ind["controllability"]["action_gain_db"] = 3.5
+    fidelity_ind["per_step"]["prediction_psnr"] = [24.5] * 4
+    fidelity_ind["controllability"]["arm"] = {
+        "arm_psnr": 18.1,
+        "arm_psnr_tokenizer": 20.9,
+        "motion_ratio": 0.62,
+        "retrieval_state": 0.97,
+        "tcp_error_cm": 1.2,
+        "tcp_error_share_of_moved": 0.153,
     }
-    mode = lambda auc, failed_called: {  # noqa: E731
-        "frame_roc_auc": auc,
-        "episode_roc_auc": auc,
-        "confusion": confusion(failed_called),
-    }
+    return fidelity, fidelity_ind
+
+
+def done_reports() -> tuple[dict, dict]:
+    """(OOD, IND) done reports; on its own IND episodes the same choice calls 2 of 10 failures done."""
     done = {
         "chosen": {"source": "classifier", "theta": 0.7},
         "sources": {
-            "classifier": {"teacher_forced": mode(0.97, 1), "open_loop": mode(0.85, 3)},
-            "world_model": {"teacher_forced": mode(0.9, 0), "open_loop": mode(0.95, 0)},
+            "classifier": {"teacher_forced": done_mode(0.97, 1), "open_loop": done_mode(0.85, 3)},
+            "world_model": {"teacher_forced": done_mode(0.9, 0), "open_loop": done_mode(0.95, 0)},
         },
     }
-    rewards = {
-        "summary": {
-            "world_model": {"roc_auc_of_return": 0.92},
-            "embedding": {"roc_auc_of_return": 0.95},
-            "proxy": {"roc_auc_of_return": 0.5},
-        },
-        "goals": {
-            "starts": 20,
-            "reached_within_horizon": 0.95,
-            "successful_starts": 10,
-            "nearer_final_than_start": 0.8,
-            "final_nearer_own_goal_than_other_instructions": 0.85,
-        },
-        "similarity": "tokenizer",
-        "done_source": "classifier",
-        "theta": 0.7,
-    }
+    done_ind = json.loads(json.dumps(done))
+    done_ind["sources"]["classifier"]["open_loop"] = done_mode(0.9, 2)
+    return done, done_ind
+
+
+REWARDS = {
+    "summary": {
+        "world_model": {"roc_auc_of_return": 0.92},
+        "embedding": {"roc_auc_of_return": 0.95},
+        "proxy": {"roc_auc_of_return": 0.5},
+    },
+    "goals": {
+        "starts": 20,
+        "reached_within_horizon": 0.95,
+        "successful_starts": 10,
+        "nearer_final_than_start": 0.8,
+        "final_nearer_own_goal_than_other_instructions": 0.85,
+    },
+    "similarity": "tokenizer",
+    "done_source": "classifier",
+    "theta": 0.7,
+}
+OOD, IND = "held-out OOD starts", "new starts in the training scenes (IND)"
+FIRST_IND = f"first 16 control steps, {IND}"
+WHOLE = "action WM retrieval of its own future among 4 action sequences, whole frame, first 16 control steps"
+
+
+@pytest.fixture(scope="module")
+def targets() -> dict:
+    (fidelity, fidelity_ind), (done, done_ind) = fidelity_reports(), done_reports()
     split = lambda rate: {"push": cell(rate), "all": cell(rate)}  # noqa: E731
     table = {
         "roboscape_mlp": {
@@ -78,53 +118,48 @@ def test_targets_compare_the_measured_values_with_the_goals():
             methods.RL_MANISKILL: {"ind": split(0.3), "ood": split(0.1)},
         }
     }
-    fidelity["per_step"] |= {"prediction_object_psnr": [20.0] * 4, "reconstruction_object_psnr": [24.0] * 4}
-    fidelity_ind = json.loads(json.dumps(fidelity))  # new starts of the training scenes: stricter goals
-    fidelity_ind["controllability"]["world_model"]["whole_frame"] = retrieval(0.8, starts=128)
-    fidelity_ind["controllability"]["action_gain_db"] = 3.5
-    fidelity_ind["per_step"]["prediction_psnr"] = [24.5] * 4
-    fidelity_ind["controllability"]["arm"] = {  # the arm's measures (issue 70); OOD's report predates them
-        "arm_psnr": 18.1,
-        "arm_psnr_tokenizer": 20.9,
-        "motion_ratio": 0.62,
-        "retrieval_state": 0.97,
-        "tcp_error_cm": 1.2,
-        "tcp_error_share_of_moved": 0.153,
-    }
-    done_ind = json.loads(json.dumps(done))  # its own IND episodes: the same choice, 2 of 10 failures called done
-    done_ind["sources"]["classifier"]["open_loop"] = mode(0.9, 2)
-    targets = world_model_targets(fidelity, done, rewards, fidelity_ind=fidelity_ind, done_ind=done_ind)
-    targets |= measure_targets(table, ["push"])
-    met = {name: t["met"] for name, t in targets.items()}
-    assert list(met)[0].endswith("new starts in the training scenes (IND)")  # in domain first
-    ood, ind = "held-out OOD starts", "new starts in the training scenes (IND)"
-    first_ind = f"first 16 control steps, {ind}"
-    assert met[f"action WM open-loop PSNR, first 16 control steps, {ood} (dB; tokenizer 27.00)"]  # within 3 dB
-    assert not met[f"action WM open-loop PSNR, first 16 control steps, {ind} (dB; tokenizer 27.00)"]  # 2.5 dB below
-    # An unseen object must keep its identity: 20 dB is 4 below the tokenizer's 24; IND has no such row.
-    assert not met[f"action WM open-loop object PSNR, first 16 control steps, {ood} (dB; tokenizer 24.00)"]
-    assert not any("object PSNR" in name and ind in name for name in met)
-    whole = "action WM retrieval of its own future among 4 action sequences, whole frame, first 16 control steps"
-    assert met[f"{whole}, {ood}"]
-    assert targets[f"{whole}, {ood}"]["detail"].endswith("over 48 control steps: 0.700")
-    assert "the object's region: 0.600" in targets[f"{whole}, {ood}"]["detail"]
-    assert targets[f"{whole}, {ood}"]["goal"] == ">= 0.75" and targets[f"{whole}, {ind}"]["goal"] == ">= 0.9"
-    assert not met[f"{whole}, {ind}"]  # 0.8 meets the OOD goal, not the in-domain one
-    assert not met[f"action WM action gain (dB), first 16 control steps, {ood}"]  # 2.5 < 3
-    assert met[f"action WM action gain (dB), first 16 control steps, {ind}"]
+    found = world_model_targets(fidelity, done, REWARDS, fidelity_ind=fidelity_ind, done_ind=done_ind)
+    return found | measure_targets(table, ["push"])
+
+
+@pytest.fixture(scope="module")
+def met(targets) -> dict:
+    return {name: t["met"] for name, t in targets.items()}
+
+
+def test_the_targets_come_in_domain_first(met):
+    assert list(met)[0].endswith(IND)
     assert "bench action WM training minutes on this machine" not in met  # no curve given
-    assert not met[f"action WM state: TCP error at the last step, share of the distance moved (median), {first_ind}"]
-    assert (
-        targets[f"action WM state: TCP error at the last step, share of the distance moved (median), {first_ind}"][
-            "detail"
-        ]
-        == "1.20 cm"
-    )
-    assert met[f"action WM retrieval by state among 4 action sequences, {first_ind}"]  # 0.97 >= 0.95
-    assert met[f"action WM arm region PSNR, {first_ind} (dB; tokenizer 20.90)"]  # 2.8 dB below, within 3
-    assert not met[f"action WM motion ratio (rollout's frame-to-frame change over the real one), {first_ind}"]
-    assert not any(name.startswith("action WM state") and ood in name for name in met)
-    # The chosen source is judged (the classifier), not the better one on the held-out episodes.
+
+
+def test_open_loop_psnr_is_judged_against_the_tokenizer_within_its_split(met):
+    assert met[f"action WM open-loop PSNR, first 16 control steps, {OOD} (dB; tokenizer 27.00)"]  # within 3 dB
+    assert not met[f"action WM open-loop PSNR, first 16 control steps, {IND} (dB; tokenizer 27.00)"]  # 2.5 dB below
+    # An unseen object must keep its identity: 20 dB is 4 below the tokenizer's 24; IND has no such row.
+    assert not met[f"action WM open-loop object PSNR, first 16 control steps, {OOD} (dB; tokenizer 24.00)"]
+    assert not any("object PSNR" in name and IND in name for name in met)
+
+
+def test_retrieval_and_action_gain_have_stricter_goals_in_domain(targets, met):
+    assert met[f"{WHOLE}, {OOD}"]
+    assert targets[f"{WHOLE}, {OOD}"]["detail"].endswith("over 48 control steps: 0.700")
+    assert "the object's region: 0.600" in targets[f"{WHOLE}, {OOD}"]["detail"]
+    assert targets[f"{WHOLE}, {OOD}"]["goal"] == ">= 0.75" and targets[f"{WHOLE}, {IND}"]["goal"] == ">= 0.9"
+    assert not met[f"{WHOLE}, {IND}"]  # 0.8 meets the OOD goal, not the in-domain one
+    assert not met[f"action WM action gain (dB), first 16 control steps, {OOD}"]  # 2.5 < 3
+    assert met[f"action WM action gain (dB), first 16 control steps, {IND}"]
+
+
+def test_the_arms_measures_are_read_in_domain_only(targets, met):
+    tcp = f"action WM state: TCP error at the last step, share of the distance moved (median), {FIRST_IND}"
+    assert not met[tcp] and targets[tcp]["detail"] == "1.20 cm"
+    assert met[f"action WM retrieval by state among 4 action sequences, {FIRST_IND}"]  # 0.97 >= 0.95
+    assert met[f"action WM arm region PSNR, {FIRST_IND} (dB; tokenizer 20.90)"]  # 2.8 dB below, within 3
+    assert not met[f"action WM motion ratio (rollout's frame-to-frame change over the real one), {FIRST_IND}"]
+    assert not any(name.startswith("action WM state") and OOD in name for name in met)
+
+
+def test_the_chosen_done_source_is_judged_not_the_better_one(targets, met):
     assert met["done ROC-AUC, teacher forced, frames of held-out OOD episodes (classifier)"]
     assert not met["done ROC-AUC, open loop, frames of held-out OOD episodes (classifier)"]  # 0.85 < 0.9
     assert met["done: failed episodes called done at the threshold, teacher forced (classifier)"]  # 1 of 10
@@ -134,10 +169,16 @@ def test_targets_compare_the_measured_values_with_the_goals():
     assert met[f"done: successful episodes called done at the threshold, {in_domain}"]  # 9 of 10 >= 0.7
     assert met[f"done: failed episodes called done at the threshold, {in_domain}"]  # 2 of 10 <= 0.2 in domain
     assert targets[f"done: failed episodes called done at the threshold, {in_domain}"]["goal"] == "<= 0.2"
+
+
+def test_goal_and_reward_targets(met):
     assert met["goal: text model reaches done within the family's horizon (share of held-out starts)"]
     assert not met["goal frame nearer the real final frame than the start (tokenizer similarity)"]
     assert met["goal made under its own instruction nearer the real success than another family's goal"]
     assert not met["world-model reward: ROC-AUC of the return, held-out OOD episodes"]  # the embedding beats it
+
+
+def test_the_policies_are_compared_within_a_split(met):
     assert not met["roboscape_mlp SFT IND success, push"]  # 0.4 is below push's 0.6
     assert met["roboscape_mlp PPO in WM vs Supervised finetune, IND (all families)"]
     assert not met["roboscape_mlp PPO in WM vs Supervised finetune, OOD (all families)"]  # equal is not higher
