@@ -32,7 +32,6 @@ from lerobot_roboscape.training.checkpoints import FINAL, last_checkpoint, publi
 from lerobot_roboscape.training.loop import resolve_device, save_atomically
 from lerobot_roboscape.world_model.done_tuning import SourceFit, refit_done_head
 from lerobot_roboscape.world_model.modeling_world_model import STWorldModel
-from roboscape_core.errors import InvalidInputError
 
 REFRESH_DIR = "done_refresh"  # in the PPO run's folder: round_<r>/ (the refitted model and its figures)
 REFRESH_SEED = 300_000  # the rollouts' initial states, apart from Table 1's and the curve's
@@ -72,37 +71,43 @@ class DoneRefresh:
 
 
 def ppo_with_done_refresh(cfg: PPOConfig, fresh: bool = False, *, refresh: DoneRefresh) -> Path:
-    """PPO in the world model of `cfg.env` over `refresh.rounds` slices of `cfg.time_budget_s`, its done head
-    refitted before each slice; one run folder (so its checkpoints form one curve), resumed from
-    its last checkpoint and round when interrupted. Returns the final checkpoint."""
+    """PPO in the world model of `cfg.env` over `refresh.rounds` equal slices of its run (of `cfg.time_budget_s`
+    where it has one, else of `cfg.iterations`), its done head refitted before each slice; one run folder (so its
+    checkpoints form one curve), resumed from its last checkpoint and round when interrupted. Returns the final
+    checkpoint."""
     folder = Path(cfg.output_dir)
-    if cfg.time_budget_s is None:
-        raise InvalidInputError(
-            "the done refresh slices PPO's clock: give PPO a time budget (--pipeline.ppo.time_budget_s)"
-        )
     train_once(folder, {"ppo": cfg, "refresh": refresh}, fresh, lambda resume: _rounds(cfg, refresh, resume))
     return publish_final(folder)
 
 
+def slice_ends(cfg: PPOConfig, rounds: int) -> list[dict]:
+    """Where each slice of the run ends, as PPO's settings: its clock's seconds, or its iterations (whole ones, the
+    last slice ending at the run's)."""
+    if cfg.time_budget_s is not None:
+        return [{"time_budget_s": cfg.time_budget_s * (r + 1) / rounds} for r in range(rounds)]
+    return [{"iterations": math.ceil(cfg.iterations * (r + 1) / rounds)} for r in range(rounds)]
+
+
 def _rounds(cfg: PPOConfig, refresh: DoneRefresh, resume: bool) -> None:
     folder, env = Path(cfg.output_dir), cfg.env
-    for r in range(refresh.rounds):
+    for r, end in enumerate(slice_ends(cfg, refresh.rounds)):
         # The first refit plays the policy PPO starts from: the head is tuned on demonstrations only, and can call
         # that policy's failures success from the first iteration. Each refit starts from the last one's head.
         policy = last_checkpoint(folder) / FINAL if r else cfg.policy_path  # a path or a Hub repo id
         model = refreshed_world_model(refresh, env.action_world_model, policy, r, folder)
         env = replace(env, action_world_model=str(model))
-        budget = cfg.time_budget_s * (r + 1) / refresh.rounds
-        if _ppo_seconds(folder) >= budget:  # this slice ran before an interruption
+        if _slice_ran(folder, end):  # before an interruption
             continue
-        train_ppo(replace(cfg, env=env, time_budget_s=budget, resume=resume or last_checkpoint(folder) is not None))
+        train_ppo(replace(cfg, env=env, **end, resume=resume or last_checkpoint(folder) is not None))
 
 
-def _ppo_seconds(folder: Path) -> float:
+def _slice_ran(folder: Path, end: dict) -> bool:
     checkpoint = last_checkpoint(folder)
     if checkpoint is None:
-        return 0.0
-    return checkpoint_seconds(checkpoint)
+        return False
+    if "time_budget_s" in end:
+        return checkpoint_seconds(checkpoint) >= end["time_budget_s"]
+    return int(checkpoint.name) >= end["iterations"]
 
 
 @dataclass(frozen=True)
