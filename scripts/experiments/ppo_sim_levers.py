@@ -156,7 +156,8 @@ def evaluate(policy: Path, output_dir: Path, episodes: int, seed: int, workers: 
 
 
 def episodes_per_iteration(folder: Path) -> int:
-    return json.loads((folder / PPO_CONFIG_JSON).read_text())["num_envs"]
+    # from a checkpoint's settings: a run stopped before its end has no final policy nor settings beside it
+    return json.loads((checkpoints(folder)[-1] / PPO_CONFIG_JSON).read_text())["num_envs"]
 
 
 def checkpoints(folder: Path) -> list[Path]:
